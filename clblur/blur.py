@@ -1,0 +1,65 @@
+"""The one public blur function; it validates once and hands the plan to a backend."""
+
+from __future__ import annotations
+
+import os
+import warnings
+
+import numpy as np
+
+from clblur import reference
+from clblur.plan import make_plan
+
+BACKENDS = ("auto", "numpy", "opencl")
+_warned_fallback = False
+
+
+def blur(image: np.ndarray, motion, response="exp", *, anchor: str = "center",
+         samples: int | None = None, weights=None, backend: str = "auto",
+         saturation: float = 1.0, device: str | None = None) -> np.ndarray:
+    """Photo-consistent motion blur (Lin & Chang 2006, Eq. 8/9).
+
+    ``g(p) = I( sum_j w_j I^-1(f(p - v(p) (s_j - a))) )``: linearise with the inverse
+    response, integrate along the motion in the linear domain, re-apply the response, quantise.
+
+    Parameters
+    ----------
+    image : H x W or H x W x C array, uint8 / uint16 / float32 / float64.
+    motion : ``(dx, dy)`` for the whole image, an H x W x 2 flow field, or a 2-D PSF kernel
+        (see ``clblur.motion`` for the conventions: x right, y down, content displacement).
+    response : spec (``"linear"``, ``"exp"``, ``"gamma:2.2"``, ``"srgb"``, a JSON path), a
+        ``Response``, or a sequence of them, one per channel.
+    anchor : ``"start"``, ``"center"`` or ``"end"``: which time of the shutter interval the
+        static image shows.
+    samples : samples per pixel; default ``ceil(|v|) + 1`` per pixel.
+    weights : per-sample time weights (non-uniform velocity); sets ``samples`` if not given.
+    backend : ``"auto"`` (OpenCL when a device can build and run a kernel, else numpy with one
+        warning), ``"numpy"`` (the float64 reference) or ``"opencl"``.
+    saturation : exposure given to full-scale pixels, in units of the least exposure that
+        saturates (>= 1; see ``clblur.pixels``).
+    device : OpenCL device selector (overrides ``CLBLUR_DEVICE``); see ``clblur info``.
+
+    Returns the blurred image with the input's dtype and shape.
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}; use one of {', '.join(BACKENDS)}")
+    plan = make_plan(image, motion, response, anchor=anchor, samples=samples, weights=weights,
+                     saturation=saturation)
+    if backend == "numpy":
+        return reference.blur(plan)
+    from clblur import opencl
+
+    if backend == "auto":
+        ok, why = opencl.usable(device)
+        if not ok:
+            _warn_fallback(why)
+            return reference.blur(plan)
+    return opencl.blur(plan, device=device)
+
+
+def _warn_fallback(why: str) -> None:
+    global _warned_fallback
+    if not _warned_fallback and not os.environ.get("CLBLUR_QUIET"):
+        warnings.warn(f"clblur: no usable OpenCL device ({why}); using the numpy reference "
+                      "backend, which is much slower", RuntimeWarning, stacklevel=3)
+    _warned_fallback = True
