@@ -8,7 +8,7 @@ import warnings
 import numpy as np
 
 from clblur import reference
-from clblur.plan import make_plan
+from clblur.plan import BlurPlan, make_plan
 
 BACKENDS = ("auto", "numpy", "opencl")
 _warned_fallback = False
@@ -41,19 +41,40 @@ def blur(image: np.ndarray, motion, response="exp", *, anchor: str = "center",
 
     Returns the blurred image with the input's dtype and shape.
     """
-    if backend not in BACKENDS:
-        raise ValueError(f"unknown backend {backend!r}; use one of {', '.join(BACKENDS)}")
+    check_backend(backend)
     plan = make_plan(image, motion, response, anchor=anchor, samples=samples, weights=weights,
                      saturation=saturation)
-    if backend == "numpy":
+    return blur_plan(plan, backend, device)
+
+
+def check_backend(backend: str) -> None:
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}; use one of {', '.join(BACKENDS)}")
+
+
+def resolve_backend(backend: str, device: str | None = None) -> str:
+    """The backend that will actually run: ``"auto"`` becomes ``"opencl"`` or ``"numpy"``."""
+    check_backend(backend)
+    if backend != "auto":
+        return backend
+    try:
+        from clblur import opencl
+    except ImportError as e:  # pyopencl (or the backend module) missing: fall back, as promised
+        _warn_fallback(f"OpenCL backend unavailable: {e}")
+        return "numpy"
+    ok, why = opencl.usable(device)
+    if not ok:
+        _warn_fallback(why)
+        return "numpy"
+    return "opencl"
+
+
+def blur_plan(plan: BlurPlan, backend: str = "auto", device: str | None = None) -> np.ndarray:
+    """Run a validated plan (whole image or a tiling window) on a backend."""
+    if resolve_backend(backend, device) == "numpy":
         return reference.blur(plan)
     from clblur import opencl
 
-    if backend == "auto":
-        ok, why = opencl.usable(device)
-        if not ok:
-            _warn_fallback(why)
-            return reference.blur(plan)
     return opencl.blur(plan, device=device)
 
 
