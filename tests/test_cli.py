@@ -1,0 +1,122 @@
+"""The command line: blur, info, demo, and clear one-line errors with exit code 2."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from clblur.cli import main
+from clblur.io import read_image, write_flow, write_image
+
+
+@pytest.fixture
+def scene(tmp_path, rng):
+    img = rng.integers(0, 256, (24, 32, 3)).astype(np.uint8)
+    path = tmp_path / "in.png"
+    write_image(path, img)
+    return path, img
+
+
+def run(*argv):
+    return main([str(a) for a in argv])
+
+
+def test_blur_motion_matches_api(tmp_path, scene):
+    import clblur
+
+    src, img = scene
+    out = tmp_path / "out.png"
+    assert run("blur", src, out, "--motion=-6,2", "--response", "srgb",
+               "--backend", "numpy") == 0
+    expected = clblur.blur(img, (-6, 2), "srgb", backend="numpy")
+    np.testing.assert_array_equal(read_image(out), expected)
+    assert not list(tmp_path.glob(".*part*")), "temp files left behind"
+
+
+@pytest.mark.parametrize("suffix", [".npy", ".flo"])
+def test_blur_flow_files(tmp_path, scene, suffix):
+    import clblur
+
+    src, img = scene
+    flow = np.random.default_rng(3).normal(0, 3, (24, 32, 2)).astype(np.float32)
+    fpath = tmp_path / f"flow{suffix}"
+    write_flow(fpath, flow)
+    out = tmp_path / "out.png"
+    assert run("blur", src, out, "--flow", fpath, "--backend", "numpy") == 0
+    np.testing.assert_array_equal(read_image(out), clblur.blur(img, flow, backend="numpy"))
+
+
+def test_blur_psf_and_response_file(tmp_path, scene):
+    import clblur
+
+    src, img = scene
+    k = np.zeros((5, 5), np.uint8)
+    k[2, :] = 255
+    write_image(tmp_path / "k.png", k)
+    clblur.Gamma(1.8).save(tmp_path / "r.json")
+    out = tmp_path / "out.png"
+    assert run("blur", src, out, "--psf", tmp_path / "k.png", "--response",
+               tmp_path / "r.json", "--backend", "numpy") == 0
+    np.testing.assert_array_equal(read_image(out),
+                                  clblur.blur(img, (4, 0), "gamma:1.8", backend="numpy"))
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--motion", "3"], "DX,DY"),
+    (["--motion", "3,1", "--response", "gamma:-1"], "positive"),
+    (["--motion", "3,1", "--response", "nope"], "unknown response"),
+    (["--motion", "3,1", "--samples", "0"], "samples"),
+    (["--flow", "missing.npy"], "not found"),
+])
+def test_bad_input_exit_2(tmp_path, scene, capsys, args, message):
+    src, _ = scene
+    assert run("blur", src, tmp_path / "o.png", *args, "--backend", "numpy") == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1 and "Traceback" not in err
+
+
+def test_bad_files_exit_2(tmp_path, scene, capsys):
+    src, _ = scene
+    notimg = tmp_path / "not.png"
+    notimg.write_text("hello")
+    assert run("blur", notimg, tmp_path / "o.png", "--motion", "1,0") == 2
+    assert "cannot read image" in capsys.readouterr().err
+    flow = tmp_path / "f.npy"
+    np.save(flow, np.zeros((5, 5, 2), np.float32))
+    assert run("blur", src, tmp_path / "o.png", "--flow", flow, "--backend", "numpy") == 2
+    assert "expected (24, 32, 2)" in capsys.readouterr().err
+    nan = tmp_path / "nan.npy"
+    f = np.zeros((24, 32, 2), np.float32)
+    f[3, 4] = np.nan
+    np.save(nan, f)
+    assert run("blur", src, tmp_path / "o.png", "--flow", nan, "--backend", "numpy") == 2
+    assert "NaN" in capsys.readouterr().err
+    trunc = tmp_path / "t.flo"
+    write_flow(trunc, np.zeros((24, 32, 2), np.float32))
+    trunc.write_bytes(trunc.read_bytes()[:100])
+    assert run("blur", src, tmp_path / "o.png", "--flow", trunc) == 2
+    assert "truncated" in capsys.readouterr().err
+
+
+def test_refuses_to_overwrite_input(scene, capsys):
+    src, img = scene
+    before = src.read_bytes()
+    assert run("blur", src, src, "--motion", "4,0") == 2
+    assert "refusing to overwrite" in capsys.readouterr().err
+    assert src.read_bytes() == before
+
+
+def test_demo_renders_figures(tmp_path):
+    assert run("demo", "--out", tmp_path, "--backend", "numpy") == 0
+    for name in ("figure3_step_edge.png", "figure4_ball.png", "side_by_side.png",
+                 "ball_exp.png"):
+        img = read_image(tmp_path / name)
+        assert img.shape[0] > 100 and img.std() > 5
+
+
+def test_info_runs_as_a_script():
+    r = subprocess.run([sys.executable, "-m", "clblur.cli", "info"], capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "clblur" in r.stdout and "pyopencl" in r.stdout

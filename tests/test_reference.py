@@ -1,0 +1,226 @@
+"""The numpy reference: invariances, the paper's equations, conventions and errors.
+
+These tests pin the specification itself; tests/test_opencl.py checks the kernels against it.
+"""
+
+import numpy as np
+import pytest
+
+import clblur
+from clblur.demo import STEP_HIGH, STEP_LOW, step_edge
+from clblur.motion import sample_counts
+
+
+def blur(*args, **kw):
+    return clblur.blur(*args, backend="numpy", **kw)
+
+
+def random_image(rng, shape, dtype):
+    if np.dtype(dtype).kind == "f":
+        return rng.random(shape).astype(dtype)
+    top = np.iinfo(dtype).max
+    return rng.integers(0, top + 1, shape).astype(dtype)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32, np.float64])
+@pytest.mark.parametrize("resp", ["linear", "exp", "gamma:2.2", "srgb"])
+def test_constant_image_stays_constant(dtype, resp):
+    top = 1.0 if np.dtype(dtype).kind == "f" else np.iinfo(dtype).max
+    for level in (0, 0.37, 1.0):
+        img = np.full((9, 13, 3), level * top, dtype=dtype)
+        if np.dtype(dtype).kind != "f":
+            img = np.full((9, 13, 3), round(level * top), dtype=dtype)
+        flow = np.random.default_rng(1).normal(0, 4, (9, 13, 2))
+        for motion in ((7.3, -2.1), flow):
+            out = blur(img, motion, resp)
+            if np.dtype(dtype).kind == "f":
+                # Full scale under exp linearises to 1 - q/4 (q = 1/65535 for floats).
+                np.testing.assert_allclose(out, img, atol=1e-9 if level < 1 else 0.26 / 65535)
+            else:
+                np.testing.assert_array_equal(out, img)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32, np.float64])
+@pytest.mark.parametrize("resp", ["linear", "exp", "gamma:2.2", "srgb"])
+def test_zero_motion_is_identity(rng, dtype, resp):
+    img = random_image(rng, (11, 7, 2), dtype)
+    out = blur(img, (0, 0), resp)
+    assert out.dtype == img.dtype and out.shape == img.shape
+    if np.dtype(dtype).kind == "f":
+        np.testing.assert_allclose(out, img, atol=1e-6 if dtype == np.float32 else 1e-12)
+    else:
+        np.testing.assert_array_equal(out, img)
+    np.testing.assert_array_equal(blur(img, np.zeros((11, 7, 2)), resp), out)
+
+
+def box_blur_rows(img, k):
+    """Eq. 7: mean of f(x - j), j = 0..k-1, clamping at the left edge."""
+    padded = np.concatenate([np.repeat(img[:, :1], k - 1, axis=1), img], axis=1)
+    return np.mean([padded[:, k - 1 - j:k - 1 - j + img.shape[1]] for j in range(k)], axis=0)
+
+
+def eq9_rows(img, k, inverse, forward):
+    return forward(box_blur_rows(inverse(img), k))
+
+
+@pytest.mark.parametrize("k", [2, 5, 16])
+def test_linear_equals_box_blur_eq7(rng, k):
+    img = rng.random((6, 40))
+    out = blur(img, (k - 1, 0), "linear", anchor="start", samples=k)
+    np.testing.assert_allclose(out, box_blur_rows(img, k), atol=1e-12)
+
+
+@pytest.mark.parametrize("k", [2, 7, 19])
+def test_eq9_reproduced_exactly(rng, k):
+    """v = (K-1, 0), anchor start, N = K: the paper's Eq. 9 on integer taps, uint8 exact."""
+    img = rng.integers(0, 255, (5, 50)).astype(np.uint8)  # no saturated pixels
+    resp = clblur.Exp(1.0)
+    expected = eq9_rows(img / 255.0, k, resp.inverse, resp.forward)
+    out = blur(img, (k - 1, 0), resp, anchor="start", samples=k)
+    np.testing.assert_array_equal(out, np.rint(expected * 255).astype(np.uint8))
+    # The default sample count gives the same N for integer lengths.
+    np.testing.assert_array_equal(blur(img, (k - 1, 0), resp, anchor="start"), out)
+
+
+def test_k_cancels_in_eq9(rng):
+    """With one shared exposure, k only rescales exposure: Eq. 9 does not depend on it."""
+    img = rng.random((12, 30, 3))
+    flow = rng.normal(0, 5, (12, 30, 2))
+    a = blur(img, flow, clblur.Exp(0.05))
+    b = blur(img, flow, clblur.Exp(20.0))
+    np.testing.assert_allclose(a, b, atol=1e-12)
+    # ... and the result is a geometric mean of (1 - f), here along a horizontal path.
+    one_row = rng.random((1, 30))
+    g = blur(one_row, (4, 0), "exp", anchor="start", samples=5)
+    geo = 1 - np.exp(box_blur_rows(np.log1p(-one_row), 5))
+    np.testing.assert_allclose(g, geo, atol=1e-12)
+
+
+def test_step_edge_matches_closed_form_and_is_asymmetric():
+    step = step_edge()
+    v = 48
+    out = blur(step, (v, 0), "exp", anchor="center")[0].astype(float)
+    lo, hi = STEP_LOW / 255, STEP_HIGH / 255
+    x = np.arange(step.shape[1])
+    edge = step.shape[1] // 2
+    # N = v + 1 integer-spaced samples at x - v/2 ... x + v/2; m of them on the bright side.
+    offsets = np.arange(v + 1) - v / 2
+    m = ((x[:, None] - offsets[None, :]) >= edge).sum(axis=1)
+    t = m / (v + 1)
+    closed = 1 - (1 - lo) ** (1 - t) * (1 - hi) ** t
+    np.testing.assert_allclose(out, np.rint(closed * 255), atol=0)
+    linear = blur(step, (v, 0), "linear", anchor="center")[0].astype(float)
+    # Photo-consistent blur is brighter than the box blur across the whole transition ...
+    transition = (x > edge - v // 2) & (x < edge + v // 2 - 1)
+    assert np.all(out[transition] > linear[transition])
+    # ... and asymmetric: at the geometric centre it is far above the mid level.
+    mid = (STEP_LOW + STEP_HIGH) / 2
+    assert out[edge] - mid > 30 and abs(linear[edge] - mid) <= 3
+
+
+def test_anchors_shift_the_path(rng):
+    img = rng.random((3, 40))
+    start = blur(img, (6, 0), "linear", anchor="start")
+    end = blur(img, (6, 0), "linear", anchor="end")
+    center = blur(img, (6, 0), "linear", anchor="center")
+    # start integrates [x-6, x], end [x, x+6], center [x-3, x+3].
+    np.testing.assert_allclose(start[:, 12:34], end[:, 6:28], atol=1e-12)
+    np.testing.assert_allclose(center[:, 12:34], start[:, 15:37], atol=1e-12)
+
+
+def test_motion_direction_convention():
+    """Content travels +x during the exposure: a dot smears to the right of where it started."""
+    img = np.zeros((5, 30))
+    img[2, 10] = 1.0
+    out = blur(img, (8, 0), "linear", anchor="start")
+    cols = np.nonzero(out[2])[0]
+    assert cols.min() == 10 and cols.max() == 18
+    down = blur(img.T.copy(), (0, 8), "linear", anchor="start")
+    assert np.nonzero(down[:, 2])[0].min() == 10
+
+
+def test_time_weights(rng):
+    img = rng.random((4, 30))
+    w = np.array([3.0, 0, 0, 0, 1.0])
+    out = blur(img, (4, 0), "linear", anchor="start", weights=w)
+    expected = 0.75 * img + 0.25 * np.concatenate([np.repeat(img[:, :1], 4, 1), img[:, :-4]], 1)
+    np.testing.assert_allclose(out, expected, atol=1e-12)
+    with pytest.raises(ValueError, match="time weights"):
+        blur(img, (4, 0), weights=[1, 2], samples=3)
+
+
+def test_psf_is_a_convolution(rng):
+    img = rng.random((20, 25))
+    k = np.zeros((5, 5))
+    k[2, 4] = 1.0  # displacement (+2, 0): content moves right
+    out = blur(img, k, "linear")
+    np.testing.assert_allclose(out[:, 2:], img[:, :-2], atol=1e-12)
+    box = np.ones((1, 5))
+    np.testing.assert_allclose(blur(img, box, "linear"), blur(img, (4, 0), "linear"),
+                               atol=1e-12)
+
+
+def test_saturation_policy():
+    img = np.zeros((3, 21), np.uint8)
+    img[:, 10] = 255
+    for resp in ("exp", "linear", "srgb"):
+        const = np.full((4, 4), 255, np.uint8)
+        np.testing.assert_array_equal(blur(const, (5, 0), resp), const)
+    base = blur(img, (6, 0), "exp")
+    brighter = blur(img, (6, 0), "exp", saturation=8.0)
+    assert brighter[1, 10] > base[1, 10] > 0
+    # saturation touches only clipped pixels
+    unclipped = img.copy()
+    unclipped[:, 10] = 254
+    np.testing.assert_array_equal(blur(unclipped, (6, 0), "exp", saturation=8.0),
+                                  blur(unclipped, (6, 0), "exp"))
+    with pytest.raises(ValueError, match="saturation"):
+        blur(img, (6, 0), saturation=0.5)
+
+
+def test_sample_counts_exact_near_integers():
+    for n in (1, 2, 5, 17, 100):
+        for eps in (0.0, 1e-4, -1e-4, 3e-7, -3e-7):
+            length = np.float32(n + eps)
+            got = int(sample_counts(length, np.float32(0)))
+            assert got == int(np.ceil(np.float64(length))) + 1
+    # a diagonal of exact integer length
+    assert int(sample_counts(np.float32(3), np.float32(4))) == 6
+
+
+def test_linear_float_is_unbounded(rng):
+    img = (rng.random((6, 8)) * 4).astype(np.float32)  # scene-linear, above 1
+    out = blur(img, (3, 0), "linear")
+    assert out.max() > 1.5
+
+
+@pytest.mark.parametrize("bad,match", [
+    (np.zeros((0, 5), np.uint8), "empty"),
+    (np.zeros((4, 5), np.int32), "dtype"),
+    (np.zeros((4, 5, 3, 2), np.uint8), "H x W"),
+    (np.full((4, 5), np.nan), "NaN"),
+    ([[1, 2]], "numpy array"),
+])
+def test_bad_images(bad, match):
+    with pytest.raises((ValueError, TypeError), match=match):
+        blur(bad, (1, 0))
+
+
+def test_bad_motion_and_options():
+    img = np.zeros((4, 5), np.uint8)
+    with pytest.raises(ValueError, match="expected \\(4, 5, 2\\)"):
+        blur(img, np.zeros((5, 4, 2)))
+    flow = np.zeros((4, 5, 2))
+    flow[1, 2, 0] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        blur(img, flow)
+    with pytest.raises(ValueError, match="samples must be >= 1"):
+        blur(img, (1, 0), samples=0)
+    with pytest.raises(ValueError, match="anchor"):
+        blur(img, (1, 0), anchor="middle")
+    with pytest.raises(ValueError, match="unknown response"):
+        blur(img, (1, 0), "cubic")
+    with pytest.raises(ValueError, match="backend"):
+        clblur.blur(img, (1, 0), backend="cuda")
+    with pytest.raises(ValueError, match="PSF weights sum to zero"):
+        blur(img, np.zeros((3, 3)))
