@@ -130,8 +130,8 @@ def render(out_dir: Path, backend: str = "auto", device: str | None = None) -> l
         ax.axis("off")
     yb = int(ball.shape[0] * 0.36)
     for name in ("static", "linear (Eq. 7)", "exp (Eq. 9)"):
-        axes[1, 0].plot(results[name][yb, :, 0], label=name)
-    axes[1, 0].set_title(f"red channel along row {yb} (through the highlight)")
+        axes[1, 0].plot(results[name][yb, :, 2], label=name)
+    axes[1, 0].set_title(f"blue channel along row {yb}: only the highlight is bright")
     axes[1, 0].legend(fontsize=8)
     axes[1, 1].plot(x, eq7[row], label="Eq. 7")
     axes[1, 1].plot(x, eq9[row], label="Eq. 9")
