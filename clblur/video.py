@@ -1,0 +1,284 @@
+"""Flow-driven motion blur for video: ``clblur video IN OUT``.
+
+Conventions
+-----------
+* Frame ``i`` is the scene at its frame time ``t_i``; the synthetic shutter is open over
+  ``[t_i - s T / 2, t_i + s T / 2]`` with ``T`` the frame interval and ``s = shutter / 360``
+  (a shutter angle in degrees, 0..360), so the exposure is centred on the frame time.
+* Motion vectors follow ``clblur.motion``: how far content travels across the sensor during the
+  exposure (or part of it), x right, y down.  Flows follow ``clblur.flow``: the backward flow
+  ``B`` of frame ``i`` points to where its content was in frame ``i-1``, the forward flow
+  ``F`` to where it will be in frame ``i+1``.
+* The path can bend: during the first half of the shutter content travels from ``p + s B / 2``
+  to ``p`` (vector ``-s B / 2``, the frame time is the *end* of that half), during the second
+  half from ``p`` to ``p + s F / 2`` (vector ``s F / 2``, the frame time is its *start*).
+  Each half is a straight blur; both are integrated in the linear domain and averaged (the
+  halves last equally long), then the response is re-applied once:
+  ``g = I((E_first + E_second) / 2)``, which is the paper's Eq. 8 over the whole bent path.
+* At the ends of a sequence one flow is missing; the other one is mirrored (constant velocity).
+* ``samples`` counts samples per half of the shutter (default ``ceil(|v|) + 1`` per pixel).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from dataclasses import dataclass, field
+from fractions import Fraction
+from pathlib import Path
+
+import numpy as np
+
+from clblur.blur import blur
+from clblur.flow import FlowEstimator, FlowFolder, save_flows
+from clblur.io import refuse_overwrite
+from clblur.pixels import linearise, normalise, quantise, validate_saturation
+from clblur.plan import check_image
+from clblur.responses import per_channel
+from clblur.video_io import DEFAULT_CRF, Frame, VideoReadError, open_sink, open_source
+
+# Chosen from docs/studies/video.md (GoPro 240 fps ground truth).
+DEFAULT_RESPONSE = "srgb"
+DEFAULT_SHUTTER = 180.0
+
+
+def shutter_fraction(shutter: float) -> float:
+    """Shutter angle in degrees -> fraction of the frame interval the shutter is open."""
+    try:
+        s = float(shutter)
+    except (TypeError, ValueError):
+        raise TypeError(f"shutter must be an angle in degrees, got {shutter!r}") from None
+    if not np.isfinite(s) or s < 0 or s > 360:
+        raise ValueError(f"shutter angle must be within 0..360 degrees, got {shutter}")
+    return s / 360.0
+
+
+def _check_flow(flow, shape: tuple[int, int], what: str) -> np.ndarray | None:
+    if flow is None:
+        return None
+    f = np.asarray(flow, dtype=np.float32)
+    if f.shape != (*shape, 2):
+        raise ValueError(f"{what} flow has shape {f.shape}, expected {(*shape, 2)}")
+    if not np.isfinite(f).all():
+        raise ValueError(f"{what} flow contains NaN or infinite values")
+    return f
+
+
+def half_paths(backward: np.ndarray | None, forward: np.ndarray | None, shutter: float,
+               shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel motion of the first and second half of the shutter (H x W x 2 float32 each).
+
+    A missing flow mirrors the other; both missing (a single frame) means no motion.
+    """
+    s = shutter_fraction(shutter)
+    b = _check_flow(backward, shape, "backward")
+    f = _check_flow(forward, shape, "forward")
+    if b is None and f is None:
+        b = f = np.zeros((*shape, 2), np.float32)
+    elif b is None:
+        b = -f
+    elif f is None:
+        f = -b
+    return (np.float32(-s / 2) * b, np.float32(s / 2) * f)
+
+
+def blur_frame(frame: np.ndarray, backward: np.ndarray | None, forward: np.ndarray | None,
+               response=DEFAULT_RESPONSE, *, shutter: float = DEFAULT_SHUTTER,
+               samples: int | None = None, backend: str = "auto", saturation: float = 1.0,
+               device: str | None = None) -> np.ndarray:
+    """Blur one frame along the bent path given by its backward and forward flows.
+
+    Returns an array with the frame's dtype and shape (see the module Conventions).
+    """
+    img = check_image(frame)
+    dtype = img.dtype
+    responses = per_channel(response, img.shape[2])
+    sat = validate_saturation(saturation)
+    first, second = half_paths(backward, forward, shutter, img.shape[:2])
+    values = normalise(img)
+    lin = np.empty(img.shape, np.float32)
+    for c, r in enumerate(responses):
+        lin[..., c] = linearise(values[..., c], r, dtype, sat)
+    # The halves are exposures, not pictures: blur them with the identity response on the
+    # linearised frame, so nothing is quantised before they are summed.
+    opts = dict(samples=samples, backend=backend, device=device)
+    e_first = blur(lin, first, "linear", anchor="end", **opts)
+    e_second = blur(lin, second, "linear", anchor="start", **opts)
+    exposure = 0.5 * (e_first.astype(np.float64) + e_second)
+    out = np.empty(exposure.shape, np.float64)
+    for c, r in enumerate(responses):
+        out[..., c] = r.forward(exposure[..., c])
+    return quantise(out, dtype).reshape(frame.shape)
+
+
+@dataclass
+class VideoResult:
+    output: Path
+    frames: int
+    fps: Fraction
+    audio: str  # "copied", "none" or "dropped" (image-sequence output)
+    seconds: dict[str, float] = field(default_factory=lambda: dict.fromkeys(
+        ("decode", "flow", "blur", "encode"), 0.0))
+
+
+class _Flows:
+    """Backward/forward flow of each frame, estimated or read from a folder."""
+
+    def __init__(self, flow: str, save_dir: str | os.PathLike | None):
+        self.folder = FlowFolder(flow) if Path(flow).is_dir() else None
+        self.estimate = None if self.folder else FlowEstimator(flow)
+        self.save_dir = save_dir
+        if save_dir is not None and not Path(save_dir).is_dir():
+            raise ValueError(f"--save-flows folder does not exist: {save_dir}")
+
+    def between(self, a: Frame, b: Frame) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """(forward flow of ``a``, backward flow of ``b``) for neighbours ``a``, ``b``."""
+        if self.folder is not None:
+            shape = a.image.shape[:2]
+            return (self.folder.get("forward", a.index, shape),
+                    self.folder.get("backward", b.index, shape))
+        return self.estimate(a.image, b.image), self.estimate(b.image, a.image)
+
+
+def blur_video(src: str | os.PathLike, dst: str | os.PathLike, *,
+               response=DEFAULT_RESPONSE, shutter: float = DEFAULT_SHUTTER,
+               flow: str = "dis", samples: int | None = None, backend: str = "auto",
+               saturation: float = 1.0, device: str | None = None, fps: float | None = None,
+               codec: str | None = None, crf: int = DEFAULT_CRF,
+               save_flows_to: str | os.PathLike | None = None,
+               progress: bool = False) -> VideoResult:
+    """Blur every frame of a video file or image folder ``src`` into ``dst``.
+
+    The output keeps the input's frame rate and timestamps (``fps`` sets it for an image
+    sequence) and copies the audio.  On unreadable or truncated input the frames decoded so
+    far are blurred, written and finalised, then ``VideoReadError`` says how many.
+    """
+    from tqdm import tqdm
+
+    refuse_overwrite(dst, src)
+    shutter_fraction(shutter)
+    per_channel(response, 1)  # fail on a bad response before decoding anything
+    flows = _Flows(flow, save_flows_to)
+    source = open_source(src, fps)
+    result = VideoResult(Path(dst), 0, source.fps, "none")
+    sink, pending_audio = None, []
+    timer = result.seconds
+
+    def on_audio(packet):
+        if sink is None:
+            pending_audio.append(packet)
+        elif sink.audio_supported:
+            sink.copy_audio(packet)
+
+    def emit(frame: Frame, backward, forward) -> None:
+        t0 = time.perf_counter()
+        out = blur_frame(frame.image, backward, forward, response, shutter=shutter,
+                         samples=samples, backend=backend, saturation=saturation, device=device)
+        t1 = time.perf_counter()
+        sink.write(frame, out)
+        timer["blur"] += t1 - t0
+        timer["encode"] += time.perf_counter() - t1
+        result.frames += 1
+        bar.update()
+        if save_flows_to is not None:
+            save_flows(save_flows_to, frame.index, backward, forward)
+
+    bar = tqdm(total=source.declared_frames, unit="frame", disable=not progress,
+               desc=Path(src).name)
+    frames = source.frames(on_audio)
+    current, backward, finished = None, None, False
+    try:
+        while True:
+            t0 = time.perf_counter()
+            nxt = next(frames, None)
+            timer["decode"] += time.perf_counter() - t0
+            if nxt is None:
+                break
+            if sink is None:
+                h, w = nxt.image.shape[:2]
+                sink = open_sink(dst, source.fps, w, h, source.audio_stream, codec, crf)
+                result.audio = ("none" if source.audio_stream is None else
+                                "copied" if sink.audio_supported else "dropped")
+                for packet in pending_audio:
+                    on_audio(packet)
+            if current is not None:
+                if nxt.image.shape != current.image.shape:
+                    raise VideoReadError(f"frame {nxt.index} changes size from "
+                                         f"{current.image.shape} to {nxt.image.shape}",
+                                         frames_read=nxt.index)
+                t0 = time.perf_counter()
+                forward, next_backward = flows.between(current, nxt)
+                timer["flow"] += time.perf_counter() - t0
+                emit(current, backward, forward)
+                backward = next_backward
+            current = nxt
+        if current is not None:
+            emit(current, backward, None)
+        finished = True
+    except VideoReadError as e:
+        if current is not None:
+            emit(current, backward, None)  # the last good frame, extrapolating its motion
+            finished = True
+        if sink is not None:
+            sink.close(keep=True)
+            sink = None
+        kept = f"; kept the {result.frames} frame(s) written to {dst}" if result.frames else \
+            "; nothing was written"
+        raise VideoReadError(f"{e}{kept}", frames_read=result.frames) from None
+    finally:
+        bar.close()
+        source.close()
+        if sink is not None:
+            sink.close(keep=finished)
+    return result
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "video", help="motion-blur a video or image sequence along its optical flow",
+        description="Blur every frame along its optical flow: backward flow for the first "
+                    "half of the shutter, forward flow for the second, so the path can bend. "
+                    "IN and OUT are video files (.mp4 .mkv .mov .avi .webm) or image folders.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("input", metavar="IN")
+    p.add_argument("output", metavar="OUT")
+    p.add_argument("--shutter", type=float, default=DEFAULT_SHUTTER, metavar="DEG",
+                   help="shutter angle in degrees (360: open for the whole frame interval)")
+    p.add_argument("--flow", default="dis", metavar="dis|farneback|DIR",
+                   help="optical flow method, or a folder of forward_NNNNNN/backward_NNNNNN "
+                        ".flo/.npy files")
+    p.add_argument("--samples", type=int, default=None, metavar="N",
+                   help="samples per pixel for each half of the shutter (default: "
+                        "ceil(|v|)+1 per pixel)")
+    p.add_argument("--response", default=DEFAULT_RESPONSE, metavar="SPEC",
+                   help="camera response: linear, exp, exp:K, gamma:G, srgb or a JSON file")
+    p.add_argument("--saturation", type=float, default=1.0, metavar="S",
+                   help="exposure of clipped pixels in units of the least saturating one")
+    p.add_argument("--backend", choices=["auto", "numpy", "opencl"], default="auto")
+    p.add_argument("--device", default=None, help="OpenCL device selector")
+    p.add_argument("--fps", type=float, default=None,
+                   help="frame rate of an image-sequence input (default 30)")
+    p.add_argument("--codec", default=None,
+                   help="video encoder (default: libx264 for .mp4/.mkv/.mov, mpeg4 for .avi, "
+                        "libvpx-vp9 for .webm)")
+    p.add_argument("--crf", type=int, default=DEFAULT_CRF, help="encoder quality (lower: better)")
+    p.add_argument("--save-flows", default=None, metavar="DIR",
+                   help="also write the flows used, in the --flow DIR layout")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_video)
+
+
+def cmd_video(args) -> int:
+    if args.fps is not None and not (np.isfinite(args.fps) and args.fps > 0):
+        raise ValueError(f"--fps must be a positive number, got {args.fps}")
+    result = blur_video(args.input, args.output, response=args.response, shutter=args.shutter,
+                        flow=args.flow, samples=args.samples, backend=args.backend,
+                        saturation=args.saturation, device=args.device, fps=args.fps,
+                        codec=args.codec, crf=args.crf, save_flows_to=args.save_flows,
+                        progress=not args.quiet)
+    audio = {"copied": ", audio copied", "dropped": ", audio dropped (image sequence output)",
+             "none": ""}[result.audio]
+    print(f"wrote {result.frames} frame(s) at {float(result.fps):g} fps to {result.output}"
+          f"{audio}")
+    return 0

@@ -1,0 +1,312 @@
+"""Video and image-sequence input/output for ``clblur video``.
+
+Conventions
+-----------
+* Frames are H x W x 3 RGB uint8 arrays (video files are decoded to ``rgb24``; image folders
+  keep the dtype of their files, uint8 or uint16, as ``clblur.io.read_image`` gives it).
+* A path is an image sequence when it is a folder (or, for output, has no suffix); otherwise
+  it is a video file and its suffix picks the container.
+* Audio is copied packet for packet (no re-encoding), so the output container must accept the
+  input's audio codec; image-sequence outputs cannot hold audio and report it as dropped.
+* Bad input raises ``VideoReadError`` (a ``ValueError``) carrying ``frames_read``, the number of
+  frames decoded before the problem, so a caller can keep and report what it already wrote.
+  A stream that ends early without a decoder error (a cut-off file) is detected by comparing the
+  decoded frames with the frame count or the duration the file declares for the video stream
+  (MP4 and MOV store a count, Matroska a duration).  Formats that declare neither (raw streams,
+  some AVI) can only report decoder errors.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from fractions import Fraction
+from pathlib import Path
+
+import numpy as np
+
+from clblur.io import _tmp_beside, read_image, write_image
+
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp")
+# Default encoder per output container; libx264 at CRF 17 is visually lossless for most content.
+VIDEO_CODECS = {".mp4": "libx264", ".mov": "libx264", ".mkv": "libx264", ".avi": "mpeg4",
+                ".webm": "libvpx-vp9"}
+DEFAULT_CRF = 17
+
+
+class VideoReadError(ValueError):
+    """The input could not be read (at all, or after ``frames_read`` frames)."""
+
+    def __init__(self, message: str, frames_read: int = 0):
+        super().__init__(message)
+        self.frames_read = frames_read
+
+
+@dataclass(frozen=True)
+class Frame:
+    index: int
+    image: np.ndarray
+    pts: int | None = None  # presentation time in ``time_base`` units (video files only)
+    time_base: Fraction | None = None
+    name: str | None = None  # file stem (image sequences only)
+
+
+def is_image_sequence(path: str | os.PathLike, for_output: bool = False) -> bool:
+    p = Path(path)
+    if p.is_dir():
+        return True
+    return for_output and p.suffix == ""
+
+
+def _natural_key(name: str) -> list:
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
+
+
+class ImageSequenceSource:
+    """Frames from the image files of a folder, in natural name order."""
+
+    def __init__(self, folder: str | os.PathLike, fps: float | Fraction = 30):
+        self.path = Path(folder)
+        self.files = sorted((f for f in self.path.iterdir()
+                             if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES),
+                            key=lambda f: _natural_key(f.name))
+        if not self.files:
+            raise VideoReadError(f"no image files ({', '.join(IMAGE_SUFFIXES)}) in {folder}")
+        self.fps = Fraction(fps).limit_denominator(1001000)
+        self.declared_frames: int | None = len(self.files)
+        self.audio_stream = None
+
+    def frames(self, on_audio: Callable | None = None) -> Iterator[Frame]:
+        shape = None
+        for i, f in enumerate(self.files):
+            try:
+                img = read_image(f)
+            except ValueError as e:
+                raise VideoReadError(f"frame {i} ({f.name}): {e}", frames_read=i) from None
+            if img.ndim == 3 and img.shape[2] == 4:
+                img = img[..., :3]  # video frames carry no alpha
+            if shape is not None and img.shape != shape:
+                raise VideoReadError(f"frame {i} ({f.name}) has shape {img.shape}, earlier "
+                                     f"frames {shape}", frames_read=i)
+            shape = img.shape
+            yield Frame(i, img, name=f.stem)
+
+    def close(self) -> None:
+        pass
+
+
+class VideoFileSource:
+    """Frames (and audio packets) of a video file, decoded with PyAV."""
+
+    def __init__(self, path: str | os.PathLike):
+        import av
+
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise VideoReadError(f"video file not found: {path}")
+        try:
+            self.container = av.open(str(self.path))
+        except av.FFmpegError as e:
+            raise VideoReadError(f"cannot read video {path}: {e}") from None
+        if not self.container.streams.video:
+            self.container.close()
+            raise VideoReadError(f"{path} has no video stream")
+        self.video_stream = self.container.streams.video[0]
+        self.video_stream.thread_type = "AUTO"
+        self.audio_stream = (self.container.streams.audio[0]
+                             if self.container.streams.audio else None)
+        rate = self.video_stream.average_rate or self.video_stream.guessed_rate
+        if not rate:
+            self.container.close()
+            raise VideoReadError(f"{path}: the video stream declares no frame rate")
+        self.fps = Fraction(rate)
+        self.declared_frames = self._declared_frames()
+
+    def _declared_end(self) -> float | None:
+        """End time (s) of the video stream as the file declares it, if it does."""
+        vs = self.video_stream
+        if vs.duration and vs.time_base:
+            return float(((vs.start_time or 0) + vs.duration) * vs.time_base)
+        tag = vs.metadata.get("DURATION")  # Matroska writes it per stream: HH:MM:SS.fffffffff
+        if tag:
+            try:
+                h, m, sec = tag.split(":")
+                return int(h) * 3600 + int(m) * 60 + float(sec)
+            except ValueError:
+                return None
+        return None
+
+    def _declared_frames(self) -> int | None:
+        """Frame count from the stream header, else estimated from its duration."""
+        if self.video_stream.frames:
+            return int(self.video_stream.frames)
+        self.declared_end = self._declared_end()
+        if self.declared_end is None:
+            return None
+        start = self.video_stream.start_time
+        start = float(start * self.video_stream.time_base) if start else 0.0
+        return max(1, int(round((self.declared_end - start) * float(self.fps))))
+
+    declared_end: float | None = None
+
+    def frames(self, on_audio: Callable | None = None) -> Iterator[Frame]:
+        """Decode the video; audio packets go to ``on_audio`` as they are demuxed."""
+        import av
+
+        streams = [self.video_stream] + ([self.audio_stream] if self.audio_stream else [])
+        n, last_end = 0, None
+        try:
+            for packet in self.container.demux(*streams):
+                if packet.stream.type == "audio":
+                    if on_audio is not None and packet.dts is not None:
+                        on_audio(packet)
+                    continue
+                for vf in packet.decode():
+                    if vf.time is not None:
+                        last_end = vf.time + 1 / float(self.fps)
+                    yield Frame(n, vf.to_ndarray(format="rgb24"), pts=vf.pts,
+                                time_base=vf.time_base)
+                    n += 1
+        except av.FFmpegError as e:
+            raise VideoReadError(f"{self.path}: decoding failed after {n} frame(s): {e}",
+                                 frames_read=n) from None
+        if n == 0:
+            raise VideoReadError(f"{self.path}: no frame could be decoded")
+        declared = self.video_stream.frames
+        if declared and n < declared:
+            raise VideoReadError(f"{self.path} is truncated: it declares {declared} frames "
+                                 f"but only {n} could be decoded", frames_read=n)
+        # Without a frame count, a cut-off file ends before its declared duration; half a
+        # frame interval absorbs timestamp rounding (Matroska stores milliseconds).
+        if (not declared and self.declared_end is not None and last_end is not None
+                and last_end < self.declared_end - 0.5 / float(self.fps)):
+            raise VideoReadError(f"{self.path} is truncated: its video stream should last "
+                                 f"until {self.declared_end:.3f} s but the last decodable "
+                                 f"frame ends at {last_end:.3f} s ({n} frames)", frames_read=n)
+
+    def close(self) -> None:
+        self.container.close()
+
+
+def open_source(path: str | os.PathLike, fps: float | None = None):
+    """An image-sequence or video-file source.  ``fps`` sets an image sequence's rate."""
+    if is_image_sequence(path):
+        return ImageSequenceSource(path, fps if fps is not None else 30)
+    if not Path(path).exists():
+        raise VideoReadError(f"input not found: {path}")
+    return VideoFileSource(path)
+
+
+class ImageSequenceSink:
+    """Writes each frame as its own PNG (or TIFF for float frames), atomically."""
+
+    audio_supported = False
+
+    def __init__(self, folder: str | os.PathLike):
+        self.path = Path(folder)
+        if not self.path.exists():
+            if not self.path.parent.exists():
+                raise ValueError(f"output folder's parent does not exist: {self.path.parent}")
+            self.path.mkdir()
+        self.written = 0
+
+    def write(self, frame: Frame, image: np.ndarray) -> None:
+        stem = frame.name if frame.name is not None else f"frame_{frame.index:06d}"
+        write_image(self.path / f"{stem}.png", image)
+        self.written += 1
+
+    def copy_audio(self, packet) -> None:  # pragma: no cover - never called (no audio)
+        raise ValueError("an image sequence cannot hold audio")
+
+    def close(self, keep: bool = True) -> None:
+        pass
+
+
+class VideoFileSink:
+    """Encodes frames into a temporary file beside ``path``; ``close`` renames it into place."""
+
+    audio_supported = True
+
+    def __init__(self, path: str | os.PathLike, fps: Fraction, width: int, height: int,
+                 audio_template=None, codec: str | None = None, crf: int = DEFAULT_CRF):
+        import av
+
+        self.path = Path(path)
+        suffix = self.path.suffix.lower()
+        if suffix not in VIDEO_CODECS:
+            raise ValueError(f"unknown video container {suffix!r} for {path}; use one of "
+                             f"{', '.join(VIDEO_CODECS)} or a folder for an image sequence")
+        if not self.path.parent.exists():
+            raise ValueError(f"output folder does not exist: {self.path.parent}")
+        codec = codec or VIDEO_CODECS[suffix]
+        self.tmp = _tmp_beside(self.path)
+        self.container = av.open(str(self.tmp), "w", format=suffix.lstrip(".").replace(
+            "mkv", "matroska"))
+        self.stream = None
+        try:
+            self.stream = self.container.add_stream(codec, rate=fps)
+        except (av.FFmpegError, ValueError) as e:
+            self.close(keep=False)
+            raise ValueError(f"cannot encode with codec {codec!r}: {e}") from None
+        self.stream.width, self.stream.height = width, height
+        self.stream.pix_fmt = _pixel_format(codec, width, height)
+        if codec in ("libx264", "libx265", "libvpx-vp9"):
+            self.stream.options = {"crf": str(int(crf))}
+        self.audio = None
+        if audio_template is not None:
+            self.audio = self.container.add_stream_from_template(audio_template)
+        self.written = 0
+
+    def write(self, frame: Frame, image: np.ndarray) -> None:
+        import av
+
+        vf = av.VideoFrame.from_ndarray(_to_rgb24(image), format="rgb24")
+        if frame.pts is not None:  # keep the input's timing (and so audio sync)
+            vf.pts, vf.time_base = frame.pts, frame.time_base
+        else:
+            vf.pts, vf.time_base = frame.index, 1 / self.stream.codec_context.framerate
+        self.container.mux(self.stream.encode(vf))
+        self.written += 1
+
+    def copy_audio(self, packet) -> None:
+        packet.stream = self.audio
+        self.container.mux(packet)
+
+    def close(self, keep: bool = True) -> None:
+        """Flush and finalise; ``keep=False`` discards the output."""
+        try:
+            if keep and self.stream is not None:
+                self.container.mux(self.stream.encode(None))
+        finally:
+            self.container.close()
+        if keep and self.written:
+            os.replace(self.tmp, self.path)
+        else:
+            self.tmp.unlink(missing_ok=True)
+
+
+def _pixel_format(codec: str, width: int, height: int) -> str:
+    even = width % 2 == 0 and height % 2 == 0
+    if even:
+        return "yuv420p"
+    if codec in ("libx264", "libx265", "libvpx-vp9"):
+        return "yuv444p"  # 4:2:0 needs even sizes; these codecs also take full chroma
+    raise ValueError(f"codec {codec} needs an even frame size, got {width} x {height}; "
+                     "write .mp4/.mkv (libx264) or an image folder instead")
+
+
+def _to_rgb24(image: np.ndarray) -> np.ndarray:
+    if image.dtype == np.uint8:
+        return np.ascontiguousarray(image)
+    if image.dtype == np.uint16:  # 16-bit image sequences into an 8-bit codec
+        return np.rint(image / 257.0).astype(np.uint8)
+    raise TypeError(f"cannot encode {image.dtype} frames as video")
+
+
+def open_sink(path: str | os.PathLike, fps: Fraction, width: int, height: int,
+              audio_template=None, codec: str | None = None, crf: int = DEFAULT_CRF):
+    if is_image_sequence(path, for_output=True):
+        return ImageSequenceSink(path)
+    return VideoFileSink(path, fps, width, height, audio_template, codec, crf)
