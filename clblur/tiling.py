@@ -1,0 +1,415 @@
+"""Large images in bounded memory: blur tile by tile, each tile read with a halo.
+
+Conventions
+-----------
+* A *tile* is a block of output pixels ``[r0:r1, c0:c1]``.  Its *window* is the tile grown by
+  the halo on every side and clipped to the image.  The window is blurred with
+  ``make_plan(..., region=(row0, col0, H, W))``, so every sample position is computed and
+  clamped in full-image coordinates exactly as in the untiled run; only the tile is kept.  With
+  a sufficient halo the tiled result is therefore bitwise identical to ``clblur.blur`` on the
+  same backend.
+* Halo, per axis: ``ceil(reach) + 2``.  ``reach`` is the farthest a sample lies from its pixel:
+  ``max |v_axis| * max(a, 1 - a)`` over the tile for a uniform or per-pixel motion (samples lie
+  at ``p - v (s - a)`` with ``s`` in [0, 1]; anchor ``a``), the kernel's extent from its centre
+  for a PSF.  ``+1`` is the bilinear neighbour, ``+1`` a margin for sample positions that a
+  float32 kernel rounds past the exact reach.
+* Sources and destinations are array-likes: anything with ``shape``, ``dtype`` and numpy-style
+  ``[rows, cols]`` slicing that returns (or accepts) numpy arrays -- numpy arrays, zarr arrays,
+  and ``MappedRaster`` (a raster in a file, e.g. an uncompressed BigTIFF).  Do not pass a
+  long-lived ``np.memmap``: every page it touches stays resident, so the memory would grow with
+  the image; ``as_array_like`` turns one into a ``MappedRaster``.
+* ``memory_budget`` (bytes) bounds one window's working set, estimated at ``window_bytes_per_px``
+  per window pixel; it sets the tile size.  Image files that cannot be read window by window
+  (PNG, JPEG, compressed TIFFs without tiles/strips zarr can index) are held whole in addition.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from clblur.blur import blur_plan, resolve_backend
+from clblur.io import atomic_write, read_flow, read_image, refuse_overwrite, write_image
+from clblur.motion import PSF, Field, Uniform, anchor_value, psf
+from clblur.plan import make_plan
+
+DEFAULT_MEMORY_BUDGET = 512 * 2**20
+FLOW_BYTES_PER_PX = 8  # float32 (dx, dy)
+
+
+def window_bytes_per_px(channels: int, itemsize: int, per_pixel_flow: bool) -> int:
+    """Working set per window pixel (bytes), an upper estimate.
+
+    The numpy reference keeps about a dozen float64 H x W x C arrays alive (normalised values,
+    linear values, accumulator, output, bilinear corners) and about twenty float64 H x W
+    coordinate arrays; ``tracemalloc`` measured 248 B/px (uniform) and 321 B/px (flow) for a
+    512 x 512 RGB uint8 window (see bench/bench_large.py).  The OpenCL backend needs less.
+    Input and output windows, and the flow window, come on top.
+    """
+    return 8 * (12 * channels + 20) + 2 * channels * itemsize + \
+        (FLOW_BYTES_PER_PX if per_pixel_flow else 0)
+
+
+class MappedRaster:
+    """A C-ordered raster stored at ``offset`` in a file, mapped only while one window is read
+    or written, so resident memory follows the window instead of growing with every page ever
+    touched (a long-lived ``np.memmap`` keeps them all)."""
+
+    def __init__(self, path: str | os.PathLike, dtype, shape: tuple[int, ...], offset: int = 0,
+                 writable: bool = False):
+        self.path = Path(path)
+        self.dtype = np.dtype(dtype)
+        self.shape = tuple(int(s) for s in shape)
+        self.offset = int(offset)
+        self.writable = writable
+        need = self.offset + self.dtype.itemsize * math.prod(self.shape)
+        if not self.path.is_file() or self.path.stat().st_size < need:
+            raise ValueError(f"{self.path} is shorter than a {self.shape} {self.dtype} raster "
+                             f"at offset {self.offset}")
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
+
+    def _map(self, mode: str) -> np.memmap:
+        return np.memmap(self.path, dtype=self.dtype, mode=mode, offset=self.offset,
+                         shape=self.shape)
+
+    def __getitem__(self, key) -> np.ndarray:
+        m = self._map("r")
+        try:
+            return np.array(m[key])
+        finally:
+            del m
+
+    def __setitem__(self, key, value) -> None:
+        if not self.writable:
+            raise ValueError(f"{self.path} is opened read-only")
+        m = self._map("r+")
+        try:
+            m[key] = value
+            m.flush()
+        finally:
+            del m
+
+
+def as_array_like(array):
+    """A long-lived ``np.memmap`` becomes a ``MappedRaster`` of the same file; others pass."""
+    if isinstance(array, np.memmap) and getattr(array, "filename", None) \
+            and array.flags.c_contiguous and not isinstance(array.base, np.ndarray):
+        # (a slice of a memmap has the memmap as base and keeps its offset: not re-mappable)
+        return MappedRaster(array.filename, array.dtype, array.shape, array.offset,
+                            writable=array.mode in ("r+", "w+"))
+    return array
+
+
+# --------------------------------------------------------------------------- motion and halo
+@dataclass(frozen=True)
+class TiledMotion:
+    """The motion of a tiled run: a uniform vector or PSF (in memory), or a flow array-like
+    read window by window."""
+
+    fixed: Uniform | PSF | None = None
+    flow: object | None = None  # array-like H x W x 2
+
+
+def tiled_motion(motion, shape: tuple[int, int]) -> TiledMotion:
+    """Classify ``motion`` without loading a flow field: ``(dx, dy)``, an H x W x 2 array-like
+    (numpy, np.memmap, zarr, MappedRaster), a ``.npy``/``.flo`` path, or a 2-D PSF."""
+    if isinstance(motion, (Uniform, PSF)):
+        return TiledMotion(fixed=make_plan(np.zeros((1, 1), np.uint8), motion).motion)
+    if isinstance(motion, Field):
+        motion = motion.flow
+    if isinstance(motion, (str, os.PathLike)):
+        motion = open_flow(motion)
+    if not hasattr(motion, "shape"):
+        motion = np.asarray(motion)
+    if np.ndim(motion) == 1 or tuple(motion.shape) == (2,):
+        return TiledMotion(fixed=make_plan(np.zeros((1, 1), np.uint8), motion).motion)
+    if len(motion.shape) == 2:
+        return TiledMotion(fixed=psf(np.asarray(motion)))
+    if len(motion.shape) == 3:
+        h, w = shape
+        if tuple(motion.shape) != (h, w, 2):
+            raise ValueError(f"flow field has shape {tuple(motion.shape)}, expected "
+                             f"({h}, {w}, 2) to match the image")
+        if np.dtype(motion.dtype).kind not in "fiu":
+            raise TypeError(f"flow field must be numeric, got dtype {motion.dtype}")
+        return TiledMotion(flow=as_array_like(motion))
+    raise ValueError(f"motion has shape {tuple(motion.shape)}; expected (2,), (H, W, 2) or a "
+                     "2-D PSF")
+
+
+def open_flow(path: str | os.PathLike):
+    """A flow file as an array-like: ``.npy`` mapped window by window, ``.flo`` read whole."""
+    path = Path(path)
+    if path.suffix.lower() != ".npy":
+        return read_flow(path)
+    if not path.is_file():
+        raise ValueError(f"flow file not found: {path}")
+    try:
+        m = np.load(path, mmap_mode="r", allow_pickle=False)
+    except Exception as e:
+        raise ValueError(f"cannot read flow {path}: {e}") from None
+    if m.ndim != 3 or m.shape[2] != 2:
+        raise ValueError(f"flow {path} has shape {m.shape}, expected H x W x 2")
+    if not m.flags.c_contiguous:  # Fortran-ordered .npy: rare; small enough to load
+        return np.ascontiguousarray(m, dtype=np.float32)
+    return MappedRaster(path, m.dtype, m.shape, m.offset)
+
+
+def halo_for_reach(reach: float) -> int:
+    """Halo for a sample reach (pixels): see the module conventions."""
+    return int(math.ceil(reach)) + 2
+
+
+def fixed_halo(motion: Uniform | PSF, anchor: float) -> tuple[int, int]:
+    """(rows, cols) halo of a uniform motion or PSF."""
+    if isinstance(motion, PSF):
+        kh, kw = motion.kernel.shape
+        cy, cx = motion.center
+        return halo_for_reach(max(cy, kh - 1 - cy)), halo_for_reach(max(cx, kw - 1 - cx))
+    f = max(anchor, 1.0 - anchor)
+    dx, dy = np.float32(motion.dx), np.float32(motion.dy)
+    return halo_for_reach(abs(float(dy)) * f), halo_for_reach(abs(float(dx)) * f)
+
+
+def flow_halo(flow: np.ndarray, anchor: float) -> tuple[int, int]:
+    """(rows, cols) halo covering every vector of ``flow`` (any H x W x 2 block)."""
+    v = np.asarray(flow, dtype=np.float32)
+    if v.size == 0:
+        return halo_for_reach(0.0), halo_for_reach(0.0)
+    amax = np.abs(v).reshape(-1, 2).max(axis=0).astype(np.float64)
+    if not np.isfinite(amax).all():
+        raise ValueError("flow field contains NaN or infinite values")
+    f = max(anchor, 1.0 - anchor)
+    return halo_for_reach(amax[1] * f), halo_for_reach(amax[0] * f)
+
+
+def global_flow_halo(flow, anchor: float, rows_per_read: int) -> tuple[int, int]:
+    """The largest halo over the whole flow, read in bands of ``rows_per_read`` rows."""
+    hy = hx = halo_for_reach(0.0)
+    for r in range(0, flow.shape[0], max(rows_per_read, 1)):
+        y, x = flow_halo(flow[r:r + rows_per_read], anchor)
+        hy, hx = max(hy, y), max(hx, x)
+    return hy, hx
+
+
+# --------------------------------------------------------------------------- tile geometry
+def choose_tile(shape: tuple[int, int], halo: tuple[int, int], bytes_per_px: int,
+                memory_budget: int) -> tuple[int, int]:
+    """The largest square tile (clipped to the image) whose window fits ``memory_budget``."""
+    h, w = shape
+    hy, hx = halo
+
+    def cost(t: int) -> int:
+        return (min(t, h) + 2 * hy) * (min(t, w) + 2 * hx) * bytes_per_px
+
+    if cost(1) > memory_budget:
+        raise ValueError(f"memory budget {memory_budget} B is too small for a halo of "
+                         f"{hy} x {hx} px (one window needs at least {cost(1)} B); raise it")
+    lo, hi = 1, max(h, w)
+    while lo < hi:  # largest t with cost(t) <= budget
+        mid = (lo + hi + 1) // 2
+        lo, hi = (mid, hi) if cost(mid) <= memory_budget else (lo, mid - 1)
+    return min(lo, h), min(lo, w)
+
+
+def tiles(shape: tuple[int, int], tile: tuple[int, int]) -> Iterator[tuple[int, int, int, int]]:
+    """Row-major ``(r0, r1, c0, c1)`` blocks covering ``shape``."""
+    h, w = shape
+    th, tw = tile
+    for r0 in range(0, h, th):
+        for c0 in range(0, w, tw):
+            yield r0, min(r0 + th, h), c0, min(c0 + tw, w)
+
+
+def _tile_shape(tile) -> tuple[int, int]:
+    if isinstance(tile, (int, np.integer)) and not isinstance(tile, bool):
+        tile = (tile, tile)
+    try:
+        th, tw = (int(t) for t in tile)
+    except (TypeError, ValueError):
+        raise TypeError(f"tile must be an int or (rows, cols), got {tile!r}") from None
+    if th < 1 or tw < 1:
+        raise ValueError(f"tile must be at least 1 x 1, got {tile!r}")
+    return th, tw
+
+
+# --------------------------------------------------------------------------- the tiled blur
+@dataclass(frozen=True)
+class TiledRun:
+    """What a tiled blur did (for logs, benches and tests)."""
+
+    backend: str
+    tile: tuple[int, int]
+    tiles: int
+    halo: tuple[int, int]  # largest (rows, cols) halo used
+
+
+def _check_arrays(src, dst) -> tuple[int, int, int]:
+    for name, a in (("source", src), ("destination", dst)):
+        if not hasattr(a, "shape") or not hasattr(a, "dtype"):
+            raise TypeError(f"{name} must be an array-like with shape and dtype, "
+                            f"got {type(a).__name__}")
+    if len(src.shape) not in (2, 3):
+        raise ValueError(f"image must be H x W or H x W x C, got shape {tuple(src.shape)}")
+    if tuple(dst.shape) != tuple(src.shape) or np.dtype(dst.dtype) != np.dtype(src.dtype):
+        raise ValueError(f"destination {tuple(dst.shape)} {dst.dtype} does not match the source "
+                         f"{tuple(src.shape)} {src.dtype}")
+    h, w = (int(s) for s in src.shape[:2])
+    return h, w, int(src.shape[2]) if len(src.shape) == 3 else 1
+
+
+def blur_tiled(src, dst, motion, response="exp", *, anchor: str = "center",
+               samples: int | None = None, weights=None, backend: str = "auto",
+               saturation: float = 1.0, device: str | None = None, tile=None,
+               memory_budget: int | None = None, progress: bool = False) -> TiledRun:
+    """Blur array-like ``src`` into array-like ``dst`` (same shape and dtype), tile by tile.
+
+    ``motion`` as for ``clblur.blur``; a flow may be any H x W x 2 array-like or a ``.npy``
+    path and is read window by window.  ``tile`` (int or (rows, cols)) fixes the tile size;
+    otherwise it is the largest that keeps a window within ``memory_budget`` bytes (default
+    512 MiB).  Result: bitwise what ``clblur.blur`` gives on the same backend.
+    """
+    h, w, channels = _check_arrays(src, dst)
+    src, dst = as_array_like(src), as_array_like(dst)
+    a = anchor_value(anchor)
+    tm = tiled_motion(motion, (h, w))
+    budget = DEFAULT_MEMORY_BUDGET if memory_budget is None else int(memory_budget)
+    if budget <= 0:
+        raise ValueError(f"memory budget must be positive, got {memory_budget}")
+    per_px = window_bytes_per_px(channels, np.dtype(src.dtype).itemsize, tm.flow is not None)
+    if tm.flow is not None:  # size tiles for the worst halo; each tile then uses its own
+        halo = global_flow_halo(tm.flow, a, max(budget // (w * FLOW_BYTES_PER_PX * 4), 1))
+    else:
+        halo = fixed_halo(tm.fixed, a)
+    if tile is None:
+        tile = choose_tile((h, w), halo, per_px, budget)
+    tile = _tile_shape(tile)
+    tile = (min(tile[0], h), min(tile[1], w))
+    ran = resolve_backend(backend, device)
+    # Validate the options once on a tiny window so a bad option fails before any work.
+    make_plan(np.zeros((1, 1, channels), np.dtype(src.dtype)), (0.0, 0.0), response,
+              anchor=anchor, samples=samples, weights=weights, saturation=saturation)
+    blocks = list(tiles((h, w), tile))
+    used = (0, 0)
+    bar = _progress(len(blocks), progress)
+    try:
+        for r0, r1, c0, c1 in blocks:
+            flow_core = None
+            if tm.flow is not None:
+                flow_core = np.asarray(tm.flow[r0:r1, c0:c1], dtype=np.float32)
+                hy, hx = flow_halo(flow_core, a)
+            else:
+                hy, hx = halo
+            used = (max(used[0], hy), max(used[1], hx))
+            wr0, wr1 = max(r0 - hy, 0), min(r1 + hy, h)
+            wc0, wc1 = max(c0 - hx, 0), min(c1 + hx, w)
+            window = np.asarray(src[wr0:wr1, wc0:wc1])
+            if tm.flow is not None:
+                m = np.asarray(tm.flow[wr0:wr1, wc0:wc1], dtype=np.float32)
+            else:
+                m = tm.fixed
+            plan = make_plan(window, m, response, anchor=anchor, samples=samples,
+                             weights=weights, saturation=saturation,
+                             region=(wr0, wc0, h, w))
+            out = blur_plan(plan, ran, device)
+            dst[r0:r1, c0:c1] = out[r0 - wr0:r1 - wr0, c0 - wc0:c1 - wc0]
+            bar.update(1)
+    finally:
+        bar.close()
+    return TiledRun(backend=ran, tile=tile, tiles=len(blocks), halo=used)
+
+
+def _progress(total: int, enabled: bool):
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit="tile", disable=not enabled, desc="blur", leave=False)
+
+
+# --------------------------------------------------------------------------- files
+def is_tiff(path: str | os.PathLike) -> bool:
+    return Path(path).suffix.lower() in (".tif", ".tiff")
+
+
+def open_image(path: str | os.PathLike):
+    """An image file as an array-like, read window by window where the format allows:
+    uncompressed contiguous TIFF -> ``MappedRaster``; other TIFF -> zarr over tifffile's
+    store (reads only the strips/tiles a window touches); anything else read whole."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"image file not found: {path}")
+    if not is_tiff(path):
+        return read_image(path)
+    import tifffile
+
+    try:
+        m = tifffile.memmap(path, mode="r")
+        raster = MappedRaster(path, m.dtype, m.shape, m.offset)
+        del m
+        return raster
+    except ValueError:  # compressed, tiled or otherwise not mappable
+        pass
+    except Exception as e:
+        raise ValueError(f"cannot read image {path}: {e}") from None
+    try:
+        import zarr
+
+        return zarr.open(tifffile.imread(path, aszarr=True), mode="r")
+    except Exception:
+        return read_image(path)
+
+
+def _create_tiff(path: Path, shape: tuple[int, ...], dtype: np.dtype) -> MappedRaster:
+    """An uncompressed TIFF (BigTIFF when large) whose pixels are written window by window."""
+    import tifffile
+
+    rgb = len(shape) == 3 and shape[2] in (3, 4)
+    nbytes = math.prod(shape) * np.dtype(dtype).itemsize
+    m = tifffile.memmap(path, shape=shape, dtype=dtype, bigtiff=nbytes >= 2**31,
+                        photometric="rgb" if rgb else "minisblack")
+    offset = m.offset
+    del m
+    return MappedRaster(path, dtype, shape, offset, writable=True)
+
+
+def blur_file(src: str | os.PathLike, dst: str | os.PathLike, motion, *, response="exp",
+              anchor: str = "center", samples: int | None = None, weights=None,
+              backend: str = "auto", saturation: float = 1.0, device: str | None = None,
+              memory_budget: int | None = None, progress: bool = False,
+              tile=None) -> TiledRun:
+    """Blur the image file ``src`` into ``dst``, in bounded memory where the formats allow.
+
+    TIFF sources are read window by window; a TIFF destination is an uncompressed TIFF
+    (BigTIFF above 2 GiB) written window by window.  Other formats are held whole.  The output
+    goes to a temporary file beside ``dst`` that is renamed into place only when complete, so
+    ``dst`` is either absent, the previous file, or the finished result.  ``motion``: as for
+    ``blur_tiled`` (a flow may be a ``.npy``/``.flo`` path).
+    """
+    refuse_overwrite(dst, src, *([motion] if isinstance(motion, (str, os.PathLike)) else []))
+    dst = Path(dst)
+    image = open_image(src)
+    if not is_tiff(dst) and np.dtype(image.dtype).kind == "f":
+        raise ValueError(f"{dst.suffix} cannot hold float images; write .tif or .tiff instead")
+    options = dict(response=response, anchor=anchor, samples=samples, weights=weights,
+                   backend=backend, saturation=saturation, device=device, tile=tile,
+                   memory_budget=memory_budget, progress=progress)
+    if is_tiff(dst):
+        result: list[TiledRun] = []
+
+        def write(tmp: Path) -> None:
+            out = _create_tiff(tmp, tuple(image.shape), np.dtype(image.dtype))
+            result.append(blur_tiled(image, out, motion, **options))
+
+        atomic_write(dst, write)
+        return result[0]
+    out = np.empty(tuple(image.shape), np.dtype(image.dtype))
+    run = blur_tiled(image, out, motion, **options)
+    write_image(dst, out)
+    return run
