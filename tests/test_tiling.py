@@ -1,0 +1,189 @@
+"""Tiled blur == untiled blur, bit for bit; files are streamed and written atomically."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import tifffile
+
+import clblur
+from clblur import tiling
+from clblur.io import read_image, write_flow, write_image
+from clblur.tiling import MappedRaster, blur_file, blur_tiled, choose_tile
+
+
+@pytest.fixture(autouse=True)
+def _quiet(monkeypatch):
+    monkeypatch.setenv("CLBLUR_QUIET", "1")
+
+
+def _image(rng, shape=(37, 53, 3), dtype=np.uint8):
+    if np.dtype(dtype).kind == "f":
+        return rng.random(shape).astype(dtype)
+    return rng.integers(0, np.iinfo(dtype).max + 1, shape, dtype=dtype)
+
+
+def _cross_tile_flow(rng, h, w):
+    """Smooth large motion (reaching across several 8-pixel tiles) plus noise."""
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    flow = np.stack([9.0 * np.sin(yy / 7.0) + 2.0, -6.0 * np.cos(xx / 11.0)], axis=-1)
+    return (flow + rng.normal(0, 1.5, flow.shape)).astype(np.float32)
+
+
+MOTIONS = {
+    "uniform": lambda rng, h, w: (7.3, -2.5),
+    "flow": _cross_tile_flow,
+    "psf": lambda rng, h, w: rng.random((5, 9)),  # off-centre-free but asymmetric extent
+}
+
+
+@pytest.mark.parametrize("kind", MOTIONS)
+@pytest.mark.parametrize("anchor", ["start", "center", "end"])
+def test_tiled_equals_untiled_bitwise(rng, kind, anchor):
+    img = _image(rng)
+    motion = MOTIONS[kind](rng, *img.shape[:2])
+    ref = clblur.blur(img, motion, anchor=anchor, backend="numpy")
+    for tile in (8, (5, 13), 200):  # halos cross the border; 200: one tile, whole image
+        out = np.zeros_like(img)
+        blur_tiled(img, out, motion, anchor=anchor, backend="numpy", tile=tile)
+        np.testing.assert_array_equal(out, ref, err_msg=f"tile {tile}")
+
+
+def test_options_pass_through_tiles(rng):
+    img = _image(rng, (29, 31), np.uint16)
+    flow = _cross_tile_flow(rng, 29, 31)
+    kw = dict(response="gamma:2.2", samples=5, weights=[1, 2, 3, 2, 1], saturation=2.0)
+    ref = clblur.blur(img, flow, backend="numpy", **kw)
+    out = np.zeros_like(img)
+    blur_tiled(img, out, flow, backend="numpy", tile=(6, 7), **kw)
+    np.testing.assert_array_equal(out, ref)
+
+
+def test_halo_too_small_breaks_equality(rng, monkeypatch):
+    """The equality tests can fail: without a halo the tile edges differ."""
+    img = _image(rng)
+    ref = clblur.blur(img, (7.3, -2.5), backend="numpy")
+    monkeypatch.setattr(tiling, "halo_for_reach", lambda reach: 0)
+    out = np.zeros_like(img)
+    blur_tiled(img, out, (7.3, -2.5), backend="numpy", tile=8)
+    assert (out != ref).any()
+
+
+def test_flow_halo_is_per_tile(rng):
+    img = _image(rng, (24, 40, 3))
+    flow = np.zeros((24, 40, 2), np.float32)
+    flow[:, 30:, 0] = 20.0  # large motion only in the right part
+    out = np.zeros_like(img)
+    run = blur_tiled(img, out, flow, backend="numpy", tile=(24, 10))
+    np.testing.assert_array_equal(out, clblur.blur(img, flow, backend="numpy"))
+    assert run.halo == (2, 12)  # ceil(20 * 0.5) + 2 across, 0 + 2 down
+    assert run.tiles == 4
+
+
+def test_memory_budget_sets_tile_and_stays_equal(rng):
+    img = _image(rng, (40, 60, 3))
+    per_px = tiling.window_bytes_per_px(3, 1, False)
+    budget = 20 * 20 * per_px
+    out = np.zeros_like(img)
+    run = blur_tiled(img, out, (3.0, 0.0), backend="numpy", memory_budget=budget)
+    hy, hx = run.halo
+    th, tw = run.tile
+    assert (th + 2 * hy) * (tw + 2 * hx) * per_px <= budget
+    assert (th + 1 + 2 * hy) * (tw + 1 + 2 * hx) * per_px > budget  # the largest that fits
+    assert run.tiles > 1
+    np.testing.assert_array_equal(out, clblur.blur(img, (3.0, 0.0), backend="numpy"))
+
+
+def test_choose_tile_rejects_budget_below_halo():
+    with pytest.raises(ValueError, match="too small for a halo"):
+        choose_tile((100, 100), (50, 50), 400, 1000)
+
+
+def test_grey_image_and_zarr_arrays(rng):
+    zarr = pytest.importorskip("zarr")
+    img = _image(rng, (33, 27), np.float32)
+    src = zarr.create_array(store={}, shape=img.shape, chunks=(10, 10), dtype=img.dtype)
+    src[:] = img
+    dst = zarr.create_array(store={}, shape=img.shape, chunks=(7, 9), dtype=img.dtype)
+    blur_tiled(src, dst, (0.0, 4.5), response="srgb", backend="numpy", tile=9)
+    np.testing.assert_array_equal(dst[:], clblur.blur(img, (0.0, 4.5), response="srgb",
+                                                       backend="numpy"))
+
+
+def test_memmap_flow_is_read_window_by_window(rng, tmp_path):
+    img = _image(rng, (30, 20, 3))
+    flow = _cross_tile_flow(rng, 30, 20)
+    np.save(tmp_path / "f.npy", flow.astype(np.float16))
+    mapped = np.load(tmp_path / "f.npy", mmap_mode="r")
+    assert isinstance(tiling.as_array_like(mapped), MappedRaster)
+    out = np.zeros_like(img)
+    blur_tiled(img, out, mapped, backend="numpy", tile=7)
+    ref = clblur.blur(img, flow.astype(np.float16).astype(np.float32), backend="numpy")
+    np.testing.assert_array_equal(out, ref)
+
+
+@pytest.mark.parametrize("bad, err", [
+    (lambda img: np.zeros((3, 3, 2), np.float32), ValueError),  # flow of the wrong size
+    (lambda img: "no-such-flow.npy", ValueError),
+    (lambda img: np.full(img.shape[:2] + (2,), np.nan, np.float32), ValueError),
+])
+def test_bad_motion_is_rejected(rng, bad, err):
+    img = _image(rng, (12, 12, 3))
+    with pytest.raises(err):
+        blur_tiled(img, np.zeros_like(img), bad(img), backend="numpy")
+
+
+def test_mismatched_destination_is_rejected(rng):
+    img = _image(rng, (12, 12, 3))
+    with pytest.raises(ValueError, match="does not match"):
+        blur_tiled(img, np.zeros((12, 12, 3), np.uint16), (1, 0), backend="numpy")
+    with pytest.raises(ValueError, match="tile"):
+        blur_tiled(img, np.zeros_like(img), (1, 0), backend="numpy", tile=0)
+
+
+def test_blur_file_bigtiff_streams_and_matches(rng, tmp_path):
+    img = _image(rng, (45, 38, 3))
+    src = tmp_path / "in.tif"
+    tifffile.imwrite(src, img, photometric="rgb")
+    flow = _cross_tile_flow(rng, 45, 38)
+    write_flow(tmp_path / "f.npy", flow)
+    assert isinstance(tiling.open_image(src), MappedRaster)
+    run = blur_file(src, tmp_path / "out.tif", str(tmp_path / "f.npy"), backend="numpy",
+                    tile=16)
+    assert run.tiles == 9
+    np.testing.assert_array_equal(read_image(tmp_path / "out.tif"),
+                                  clblur.blur(img, flow, backend="numpy"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.npy", "in.tif", "out.tif"]
+
+
+def test_blur_file_compressed_tiff_and_png(rng, tmp_path):
+    img = _image(rng, (40, 36, 3))
+    tifffile.imwrite(tmp_path / "z.tif", img, photometric="rgb", compression="zlib",
+                     tile=(16, 16))
+    write_image(tmp_path / "p.png", img)
+    ref = clblur.blur(img, (2.0, 5.0), backend="numpy")
+    blur_file(tmp_path / "z.tif", tmp_path / "z_out.png", (2.0, 5.0), backend="numpy", tile=12)
+    blur_file(tmp_path / "p.png", tmp_path / "p_out.tif", (2.0, 5.0), backend="numpy", tile=12)
+    np.testing.assert_array_equal(read_image(tmp_path / "z_out.png"), ref)
+    np.testing.assert_array_equal(read_image(tmp_path / "p_out.tif"), ref)
+
+
+def test_blur_file_failure_leaves_no_output(rng, tmp_path):
+    img = _image(rng, (20, 20, 3))
+    tifffile.imwrite(tmp_path / "in.tif", img)
+    with pytest.raises(ValueError, match="response"):
+        blur_file(tmp_path / "in.tif", tmp_path / "out.tif", (1, 1), response="nonsense",
+                  backend="numpy")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in.tif"]
+    with pytest.raises(ValueError, match="refusing to overwrite"):
+        blur_file(tmp_path / "in.tif", tmp_path / "in.tif", (1, 1), backend="numpy")
+
+
+def test_opencl_tiled_equals_untiled(opencl, rng):
+    img = _image(rng, (64, 80, 3))
+    flow = _cross_tile_flow(rng, 64, 80)
+    for motion in ((7.3, -2.5), flow, rng.random((5, 9))):
+        ref = clblur.blur(img, motion, backend="opencl")
+        out = np.zeros_like(img)
+        blur_tiled(img, out, motion, backend="opencl", tile=(16, 24))
+        np.testing.assert_array_equal(out, ref)
