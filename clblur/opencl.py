@@ -1,0 +1,346 @@
+"""OpenCL backend: the pipeline of ``clblur.reference`` in float32 kernels.
+
+Conventions
+-----------
+* Device selection: the ``device`` argument, else ``$CLBLUR_DEVICE``, else the first GPU, else
+  the first device.  A selector is ``"P:D"`` (platform and device indices, as ``clblur info``
+  lists them) or a case-insensitive substring of ``"<platform name> <device name>"``.
+* Nothing is created at import.  Each process builds one context and queue per selector on
+  first use (a forked Dask worker notices the new pid and builds its own); programs are
+  cached by build options, device buffers are reused between calls.  No OpenCL object is
+  ever handed out, so nothing here needs to be pickled.
+* Pipeline per group of up to four channels: linearise once per pixel (tables for integer
+  inputs) into an RGBA intermediate (half for uint8 outputs when the error bound allows, else
+  float), then integrate with the forward response and quantisation fused into the store.
+  Strategies: per-pixel field (bilinear), space-invariant integer taps (uniform motion and
+  PSFs), running-sum box (axis-aligned boxes).  See ``clblur.opencl_prep``.
+* Tolerances against the numpy reference are stated in ``docs/tolerances.md``.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import threading
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from clblur import opencl_prep as prep
+from clblur.motion import Field, sample_counts
+from clblur.plan import BlurPlan
+
+ENV_DEVICE = "CLBLUR_DEVICE"
+PIXELS_PER_ITEM = 16  # consecutive pixels of a row per work-item (amortises per-item cost)
+KERNEL_FILES = ("response.cl", "integrate.cl")
+_OUT_KINDS = {np.dtype(np.uint8): 0, np.dtype(np.uint16): 1, np.dtype(np.float32): 2,
+              np.dtype(np.float64): 2}  # float64 output: computed in float32, widened on host
+_IN_KINDS = {np.dtype(np.uint8): 0, np.dtype(np.uint16): 1}
+_IN_FLOAT = 2
+
+_PROBE_SOURCE = "__kernel void probe(__global float *x) { x[get_global_id(0)] += 1.5f; }"
+
+
+class OpenCLUnavailable(RuntimeError):
+    """No OpenCL device matches the selector, or it cannot build and run code."""
+
+
+def _cl():
+    import pyopencl  # imported lazily: `import clblur` must stay free of OpenCL
+
+    return pyopencl
+
+
+def _selector(device: str | None) -> str:
+    sel = device if device is not None else os.environ.get(ENV_DEVICE, "")
+    if not isinstance(sel, str):
+        raise TypeError(f"OpenCL device selector must be a string, got {sel!r}")
+    return sel.strip()
+
+
+def _enumerate() -> list[tuple[int, int, object, object]]:
+    cl = _cl()
+    try:
+        platforms = cl.get_platforms()
+    except cl.Error as e:
+        raise OpenCLUnavailable(f"no OpenCL platform found ({e})") from None
+    found = []
+    for pi, platform in enumerate(platforms):
+        try:
+            devs = platform.get_devices()
+        except cl.Error:
+            continue
+        found += [(pi, di, platform, d) for di, d in enumerate(devs)]
+    return found
+
+
+def _label(platform, device) -> str:
+    return f"{platform.name.strip()} {device.name.strip()}"
+
+
+def _pick(selector: str):
+    found = _enumerate()
+    if not found:
+        raise OpenCLUnavailable("no OpenCL device found")
+    if not selector:
+        cl = _cl()
+        gpus = [f for f in found if f[3].type & cl.device_type.GPU]
+        return (gpus or found)[0]
+    m = re.fullmatch(r"(\d+):(\d+)", selector)
+    for pi, di, platform, device in found:
+        if (m and (pi, di) == (int(m[1]), int(m[2]))) or \
+                (not m and selector.lower() in _label(platform, device).lower()):
+            return pi, di, platform, device
+    names = "; ".join(f"{pi}:{di} {_label(p, d)}" for pi, di, p, d in found)
+    raise OpenCLUnavailable(f"no OpenCL device matches {selector!r} (available: {names})")
+
+
+def _kernel_source() -> str:
+    try:
+        root = resources.files("clblur.kernels")
+        return "\n".join(root.joinpath(name).read_text() for name in KERNEL_FILES)
+    except (ModuleNotFoundError, FileNotFoundError):
+        # Source tree: kernels/ sits next to the package and is only a package once installed.
+        root = Path(__file__).resolve().parent.parent / "kernels"
+        return "\n".join((root / name).read_text() for name in KERNEL_FILES)
+
+
+@dataclass
+class _Runtime:
+    """One device's context, queue, programs and reusable buffers (per process)."""
+
+    label: str
+    index: str
+    device: object
+    context: object
+    queue: object
+    fp64: bool
+    pid: int = field(default_factory=os.getpid)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    programs: dict = field(default_factory=dict)
+    kernels: dict = field(default_factory=dict)
+    buffers: dict = field(default_factory=dict)
+
+    def build_options(self, half: bool) -> tuple[str, ...]:
+        cl = _cl()
+        opts = [f"-DPPW={PIXELS_PER_ITEM}"]
+        if self.device.single_fp_config & cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT:
+            opts.append("-cl-fp32-correctly-rounded-divide-sqrt")  # v / (N-1) exact if integer
+        if half:
+            opts.append("-DSTORE_HALF")
+        if self.fp64:
+            opts.append("-DHAVE_FP64")
+        return tuple(opts)
+
+    def kernel(self, half: bool, name: str):
+        opts = self.build_options(half)
+        if opts not in self.programs:
+            cl = _cl()
+            self.programs[opts] = cl.Program(self.context, _kernel_source()).build(
+                options=list(opts))
+        key = (opts, name)
+        if key not in self.kernels:
+            self.kernels[key] = getattr(self.programs[opts], name)
+        return self.kernels[key]
+
+    def buffer(self, role: str, nbytes: int):
+        """A device buffer of at least ``nbytes`` for ``role``, reused across calls."""
+        nbytes = max(int(nbytes), 16)
+        old = self.buffers.get(role)
+        if old is None or old.size < nbytes:
+            cl = _cl()
+            old = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, nbytes)
+            self.buffers[role] = old
+        return old
+
+    def upload(self, role: str, array: np.ndarray):
+        array = np.ascontiguousarray(array)
+        buf = self.buffer(role, array.nbytes)
+        _cl().enqueue_copy(self.queue, buf, array, is_blocking=True)
+        return buf
+
+
+_runtimes: dict[str, _Runtime] = {}
+_usable: dict[str, tuple[bool, str]] = {}
+_registry_lock = threading.Lock()
+
+
+def _runtime(device: str | None) -> _Runtime:
+    sel = _selector(device)
+    with _registry_lock:
+        rt = _runtimes.get(sel)
+        if rt is not None and rt.pid == os.getpid():
+            return rt
+        cl = _cl()
+        pi, di, platform, dev = _pick(sel)
+        try:
+            ctx = cl.Context([dev])
+            queue = cl.CommandQueue(ctx)
+        except cl.Error as e:
+            raise OpenCLUnavailable(f"cannot create a context on {_label(platform, dev)}: "
+                                    f"{e}") from None
+        rt = _Runtime(label=_label(platform, dev), index=f"{pi}:{di}", device=dev, context=ctx,
+                      queue=queue, fp64=bool(dev.double_fp_config))
+        _runtimes[sel] = rt
+        return rt
+
+
+def current_device(device: str | None = None) -> str:
+    """``"P:D <platform> <device>"`` of the device the selector picks (creates its context)."""
+    rt = _runtime(device)
+    return f"{rt.index} {rt.label}"
+
+
+def _probe(context, queue) -> None:
+    """Build and run a tiny kernel; raise if the result is wrong."""
+    cl = _cl()
+    prog = cl.Program(context, _PROBE_SOURCE).build()
+    host = np.arange(8, dtype=np.float32)
+    buf = cl.Buffer(context, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=host)
+    prog.probe(queue, (8,), None, buf)
+    got = np.empty_like(host)
+    cl.enqueue_copy(queue, got, buf, is_blocking=True)
+    if not np.array_equal(got, host + 1.5):
+        raise OpenCLUnavailable("probe kernel returned wrong values")
+
+
+def usable(device: str | None = None) -> tuple[bool, str]:
+    """Whether the selected device builds and runs a tiny kernel; (ok, device or reason).
+
+    The answer is cached per selector for the life of the process."""
+    sel = _selector(device)
+    if sel in _usable:
+        return _usable[sel]
+    try:
+        rt = _runtime(sel)
+        with rt.lock:
+            _probe(rt.context, rt.queue)
+        answer = (True, f"{rt.index} {rt.label}")
+    except ImportError as e:
+        answer = (False, f"pyopencl is not importable ({e})")
+    except OpenCLUnavailable as e:
+        answer = (False, str(e))
+    except Exception as e:  # noqa: BLE001 - any driver failure means "not usable"
+        answer = (False, f"{type(e).__name__}: {e}")
+    _usable[sel] = answer
+    return answer
+
+
+def devices() -> list[dict]:
+    """Every OpenCL device with its properties and whether it builds and runs a kernel."""
+    cl = _cl()
+    rows = []
+    for pi, di, platform, dev in _enumerate():
+        row = {"index": f"{pi}:{di}", "platform": platform.name.strip(),
+               "device": dev.name.strip(), "type": cl.device_type.to_string(dev.type),
+               "version": dev.version.strip(), "fp64": bool(dev.double_fp_config)}
+        try:
+            ctx = cl.Context([dev])
+            _probe(ctx, cl.CommandQueue(ctx))
+            row.update(works=True, error="")
+        except Exception as e:  # noqa: BLE001 - report, do not raise
+            row.update(works=False, error=f"{type(e).__name__}: {e}")
+        rows.append(row)
+    return rows
+
+
+def blur(plan: BlurPlan, device: str | None = None) -> np.ndarray:
+    """Run ``plan`` on the selected OpenCL device; same output layout as the reference."""
+    rt = _runtime(device)
+    with rt.lock:
+        return _run(rt, plan)
+
+
+def _run(rt: _Runtime, plan: BlurPlan) -> np.ndarray:
+    cl = _cl()
+    img = np.ascontiguousarray(plan.image)
+    h, w, channels = img.shape
+    fh, fw = plan.full_shape
+    r0, c0 = plan.origin
+    npix = h * w
+    taps = prep.space_invariant_taps(plan)
+    box = taps.box() if taps is not None else None
+
+    if img.dtype.kind == "u":
+        luts = prep.linearisation_luts(plan.responses, img.dtype, plan.saturation)
+        in_kind, image_buf = _IN_KINDS[img.dtype], rt.upload("image", img)
+        max_abs = float(np.max(np.abs(luts)))
+    else:
+        linear = prep.linearise_float_image(img, plan.responses, plan.saturation)
+        luts, in_kind, image_buf = None, _IN_FLOAT, rt.upload("image", linear)
+        max_abs = float(np.max(np.abs(linear)))
+    half = box is None and prep.half_storage_ok(plan, luts)
+    lin_buf = rt.buffer("linear", npix * 4 * (2 if half else 4))
+
+    out_kind = _OUT_KINDS[img.dtype]
+    out = np.empty((h, w, channels), dtype=np.float32 if out_kind == 2 else img.dtype)
+    out_buf = rt.buffer("output", out.nbytes)
+    dims = np.array([w, h, r0, c0, fw, fh], dtype=np.int32)
+
+    integrate = _integrator(rt, plan, half, taps, box, max_abs, dims)
+    for cbase, cg in prep.channel_groups(channels):
+        lut = luts[cbase:cbase + cg] if luts is not None else np.zeros((1, 1), np.float32)
+        lut_buf = rt.upload("lut", lut)
+        rt.kernel(half, "linearise")(
+            rt.queue, (npix,), None, image_buf, np.int32(in_kind), np.int32(channels),
+            np.int32(cbase), np.int32(cg), lut_buf, np.int32(lut.shape[1]), lin_buf,
+            np.int32(npix))
+        params, tables = prep.response_params(plan.responses[cbase:cbase + cg])
+        store_args = (rt.upload("resp", params), rt.upload("tables", tables), out_buf,
+                      np.int32(_OUT_KINDS[img.dtype]), np.int32(channels), np.int32(cbase),
+                      np.int32(cg))
+        integrate(lin_buf, store_args)
+    cl.enqueue_copy(rt.queue, out, out_buf, is_blocking=True)
+    if img.dtype == np.float64:
+        out = out.astype(np.float64)
+    return plan.finish(out)
+
+
+def _integrator(rt: _Runtime, plan: BlurPlan, half: bool, taps, box, max_abs: float,
+                dims: np.ndarray):
+    """Upload what the strategy needs once; return ``run(lin_buf, store_args)`` per group."""
+    w, h = int(dims[0]), int(dims[1])
+    geometry = tuple(np.int32(v) for v in dims)
+    items = ((w + PIXELS_PER_ITEM - 1) // PIXELS_PER_ITEM, h)
+
+    if box is not None:
+        axis, lo, hi = box
+        scale = np.float32(prep.fixed_point_scale(max_abs, hi - lo + 1))
+        kern = rt.kernel(half, "integrate_box")
+        lines = h if axis == 0 else w
+
+        def run_box(lin_buf, store_args):
+            kern(rt.queue, (lines,), None, lin_buf, np.int32(axis), np.int32(lo), np.int32(hi),
+                 scale, *geometry, *store_args)
+        return run_box
+
+    if taps is not None:
+        dx_buf, dy_buf = rt.upload("tap_dx", taps.dx), rt.upload("tap_dy", taps.dy)
+        w_buf = rt.upload("tap_w", taps.w.astype(np.float32))
+        extent = tuple(np.int32(v) for v in (taps.dx.min(), taps.dx.max(), taps.dy.min(),
+                                              taps.dy.max()))
+        kern = rt.kernel(half, "integrate_taps")
+
+        def run_taps(lin_buf, store_args):
+            kern(rt.queue, items, None, lin_buf, dx_buf, dy_buf, w_buf, np.int32(taps.w.size),
+                 *extent, *geometry, *store_args)
+        return run_taps
+
+    assert isinstance(plan.motion, Field)
+    flow = plan.motion.flow
+    flow_buf = rt.upload("flow", flow)
+    host_counts = plan.samples is None and not rt.fp64
+    counts = sample_counts(flow[..., 0], flow[..., 1]) if host_counts else np.zeros(1, np.int32)
+    counts_buf = rt.upload("counts", counts)
+    weighted = plan.weights is not None
+    time_w = plan.weights.astype(np.float32) if weighted else np.zeros(1, np.float32)
+    time_w_buf = rt.upload("time_weights", time_w)
+    kern = rt.kernel(half, "integrate_field")
+
+    def run_field(lin_buf, store_args):
+        kern(rt.queue, items, None, lin_buf, flow_buf, counts_buf, np.int32(host_counts),
+             np.int32(plan.samples or 0), time_w_buf, np.int32(weighted),
+             np.float32(plan.anchor), *geometry, *store_args)
+    return run_field
