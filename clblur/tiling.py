@@ -201,6 +201,30 @@ def global_flow_halo(flow, anchor: float, rows_per_read: int) -> tuple[int, int]
 
 
 # --------------------------------------------------------------------------- tile geometry
+_UNITS = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
+
+
+def parse_size(size: int | str | None) -> int:
+    """A memory budget in bytes from an int or ``"512M"``/``"2G"``/``"1.5GiB"`` (binary
+    units); None gives the default (512 MiB)."""
+    if size is None:
+        return DEFAULT_MEMORY_BUDGET
+    if isinstance(size, str):
+        text = size.strip().upper().removesuffix("B").removesuffix("I")
+        unit = text[-1:] if text[-1:] in _UNITS else ""
+        try:
+            value = float(text[:len(text) - len(unit)]) * _UNITS[unit]
+        except ValueError:
+            raise ValueError(f"memory budget must be bytes or a size like 500M or 2G, got "
+                             f"{size!r}") from None
+    elif isinstance(size, (int, float, np.integer)) and not isinstance(size, bool):
+        value = float(size)
+    else:
+        raise TypeError(f"memory budget must be bytes or a size like '2G', got {size!r}")
+    if not math.isfinite(value) or value <= 0:
+        raise ValueError(f"memory budget must be positive, got {size!r}")
+    return int(value)
+
 def choose_tile(shape: tuple[int, int], halo: tuple[int, int], bytes_per_px: int,
                 memory_budget: int) -> tuple[int, int]:
     """The largest square tile (clipped to the image) whose window fits ``memory_budget``."""
@@ -274,16 +298,15 @@ def blur_tiled(src, dst, motion, response="exp", *, anchor: str = "center",
 
     ``motion`` as for ``clblur.blur``; a flow may be any H x W x 2 array-like or a ``.npy``
     path and is read window by window.  ``tile`` (int or (rows, cols)) fixes the tile size;
-    otherwise it is the largest that keeps a window within ``memory_budget`` bytes (default
-    512 MiB).  Result: bitwise what ``clblur.blur`` gives on the same backend.
+    otherwise it is the largest that keeps a window within ``memory_budget`` (bytes or a size
+    such as ``"2G"``; default 512 MiB).  Result: bitwise what ``clblur.blur`` gives on the
+    same backend.
     """
     h, w, channels = _check_arrays(src, dst)
     src, dst = as_array_like(src), as_array_like(dst)
     a = anchor_value(anchor)
     tm = tiled_motion(motion, (h, w))
-    budget = DEFAULT_MEMORY_BUDGET if memory_budget is None else int(memory_budget)
-    if budget <= 0:
-        raise ValueError(f"memory budget must be positive, got {memory_budget}")
+    budget = parse_size(memory_budget)
     per_px = window_bytes_per_px(channels, np.dtype(src.dtype).itemsize, tm.flow is not None)
     if tm.flow is not None:  # size tiles for the worst halo; each tile then uses its own
         halo = global_flow_halo(tm.flow, a, max(budget // (w * FLOW_BYTES_PER_PX * 4), 1))

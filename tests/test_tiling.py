@@ -187,3 +187,15 @@ def test_opencl_tiled_equals_untiled(opencl, rng):
         out = np.zeros_like(img)
         blur_tiled(img, out, motion, backend="opencl", tile=(16, 24))
         np.testing.assert_array_equal(out, ref)
+
+
+@pytest.mark.parametrize("text, expected", [("2G", 2**31), ("500M", 500 * 2**20),
+                                            ("1.5GiB", 3 * 2**29), (4096, 4096)])
+def test_memory_budget_sizes(text, expected):
+    assert tiling.parse_size(text) == expected
+
+
+@pytest.mark.parametrize("bad", ["lots", "-1G", 0, True])
+def test_bad_memory_budget(bad):
+    with pytest.raises((ValueError, TypeError), match="memory budget"):
+        tiling.parse_size(bad)
