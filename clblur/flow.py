@@ -39,7 +39,7 @@ def grey8(image: np.ndarray) -> np.ndarray:
         raise TypeError(f"unsupported frame dtype {img.dtype}")
     if img.ndim == 3:
         img = cv2.cvtColor(np.ascontiguousarray(img[..., :3]), cv2.COLOR_RGB2GRAY)
-    return img
+    return np.ascontiguousarray(img)  # DIS rejects strided views (crops)
 
 
 class FlowEstimator:

@@ -17,6 +17,8 @@ Conventions
   ``g = I((E_first + E_second) / 2)``, which is the paper's Eq. 8 over the whole bent path.
 * At the ends of a sequence one flow is missing; the other one is mirrored (constant velocity).
 * ``samples`` counts samples per half of the shutter (default ``ceil(|v|) + 1`` per pixel).
+  Each half includes its ends with equal weight (as ``clblur.blur`` does), so the frame-time
+  sample, which ends both halves, counts twice.
 """
 
 from __future__ import annotations

@@ -4,8 +4,8 @@ Conventions
 -----------
 * Frames are H x W x 3 RGB uint8 arrays (video files are decoded to ``rgb24``; image folders
   keep the dtype of their files, uint8 or uint16, as ``clblur.io.read_image`` gives it).
-* A path is an image sequence when it is a folder (or, for output, has no suffix); otherwise
-  it is a video file and its suffix picks the container.
+* A path is an image sequence when it is a folder (or, for output, has no suffix or ends with
+  a path separator); otherwise it is a video file and its suffix picks the container.
 * Audio is copied packet for packet (no re-encoding), so the output container must accept the
   input's audio codec; image-sequence outputs cannot hold audio and report it as dropped.
 * Bad input raises ``VideoReadError`` (a ``ValueError``) carrying ``frames_read``, the number of
@@ -54,10 +54,11 @@ class Frame:
 
 
 def is_image_sequence(path: str | os.PathLike, for_output: bool = False) -> bool:
+    """A folder; for output also a new path with no suffix or a trailing separator."""
     p = Path(path)
     if p.is_dir():
         return True
-    return for_output and p.suffix == ""
+    return for_output and (p.suffix == "" or str(path).endswith(("/", os.sep)))
 
 
 def _natural_key(name: str) -> list:
@@ -126,10 +127,10 @@ class VideoFileSource:
 
     def _declared_end(self) -> float | None:
         """End time (s) of the video stream as the file declares it, if it does."""
-        vs = self.video_stream
-        if vs.duration and vs.time_base:
-            return float(((vs.start_time or 0) + vs.duration) * vs.time_base)
-        tag = vs.metadata.get("DURATION")  # Matroska writes it per stream: HH:MM:SS.fffffffff
+        # Only Matroska's per-stream tag (HH:MM:SS.fffffffff, the end of the last packet) is
+        # trusted: FFmpeg fills ``stream.duration`` from the container when it has to guess,
+        # which would flag a video with a longer audio track as cut off.
+        tag = self.video_stream.metadata.get("DURATION")
         if tag:
             try:
                 h, m, sec = tag.split(":")

@@ -1,0 +1,183 @@
+"""GoPro 240 fps study for ``clblur video`` (docs/studies/video.md).
+
+Ground truth: a 360-degree 30 fps exposure centred on frame ``c`` of the 240 fps sequence,
+formed in the linear domain under an assumed response ``R``: the mean of the two 8-frame
+averages ``c-4..c+3`` and ``c-3..c+4`` (weights 1/16, 1/8 x 7, 1/16 over ``c-4..c+4``), because
+an even number of frames cannot be centred on a frame.  A 30 fps clip is every 8th frame
+(phases 0..4 give clips {p, p+8, p+16}); ``clblur video`` blurs each clip with --shutter 360.
+
+Run:  python docs/studies/video_study.py [--backend auto] [--work DIR]
+Writes docs/studies/figures/video/{results.json,*.png} and prints the tables for video.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from clblur import video
+from clblur.data import data_dir
+from clblur.io import read_image
+from clblur.pixels import quantise
+from clblur.responses import response
+
+SYNTH = ["exp", "linear", "srgb", "gamma:2.2"]  # responses given to clblur video
+TRUTHS = ["gamma:2.2", "srgb", "exp", "linear"]  # assumed camera responses for the truth
+PRIMARY_TRUTH = "gamma:2.2"  # Nah et al. 2017 built GOPRO_Large's blur with gamma 2.2
+STRIDE = 8  # 240 fps -> 30 fps
+WEIGHTS = np.array([1, 2, 2, 2, 2, 2, 2, 2, 1]) / 16.0  # frames c-4 .. c+4
+FIG = Path(__file__).resolve().parent / "figures" / "video"
+
+
+def truth_exposure(frames: list[np.ndarray], c: int, resp_spec: str) -> np.ndarray:
+    r = response(resp_spec)
+    acc = sum(w * r.inverse(frames[c - 4 + k] / 255.0) for k, w in enumerate(WEIGHTS))
+    return quantise(r.forward(acc), np.uint8)
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
+    return float(10 * np.log10(255.0 ** 2 / mse))
+
+
+def run_clblur_video(argv: list[str]) -> None:
+    """Parse ``argv`` with the real ``clblur video`` parser and run it."""
+    parser = argparse.ArgumentParser(prog="clblur")
+    video.register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(["video", *argv])
+    if args.func(args) != 0:
+        raise RuntimeError(f"clblur video {' '.join(argv)} failed")
+
+
+def synthesise(names: list[Path], work: Path, backend: str) -> dict:
+    """Blur every 30 fps clip with every response; returns {(phase, spec): {index: image}}."""
+    out = {}
+    for phase in range(STRIDE // 2 + 1):
+        idx = list(range(phase, len(names), STRIDE))
+        clip = work / f"clip{phase}"
+        clip.mkdir(exist_ok=True)
+        for i in idx:
+            link = clip / names[i].name
+            if not link.exists():
+                link.symlink_to(names[i])
+        flows = work / f"flows{phase}"
+        flows.mkdir(exist_ok=True)
+        for spec in SYNTH:
+            dst = work / f"out{phase}_{spec.replace(':', '').replace('.', '_')}"
+            flow_args = (["--flow", str(flows)] if any(flows.iterdir())
+                         else ["--save-flows", str(flows)])
+            run_clblur_video([str(clip), str(dst), "--shutter", "360", "--response", spec,
+                              "--backend", backend, "--quiet", *flow_args])
+            out[(phase, spec)] = {i: read_image(dst / names[i].name) for i in idx}
+    return out
+
+
+def evaluate(frames, synth) -> dict:
+    rows = {}
+    for (_phase, spec), imgs in synth.items():
+        idx = sorted(imgs)
+        for j, c in enumerate(idx):
+            if c < 4 or c + 4 >= len(frames):
+                continue
+            interior = 0 < j < len(idx) - 1
+            key = (c, interior)
+            rows.setdefault(key, {})[f"flow {spec}"] = imgs[c]
+            rows[key]["sharp frame"] = frames[c]
+            if interior:
+                rows[key]["30 fps frame average"] = quantise(
+                    np.mean([frames[c - STRIDE], frames[c], frames[c + STRIDE]], axis=0) / 255,
+                    np.uint8)
+    table = {}
+    for (c, interior), methods in sorted(rows.items()):
+        for t in TRUTHS:
+            truth = truth_exposure(frames, c, t)
+            for m, img in methods.items():
+                table.setdefault(m, {}).setdefault(t, {})[f"{c}{'' if interior else 'e'}"] = \
+                    psnr(img, truth)
+    return table, rows
+
+
+def summarise(table: dict) -> str:
+    lines = ["| method | " + " | ".join(f"truth {t}" for t in TRUTHS) + " |",
+             "|---|" + "---|" * len(TRUTHS)]
+    for m in table:
+        cells = []
+        for t in TRUTHS:
+            vals = [v for k, v in table[m][t].items() if not k.endswith("e")]
+            cells.append(f"{np.mean(vals):.2f}" if vals else "-")
+        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+    frames = sorted({k for m in table for k in table[m][PRIMARY_TRUTH]},
+                    key=lambda k: (k.endswith("e"), int(k.rstrip("e"))))
+    lines += ["", f"Per frame, truth {PRIMARY_TRUTH} (e: first/last frame of its clip):", "",
+              "| method | " + " | ".join(frames) + " |", "|---|" + "---|" * len(frames)]
+    for m in table:
+        lines.append(f"| {m} | " + " | ".join(
+            f"{table[m][PRIMARY_TRUTH][k]:.2f}" if k in table[m][PRIMARY_TRUTH] else "-"
+            for k in frames) + " |")
+    return "\n".join(lines)
+
+
+def figures(frames, rows, c: int = 10) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    methods = rows[(c, True)]
+    truth = truth_exposure(frames, c, PRIMARY_TRUTH)
+    panels = [("truth (8-frame linear mean, gamma 2.2)", truth)] + [
+        (m, methods[m]) for m in ("sharp frame", "30 fps frame average", "flow exp",
+                                  "flow linear", "flow srgb", "flow gamma:2.2")]
+    for name, (y0, x0, h, w) in {"crop_a": (300, 560, 240, 360),
+                                 "full": (0, 0, 720, 1280)}.items():
+        cols = 4 if name == "crop_a" else 2
+        rows_n = -(-len(panels) // cols)
+        fig, axes = plt.subplots(rows_n, cols, figsize=(4.2 * cols, 4.2 * rows_n * h / w + 0.4))
+        for ax in axes.flat:
+            ax.axis("off")
+        for ax, (title, img) in zip(axes.flat, panels, strict=False):
+            ax.imshow(img[y0:y0 + h, x0:x0 + w])
+            label = title if img is truth else f"{title}\nPSNR {psnr(img, truth):.2f} dB"
+            ax.set_title(label, fontsize=9)
+        fig.tight_layout()
+        fig.savefig(FIG / f"gopro_{name}_frame{c}.png", dpi=80 if name == "full" else 110)
+        plt.close(fig)
+    # Where the responses disagree: |error| of exp and linear against the truth.
+    fig, axes = plt.subplots(1, 3, figsize=(15, 3.2))
+    for ax, m in zip(axes, ("flow exp", "flow srgb", "flow linear"), strict=True):
+        err = np.abs(methods[m].astype(np.int16) - truth).mean(axis=2)
+        im = ax.imshow(err, cmap="magma", vmin=0, vmax=30)
+        ax.set_title(f"|{m} - truth| (mean over RGB, code values)", fontsize=9)
+        ax.axis("off")
+    fig.colorbar(im, ax=axes, shrink=0.8)
+    fig.savefig(FIG / f"gopro_error_frame{c}.png", dpi=80)
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--backend", default="auto")
+    ap.add_argument("--work", default=None, help="keep intermediate clips here")
+    args = ap.parse_args()
+    folder = data_dir(required=True) / "gopro240" / "frames"
+    names = sorted(folder.glob("*.png"))
+    frames = [read_image(p) for p in names]
+    FIG.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(args.work or tmp)
+        work.mkdir(exist_ok=True)
+        synth = synthesise(names, work, args.backend)
+        table, rows = evaluate(frames, synth)
+        figures(frames, rows)
+    doc = {"truth_weights_c-4..c+4": WEIGHTS.tolist(), "psnr_db": table,
+           "backend": args.backend}
+    (FIG / "results.json").write_text(json.dumps(doc, indent=1) + "\n")
+    print(summarise(table))
+
+
+if __name__ == "__main__":
+    main()
