@@ -1,0 +1,215 @@
+"""``clblur batch``: results, resuming, bad files, manifests, and a 2-worker LocalCluster."""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import clblur
+from clblur import batch
+from clblur.io import read_image, write_flow, write_image
+
+
+@pytest.fixture(autouse=True)
+def _quiet(monkeypatch):
+    monkeypatch.setenv("CLBLUR_QUIET", "1")
+
+
+def run_cli(*argv: str) -> int:
+    parser = argparse.ArgumentParser()
+    batch.register(parser.add_subparsers())
+    args = parser.parse_args(["batch", *argv])
+    return args.func(args)
+
+
+@pytest.fixture
+def folder(tmp_path, rng):
+    """in/ with three good images, one corrupt; flows/ named like the images."""
+    (tmp_path / "in").mkdir()
+    (tmp_path / "flows").mkdir()
+    images = {}
+    for i, shape in enumerate([(20, 30, 3), (25, 18, 3), (16, 16)]):
+        name = f"im{i}.png"
+        images[name] = rng.integers(0, 256, shape, dtype=np.uint8)
+        write_image(tmp_path / "in" / name, images[name])
+        write_flow(tmp_path / "flows" / f"im{i}.npy", rng.normal(0, 3, shape[:2] + (2,)))
+    (tmp_path / "in" / "broken.png").write_bytes(b"not a png at all")
+    write_flow(tmp_path / "flows" / "broken.npy", np.zeros((4, 4, 2)))
+    (tmp_path / "in" / "notes.txt").write_text("not an image; ignored")
+    return tmp_path, images
+
+
+def _expected(tmp_path, images, name, **kw):
+    flow = np.load(tmp_path / "flows" / (Path(name).stem + ".npy"))
+    return clblur.blur(images[name], flow, backend="numpy", **kw)
+
+
+def test_batch_blurs_reports_bad_file_and_resumes(folder, capsys):
+    tmp_path, images = folder
+    out = tmp_path / "out"
+    argv = [str(tmp_path / "in"), str(out), "--flow-dir", str(tmp_path / "flows"),
+            "--backend", "numpy", "--quiet"]
+    assert run_cli(*argv) == 1  # broken.png failed
+    text = capsys.readouterr().out
+    assert "3 blurred, 0 already finished, 1 failed" in text
+    assert "broken.png" in text
+    for name in images:
+        np.testing.assert_array_equal(read_image(out / name), _expected(tmp_path, images, name))
+    assert not (out / "broken.png").exists()
+
+    # resume: finished images are skipped, only the bad one is tried again
+    stamp = (out / "im0.png").stat().st_mtime_ns
+    assert run_cli(*argv) == 1
+    assert "0 blurred, 3 already finished, 1 failed" in capsys.readouterr().out
+    assert (out / "im0.png").stat().st_mtime_ns == stamp
+
+    # partial work is redone: a missing marker, a truncated output, a stray temp file
+    (out / batch.MARKER_DIR / "im0.png.json").unlink()
+    (out / "im1.png").write_bytes((out / "im1.png").read_bytes()[:50])
+    (out / ".im2.png.abc123.part.png").write_bytes(b"half")
+    (tmp_path / "in" / "broken.png").unlink()
+    assert run_cli(*argv) == 0
+    assert "2 blurred, 1 already finished, 0 failed" in capsys.readouterr().out
+    assert not list(out.glob(".*.part*"))
+    for name in images:
+        np.testing.assert_array_equal(read_image(out / name), _expected(tmp_path, images, name))
+
+
+def test_changed_options_or_input_redo_the_image(folder, capsys):
+    tmp_path, images = folder
+    (tmp_path / "in" / "broken.png").unlink()
+    base = [str(tmp_path / "in"), str(tmp_path / "out"), "--flow-dir",
+            str(tmp_path / "flows"), "--backend", "numpy", "--quiet"]
+    assert run_cli(*base) == 0
+    capsys.readouterr()
+    assert run_cli(*base, "--response", "srgb") == 0
+    assert "3 blurred, 0 already finished" in capsys.readouterr().out
+    np.testing.assert_array_equal(read_image(tmp_path / "out" / "im1.png"),
+                                  _expected(tmp_path, images, "im1.png", response="srgb"))
+    os.utime(tmp_path / "in" / "im2.png", ns=(1, 1))  # an input changed since
+    assert run_cli(*base, "--response", "srgb") == 0
+    assert "1 blurred, 2 already finished" in capsys.readouterr().out
+
+
+def test_manifest_overrides_per_image(folder, capsys):
+    tmp_path, images = folder
+    (tmp_path / "in" / "broken.png").unlink()
+    psf = np.ones((1, 7))
+    np.save(tmp_path / "k.npy", psf)
+    (tmp_path / "m.csv").write_text(
+        "image,dx,dy,psf,response,anchor,output\n"
+        "im0.png,6,-2,,linear,start,\n"
+        "im1.png,,,k.npy,,,renamed.png\n"
+        "ghost.png,1,1,,,,\n")
+    rc = run_cli(str(tmp_path / "in"), str(tmp_path / "out"), "--manifest",
+                 str(tmp_path / "m.csv"), "--motion", "3,0", "--backend", "numpy", "--quiet")
+    assert rc == 1
+    text = capsys.readouterr().out
+    assert "3 blurred, 0 already finished, 1 failed" in text and "ghost.png" in text
+    out = tmp_path / "out"
+    np.testing.assert_array_equal(
+        read_image(out / "im0.png"),
+        clblur.blur(images["im0.png"], (6, -2), "linear", anchor="start", backend="numpy"))
+    np.testing.assert_array_equal(read_image(out / "renamed.png"),
+                                  clblur.blur(images["im1.png"], psf, backend="numpy"))
+    np.testing.assert_array_equal(read_image(out / "im2.png"),  # not in the manifest
+                                  clblur.blur(images["im2.png"], (3, 0), backend="numpy"))
+
+
+@pytest.mark.parametrize("manifest, match", [
+    ("name,dx\na.png,1\n", "needs an 'image' column"),
+    ("image,speed\na.png,1\n", "unknown: speed"),
+    ("image,dx\na.png,1\na.png,2\n", "listed twice"),
+])
+def test_bad_manifest_is_a_usage_error(folder, manifest, match):
+    tmp_path, _ = folder
+    (tmp_path / "m.csv").write_text(manifest)
+    with pytest.raises(ValueError, match=match):
+        run_cli(str(tmp_path / "in"), str(tmp_path / "out"), "--manifest",
+                str(tmp_path / "m.csv"))
+
+
+def test_malformed_row_and_missing_motion_fail_only_that_image(folder, capsys):
+    tmp_path, _ = folder
+    (tmp_path / "m.csv").write_text("image,dx,dy\nim0.png,fast,2\nim1.png,4,0\n")
+    rc = run_cli(str(tmp_path / "in"), str(tmp_path / "out"), "--manifest",
+                 str(tmp_path / "m.csv"), "--backend", "numpy", "--quiet")
+    text = capsys.readouterr().out
+    assert rc == 1 and "1 blurred, 0 already finished, 3 failed" in text
+    assert "manifest row for im0.png" in text and "no motion given" in text
+
+
+def test_usage_errors(folder):
+    tmp_path, _ = folder
+    with pytest.raises(ValueError, match="must differ"):
+        run_cli(str(tmp_path / "in"), str(tmp_path / "in"), "--motion", "1,0")
+    with pytest.raises(ValueError, match="input folder not found"):
+        run_cli(str(tmp_path / "nope"), str(tmp_path / "out"), "--motion", "1,0")
+    with pytest.raises(ValueError, match="local:N"):
+        run_cli(str(tmp_path / "in"), str(tmp_path / "out"), "--motion", "1,0",
+                "--scheduler", "local:zero")
+    with pytest.raises(ValueError, match="memory budget"):
+        run_cli(str(tmp_path / "in"), str(tmp_path / "out"), "--motion", "1,0",
+                "--memory-budget", "plenty")
+
+
+def _worker_state() -> tuple[int, str | None, int | None]:
+    """(pid, POCL_CACHE_DIR if it is a folder, OpenCL runtimes in this process or None if the
+    backend was never imported)."""
+    import sys
+
+    cl = sys.modules.get("clblur.opencl")
+    cache = os.environ.get("POCL_CACHE_DIR")
+    return os.getpid(), cache if cache and Path(cache).is_dir() else None, \
+        None if cl is None else len(cl._runtimes)
+
+
+def test_two_worker_local_cluster(folder, capsys):
+    pytest.importorskip("distributed")
+    tmp_path, images = folder
+    rc = run_cli(str(tmp_path / "in"), str(tmp_path / "out"), "--flow-dir",
+                 str(tmp_path / "flows"), "--backend", "numpy", "--scheduler", "local:2",
+                 "--quiet")
+    assert rc == 1
+    assert "3 blurred, 0 already finished, 1 failed" in capsys.readouterr().out
+    for name in images:
+        np.testing.assert_array_equal(read_image(tmp_path / "out" / name),
+                                      _expected(tmp_path, images, name))
+
+
+def test_workers_get_own_pocl_cache_and_lazy_opencl(folder):
+    pytest.importorskip("distributed")
+    from clblur.distributed import client_for
+
+    tmp_path, _ = folder
+    job = batch.Job(src=str(tmp_path / "in" / "im0.png"), dst=str(tmp_path / "im0.png"),
+                    motion=(2.0, 1.0), backend="numpy")
+    with client_for("local:2") as client:
+        assert client.submit(batch.run_job, job, pure=False).result().ok
+        states = list(client.run(_worker_state).values())
+    pids, caches, runtimes = zip(*states, strict=True)
+    assert len(set(pids)) == 2 and os.getpid() not in pids  # separate processes
+    assert len(set(caches)) == 2 and None not in caches
+    assert all(r in (None, 0) for r in runtimes)  # numpy jobs never create an OpenCL context
+
+
+def test_workers_create_one_opencl_context_each(opencl, folder):
+    pytest.importorskip("distributed")
+    from clblur.distributed import client_for
+
+    tmp_path, images = folder
+    jobs = [batch.Job(src=str(tmp_path / "in" / n), dst=str(tmp_path / f"cl_{n}"),
+                      motion=(4.0, -1.0), backend="opencl") for n in images]
+    with client_for("local:2") as client:
+        results = client.gather([client.submit(batch.run_job, j, pure=False) for j in jobs])
+        states = list(client.run(_worker_state).values())
+    assert all(r.ok and r.backend == "opencl" for r in results)
+    assert all(rt in (None, 1) for _, _, rt in states)
+    assert any(rt == 1 for _, _, rt in states)
+    for n, img in images.items():
+        np.testing.assert_array_equal(read_image(tmp_path / f"cl_{n}"),
+                                      clblur.blur(img, (4.0, -1.0), backend="opencl"))
