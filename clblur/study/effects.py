@@ -1,0 +1,131 @@
+"""The effect vocabulary: what the paper's simulation can get wrong, as nested extensions.
+
+Conventions
+-----------
+Every effect adds parameters to the paper's model (Eq. 3 response ``v = 1 - exp(-x)`` and the
+Eq. 9 blur); at their *null* values the model is the paper's again, so each extension is a
+nested model and can be tested against the simpler one.  Parameters (``PARAMS``):
+
+* ``black``: black level ``beta`` (normalised): ``v = beta + (1 - beta) I(x)``.
+* ``gamma``, ``rho``: response shape.  Inverse response ``x = (-ln(1 - rho v) / rho)^gamma``;
+  ``rho = gamma = 1`` is the paper's Eq. 3, ``rho -> 0`` gives the power law ``v^gamma``.
+* ``sat``: saturation factor ``s >= 1``: a clipped source pixel holds ``s`` times the least
+  exposure that clips (``clblur.pixels`` convention; the paper's model uses 1).
+* ``gain``: log of an exposure gain between source and target capture.
+* ``cg1``, ``cg2``, ...: log white-balance gains per channel, normalised to a geometric mean
+  of 1 (a common gain is ``exposure_gain``'s job).
+* ``vig``: ``c`` of the cos^4 vignetting ``V = (1 + c (r/R)^2)^-2`` (``clblur.camera``).
+* ``t1``, ``t2``: time weights ``w(s) = 1 + t1 (2s - 1) + t2 (6s^2 - 6s + 1)`` along the
+  motion (``s`` = 0 start, 1 end), i.e. a non-uniform velocity.
+* ``na``, ``nb``: Poisson-Gaussian noise, variance ``na x + nb`` in the linear domain
+  (in the model's exposure units).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+# name: (null value, lower bound, upper bound)
+PARAMS: dict[str, tuple[float, float, float]] = {
+    "black": (0.0, 0.0, 0.3),
+    "gamma": (1.0, 0.25, 4.0),
+    "rho": (1.0, 1e-3, 1.0),
+    "sat": (1.0, 1.0, 30.0),
+    "gain": (0.0, -0.7, 0.7),
+    "vig": (0.0, 0.0, 3.0),
+    "t1": (0.0, -1.0, 1.0),
+    "t2": (0.0, -1.0, 1.0),
+    "na": (0.0, 0.0, 0.1),
+    "nb": (0.0, 0.0, 0.01),
+}
+for _c in (1, 2, 3):
+    PARAMS[f"cg{_c}"] = (0.0, -0.5, 0.5)
+
+
+@dataclass(frozen=True)
+class Effect:
+    name: str
+    what: str  # one line: the physical cause
+
+    def params(self, channels: int) -> tuple[str, ...]:
+        if self.name == "channel_gain":
+            return tuple(f"cg{c}" for c in range(1, channels))
+        return _EFFECT_PARAMS[self.name]
+
+
+_EFFECT_PARAMS = {
+    "black_level": ("black",),
+    "response_shape": ("gamma", "rho"),
+    "saturation": ("sat",),
+    "noise": ("na", "nb"),
+    "vignetting": ("vig",),
+    "nonuniform_motion": ("t1", "t2"),
+    "exposure_gain": ("gain",),
+}
+
+EFFECTS: dict[str, Effect] = {e.name: e for e in (
+    Effect("black_level", "the sensor's zero exposure maps to a positive code (black offset); "
+           "Eq. 3 has I(0) = 0"),
+    Effect("response_shape", "the camera response is not the paper's exponential Eq. 3"),
+    Effect("saturation", "clipped highlights in the source image hide irradiance that shows "
+           "in the target"),
+    Effect("noise", "Poisson-Gaussian sensor noise (variance a x + b in the linear domain) "
+           "beyond quantisation"),
+    Effect("vignetting", "cos^4 falloff fixed to the sensor while the scene moves across it "
+           "(Eq. 1)"),
+    Effect("nonuniform_motion", "the velocity changes during the exposure, so the path is not "
+           "sampled uniformly in time"),
+    Effect("channel_gain", "per-channel (white-balance) gains differ between the two captures"),
+    Effect("exposure_gain", "the exposure or gain of the two captures differs from the nominal "
+           "ratio"),
+)}
+EFFECT_NAMES = tuple(EFFECTS)
+
+
+def readable_estimate(effect: str, p: dict[str, float], channels: int) -> dict:
+    """The fitted parameters of one effect in physical units."""
+    import math
+
+    if effect == "black_level":
+        return {"black_level_codes": 255.0 * p["black"]}
+    if effect == "response_shape":
+        return {"gamma": p["gamma"], "rho": p["rho"]}
+    if effect == "saturation":
+        return {"factor": p["sat"]}
+    if effect == "noise":
+        return {"a": p["na"], "b": p["nb"]}
+    if effect == "vignetting":
+        return {"c": p["vig"], "corner_falloff": 1.0 - 1.0 / (1.0 + p["vig"]) ** 2}
+    if effect == "nonuniform_motion":
+        w0 = 1.0 - p["t1"] + p["t2"]
+        w1 = 1.0 + p["t1"] + p["t2"]
+        return {"t1": p["t1"], "t2": p["t2"], "start_weight": w0, "end_weight": w1}
+    if effect == "exposure_gain":
+        return {"gain": math.exp(p["gain"])}
+    if effect == "channel_gain":
+        return {"gains": channel_gains(p, channels)}
+    raise ValueError(f"unknown effect {effect!r}")
+
+
+def channel_gains(p: dict[str, float], channels: int) -> list[float]:
+    import math
+
+    logs = [0.0] + [p.get(f"cg{c}", 0.0) for c in range(1, channels)]
+    mean = sum(logs) / len(logs)
+    return [math.exp(v - mean) for v in logs]
+
+
+def explain(effect: str, estimate: dict, significant: bool, gain_nll: float) -> str:
+    """A sentence for the report: cause, size, and whether the data support it."""
+    e = EFFECTS[effect]
+    size = ", ".join(f"{k}={_fmt(v)}" for k, v in estimate.items())
+    verdict = ("significant: adding it improves the held-out likelihood by "
+               f"{gain_nll:.3g} nats per pixel" if significant else
+               "not significant: the held-out data do not support it")
+    return f"{effect}: {e.what}. Fitted {size}; {verdict}."
+
+
+def _fmt(v) -> str:
+    if isinstance(v, list):
+        return "[" + ", ".join(f"{x:.3g}" for x in v) + "]"
+    return f"{v:.3g}"

@@ -1,0 +1,121 @@
+"""Build a ``Group``: sample target pixels, trace their taps, collapse them to code histograms.
+
+Conventions
+-----------
+A *tap* reads source image ``src`` at ``(x - dx, y - dy)`` (bilinear, clamp to edge, as
+``clblur.reference``) with weight ``w`` at shutter time ``s`` in [0, 1] (None: no time order,
+e.g. a PSF).  Target pixels are taken on a regular grid (stride chosen so at most
+``max_pixels`` are used); pixels whose taps leave the image are dropped, because real data do
+not share the kernels' clamp-to-edge border.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from clblur.camera import normalised_radius2
+from clblur.study.model import CODES, Group
+
+
+@dataclass(frozen=True)
+class Taps:
+    """All taps of the sampled pixels: arrays (n,) or scalars per tap."""
+
+    src: int
+    dx: np.ndarray | float
+    dy: np.ndarray | float
+    w: np.ndarray | float
+    s: float | np.ndarray | None
+
+
+def sample_grid(shape: tuple[int, int], max_pixels: int) -> tuple[np.ndarray, np.ndarray]:
+    h, w = shape
+    stride = max(1, math.ceil(math.sqrt(h * w / max(max_pixels, 1))))
+    rows, cols = np.mgrid[stride // 2:h:stride, stride // 2:w:stride]
+    return rows.ravel(), cols.ravel()
+
+
+def build_group(name: str, sources: list[np.ndarray], target: np.ndarray,
+                rows: np.ndarray, cols: np.ndarray,
+                taps: Callable[[np.ndarray, np.ndarray], Iterable[Taps]], ratio: float,
+                vignetting: bool, timed: bool) -> Group:
+    """Collapse the taps of pixels (rows, cols) into code histograms (see ``model``)."""
+    h, w, nc = target.shape
+    hw = h * w
+    yy, xx = rows.astype(np.float64), cols.astype(np.float64)
+    inside = np.ones(rows.size, bool)
+    entries: dict[int, list] = {0: [], 1: [], 2: []}
+    for tap in taps(yy, xx):
+        x = xx - tap.dx
+        y = yy - tap.dy
+        inside &= (x >= -1e-9) & (x <= w - 1 + 1e-9) & (y >= -1e-9) & (y <= h - 1 + 1e-9)
+        for r, col, wt in _bilinear(x, y, h, w):
+            wt = wt * tap.w
+            entries[0].append((r, col + tap.src * hw, wt))
+            if timed and tap.s is not None:
+                s = np.broadcast_to(np.asarray(tap.s, dtype=np.float64), wt.shape)
+                entries[1].append((r, col + tap.src * hw, wt * (2 * s - 1)))
+                entries[2].append((r, col + tap.src * hw, wt * (6 * s * s - 6 * s + 1)))
+    keep = np.flatnonzero(inside)
+    n = rows.size
+    total = hw * len(sources)
+    mats = {i: _csr(e, n, total)[keep] for i, e in entries.items() if e}
+    r2_src = np.tile(normalised_radius2((h, w)).ravel(), len(sources))
+    codes = np.stack([s.reshape(hw, nc) for s in sources]).reshape(total, nc)
+    onehot = [sp.csr_matrix((np.ones(total), (np.arange(total), codes[:, c].astype(np.intp))),
+                            shape=(total, CODES)) for c in range(nc)]
+    hist = {}
+    for i, m in mats.items():
+        for k in (0, 1, 2) if vignetting else (0,):
+            mk = m if k == 0 else m @ sp.diags(r2_src ** k)
+            hist[(i, k)] = [(mk @ oh).tocsr() for oh in onehot]
+    m0 = mats[0]
+    hist_sq = [(m0.multiply(m0)).tocsr() @ oh for oh in onehot]
+    rows, cols = rows[keep], cols[keep]
+    tgt = target[rows, cols].astype(np.float64)
+    full = 255.0
+    valid = (tgt > 0) & (tgt < full)
+    r2 = normalised_radius2((h, w))[rows, cols]
+    clipped = any(bool((s == 255).any()) for s in sources)
+    return Group(name, tgt, valid, rows, cols, (h, w), float(ratio), hist,
+                 [hq.tocsr() for hq in hist_sq], r2, source_clipped=clipped)
+
+
+def _csr(entries, n, total) -> sp.csr_matrix:
+    r = np.concatenate([np.broadcast_to(e[0], e[2].shape) for e in entries])
+    c = np.concatenate([np.broadcast_to(e[1], e[2].shape) for e in entries])
+    v = np.concatenate([e[2] for e in entries])
+    nz = v != 0
+    return sp.csr_matrix((v[nz], (r[nz], c[nz])), shape=(n, total))
+
+
+def _bilinear(x, y, h, w):
+    """(row index, flat source index, weight) of the four bilinear corners, clamp to edge."""
+    x = np.clip(x, 0.0, w - 1.0)
+    y = np.clip(y, 0.0, h - 1.0)
+    x0 = np.floor(x).astype(np.intp)
+    y0 = np.floor(y).astype(np.intp)
+    x1 = np.minimum(x0 + 1, w - 1)
+    y1 = np.minimum(y0 + 1, h - 1)
+    fx, fy = x - x0, y - y0
+    r = np.arange(x.size)
+    return ((r, y0 * w + x0, (1 - fx) * (1 - fy)), (r, y0 * w + x1, fx * (1 - fy)),
+            (r, y1 * w + x0, (1 - fx) * fy), (r, y1 * w + x1, fx * fy))
+
+
+def as_hwc(image: np.ndarray, what: str) -> np.ndarray:
+    """8-bit H x W x C view of an image; the study works on 8-bit codes."""
+    if not isinstance(image, np.ndarray):
+        raise TypeError(f"{what} must be a numpy array")
+    if image.dtype != np.uint8:
+        raise ValueError(f"{what} is {image.dtype}; the study needs 8-bit images (uint8)")
+    if image.ndim == 2:
+        return image[..., None]
+    if image.ndim != 3:
+        raise ValueError(f"{what} must be H x W or H x W x C, got shape {image.shape}")
+    return image[..., :3]

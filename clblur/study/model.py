@@ -1,0 +1,161 @@
+"""The study's forward model: the paper's Eq. 9 with every effect of the vocabulary.
+
+Conventions
+-----------
+All three data kinds reduce to one form: a *target* pixel ``p`` (blurred image, long exposure,
+or the next image of an exposure series) is predicted from 8-bit *source* codes (static image,
+short frames, previous exposure) as
+
+    E(p)    = sum_q M(p, q) T[code(q)] / V(q)          (linear-domain average, Eq. 8)
+    pred(p) = 255 * (beta + (1 - beta) I(m(p) E(p))),   m = ratio * gain * gain_c * V(p)
+
+with ``T`` the inverse response table over the 256 codes.  Because ``T`` acts per code,
+``M @ onehot(code)`` collapses to a *code histogram* ``H[p, c]`` (weight of source code ``c``
+in pixel ``p``'s average).  Non-uniform time weights and vignetting enter linearly in a few
+extra histograms (time weights ``P1 = 2s - 1``, ``P2 = 6s^2 - 6s + 1``; ``1/V = 1 + 2c r^2 +
+c^2 r^4``), so every model evaluation is a handful of sparse ``n x 256`` products, however long
+the motion path.
+
+Noise model of the residual ``y - pred`` (code values), Gaussian with variance
+``1/12 + s^2 (na x_t + nb) + (s m)^2 sum_q M^2 (T'^2/12 + na T + nb)``:
+target quantisation, target noise and source quantisation plus noise
+propagated through the average (``s`` the response slope at the prediction, ``T'`` the table's
+code step).  Target pixels at code 0 or 255 are censored and left out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from clblur.study.effects import PARAMS, channel_gains
+
+CODES = 256
+TOP = 1.0 - 1.0 / (4 * 255)  # largest normalised value linearised as is (clblur.pixels)
+_LOG2PI = float(np.log(2 * np.pi))
+
+
+@dataclass
+class Group:
+    """Target pixels of one pair/stack/exposure step and their source histograms."""
+
+    name: str
+    target: np.ndarray  # (n, C) observed target codes, float64
+    valid: np.ndarray  # (n, C) bool: not censored
+    rows: np.ndarray  # (n,) target pixel row
+    cols: np.ndarray  # (n,) target pixel column
+    shape: tuple[int, int]  # target image H, W
+    ratio: float  # nominal exposure ratio target / source
+    hist: dict[tuple[int, int], list[sp.csr_matrix]]  # (time term, vignette power) -> per channel
+    hist_sq: list[sp.csr_matrix]  # squared weights (uniform time, no vignetting)
+    r2: np.ndarray  # (n,) normalised radius^2 of the target pixels
+    block: np.ndarray = field(default=None)  # (n,) global block id
+    fold: np.ndarray = field(default=None)  # (n,) 0 or 1
+    source_clipped: bool = False
+
+    def time_norm(self, i: int) -> np.ndarray:
+        """Row sums of time term ``i`` (the same for every channel), cached."""
+        cache = self.__dict__.setdefault("_norms", {})
+        if i not in cache:
+            cache[i] = _rowsum(self.hist[(i, 0)][0])
+        return cache[i]
+
+    @property
+    def channels(self) -> int:
+        return self.target.shape[1]
+
+    def subset(self, keep: np.ndarray) -> Group:
+        idx = np.flatnonzero(keep)
+        return Group(self.name, self.target[idx], self.valid[idx], self.rows[idx],
+                     self.cols[idx], self.shape, self.ratio,
+                     {k: [h[idx] for h in v] for k, v in self.hist.items()},
+                     [h[idx] for h in self.hist_sq], self.r2[idx], self.block[idx],
+                     self.fold[idx], self.source_clipped)
+
+
+def inverse_table(p: dict[str, float]) -> np.ndarray:
+    """``T[code]``: exposure of each source code under black level, shape and saturation."""
+    v = np.arange(CODES, dtype=np.float64) / 255.0
+    beta = p["black"]
+    w = np.clip((v - beta) / (1.0 - beta), 0.0, TOP)
+    t = _inverse(w, p["gamma"], p["rho"])
+    t[-1] = p["sat"] * _inverse(np.array([TOP]), p["gamma"], p["rho"])[0]
+    return t
+
+
+def _inverse(w, gamma, rho):
+    return np.power(-np.log1p(-rho * w) / rho, gamma)
+
+
+def forward(x: np.ndarray, gamma: float, rho: float) -> tuple[np.ndarray, np.ndarray]:
+    """Normalised value and its slope d v / d x for exposure ``x`` (inverse of ``_inverse``)."""
+    x = np.maximum(x, 1e-12)
+    root = np.power(x, 1.0 / gamma)
+    ex = np.exp(-rho * root)
+    v = -np.expm1(-rho * root) / rho
+    slope = ex * root / (gamma * x)
+    over = v > 1.0
+    return np.where(over, 1.0, v), np.where(over, 0.0, slope)
+
+
+def time_ok(p: dict[str, float]) -> bool:
+    """Time weights must stay positive along the whole path."""
+    s = np.linspace(0.0, 1.0, 41)
+    w = 1.0 + p["t1"] * (2 * s - 1) + p["t2"] * (6 * s * s - 6 * s + 1)
+    return bool(w.min() > 0.02)
+
+
+def predict(g: Group, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Predicted target codes and residual variances (n, C)."""
+    n, nc = g.target.shape
+    gains = channel_gains(p, nc)
+    time_c = (1.0, p["t1"], p["t2"])
+    vig_c = (1.0, 2.0 * p["vig"], p["vig"] ** 2)
+    vig_out = 1.0 / (1.0 + p["vig"] * g.r2) ** 2
+    pred = np.empty((n, nc))
+    var = np.empty((n, nc))
+    t = inverse_table(p)
+    step = np.gradient(t)
+    step[-1] = step[-2]  # a clipped code's error is the saturation factor's business
+    dq = step * step / 12.0
+    na2, nb2 = p["na"], p["nb"]  # variance coefficients: zero is not a stationary point
+    for c in range(nc):
+        num = np.zeros(n)
+        norm = np.zeros(n)
+        for (i, k), hs in g.hist.items():
+            coef = time_c[i] * vig_c[k]
+            if coef == 0.0:
+                continue
+            num += coef * (hs[c] @ t)
+            if k == 0:
+                norm += time_c[i] * g.time_norm(i)
+        e = num / np.maximum(norm, 1e-12)
+        m = g.ratio * np.exp(p["gain"]) * gains[c] * vig_out
+        x = m * e
+        v, dv = forward(x, p["gamma"], p["rho"])
+        scale = 255.0 * (1.0 - p["black"])
+        pred[:, c] = 255.0 * p["black"] + scale * v
+        s = scale * dv
+        hq = g.hist_sq[c]
+        source = hq @ (dq + na2 * t + nb2)
+        var[:, c] = (1.0 / 12.0 + s * s * (na2 * x + nb2)
+                     + (s * m) ** 2 * source)
+    return pred, var
+
+
+def _rowsum(h: sp.csr_matrix) -> np.ndarray:
+    return np.asarray(h.sum(axis=1)).ravel()
+
+
+def pixel_nll(g: Group, p: dict[str, float]) -> np.ndarray:
+    """Gaussian negative log-likelihood per target pixel (summed over valid channels)."""
+    pred, var = predict(g, p)
+    r = g.target - pred
+    nll = 0.5 * (_LOG2PI + np.log(var) + r * r / var)
+    return np.where(g.valid, nll, 0.0).sum(axis=1)
+
+
+def null_params() -> dict[str, float]:
+    return {k: v[0] for k, v in PARAMS.items()}

@@ -1,0 +1,49 @@
+"""Blur pairs (static, blurred, motion) -> study groups: the spatial form of Eq. 8."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from clblur.motion import PSF, Field, Uniform, anchor_value, parse_motion, sample_counts
+from clblur.study.histograms import Taps, as_hwc, build_group, sample_grid
+from clblur.study.model import Group
+
+
+def pair_group(static: np.ndarray, blurred: np.ndarray, motion, *, anchor: str = "center",
+               exposure_ratio: float = 1.0, max_pixels: int = 60000,
+               name: str = "pair") -> Group:
+    """Study group of one blur pair; ``motion`` as in ``clblur.blur`` (vector, flow, PSF)."""
+    src = as_hwc(static, "static image")
+    tgt = as_hwc(blurred, "blurred image")
+    if src.shape != tgt.shape:
+        raise ValueError(f"static {src.shape} and blurred {tgt.shape} images differ in shape")
+    m = parse_motion(motion, src.shape[:2])
+    a = anchor_value(anchor)
+    rows, cols = sample_grid(src.shape[:2], max_pixels)
+    timed = not isinstance(m, PSF)
+    return build_group(name, [src], tgt, rows, cols, lambda y, x: _taps(m, a, y, x),
+                       exposure_ratio, vignetting=True, timed=timed)
+
+
+def _taps(m, a: float, yy: np.ndarray, xx: np.ndarray):
+    if isinstance(m, Uniform):
+        n = int(sample_counts(np.float32(m.dx), np.float32(m.dy)))
+        for j in range(n):
+            f = (j - a * (n - 1)) / max(n - 1, 1)
+            yield Taps(0, m.dx * f, m.dy * f, 1.0 / n, j / (n - 1) if n > 1 else 0.5)
+    elif isinstance(m, Field):
+        r, c = yy.astype(np.intp), xx.astype(np.intp)
+        vx = m.flow[r, c, 0].astype(np.float64)
+        vy = m.flow[r, c, 1].astype(np.float64)
+        n = sample_counts(m.flow[r, c, 0], m.flow[r, c, 1]).astype(np.float64)
+        den = np.maximum(n - 1, 1)
+        for j in range(int(n.max())):
+            active = j < n
+            f = (j - a * (n - 1)) / den
+            s = np.where(n > 1, j / den, 0.5)
+            yield Taps(0, vx * f, vy * f, np.where(active, 1.0 / n, 0.0), s)
+    else:
+        cy, cx = m.center
+        for (i, j), hij in np.ndenumerate(m.kernel):
+            if hij != 0:  # output p reads f(p - s), s = (j - cx, i - cy)
+                yield Taps(0, float(j - cx), float(i - cy), float(hij), None)

@@ -1,0 +1,39 @@
+"""Exposure series -> study groups: each image predicts the next shorter one.
+
+With the paper's response the prediction is ``I(r I^-1(v))`` with ``r`` the nominal exposure
+ratio (``exposure / f_number^2``); the longer image is the source, so its clipped highlights
+are what the shorter image reveals (the ``saturation`` effect).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from clblur.study.histograms import Taps, as_hwc, build_group, sample_grid
+from clblur.study.model import Group
+
+
+def series_groups(images: list[np.ndarray], exposures: list[float],
+                  f_numbers: list[float | None] | None = None, *,
+                  max_pixels: int = 60000) -> list[Group]:
+    if len(images) != len(exposures) or len(images) < 2:
+        raise ValueError("an exposure series needs at least 2 images, one exposure each")
+    f_numbers = f_numbers or [None] * len(images)
+    h = [e / (f * f if f else 1.0) for e, f in zip(exposures, f_numbers, strict=True)]
+    order = np.argsort(h)[::-1]  # longest first
+    imgs = [as_hwc(images[i], f"image {i}") for i in order]
+    h = [h[i] for i in order]
+    per = max(1000, max_pixels // (len(imgs) - 1))
+    groups = []
+    for k in range(len(imgs) - 1):
+        src, tgt = imgs[k], imgs[k + 1]
+        if src.shape != tgt.shape:
+            raise ValueError(f"series images differ in shape: {src.shape} vs {tgt.shape}")
+        rows, cols = sample_grid(tgt.shape[:2], per)
+
+        def taps(yy, xx):
+            yield Taps(0, 0.0, 0.0, 1.0, None)
+
+        groups.append(build_group(f"step{k:02d}", [src], tgt, rows, cols, taps,
+                                  h[k + 1] / h[k], vignetting=False, timed=False))
+    return groups

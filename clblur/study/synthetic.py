@@ -1,0 +1,112 @@
+"""Virtual-camera data with hidden effects: the ground truth of the study's tests and limits.
+
+Each effect is rendered in a data kind where it is observable, at a magnitude drawn from a
+realistic range (``RANGES``) unless given.  Scenes are small random radiance maps
+(``clblur.camera.random_scene``); the camera's response is the paper's ``Exp(3)`` unless the
+effect is ``response_shape``.
+
+Why these kinds: with the paper's exponential a black offset cancels in an equal-exposure pair
+(``1 - g = prod (1 - f)^w`` just scales by ``1 - beta``), so ``black_level`` is hidden in an
+exposure series; a vignetting falloff fixed to the sensor only shows where the path is not
+centred on the pixel, so ``vignetting`` uses ``anchor="start"``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from clblur.camera import Camera, accelerating_weights, random_scene
+from clblur.responses import Exp, Gamma
+from clblur.study.model import Group
+from clblur.study.pairs import pair_group
+from clblur.study.series import series_groups
+from clblur.study.stacks import stack_group
+
+# effect: (low, high) of the hidden magnitude, in the units of ``magnitude`` below
+RANGES = {
+    "black_level": (0.02, 0.08),  # normalised black offset (5 to 20 codes)
+    "response_shape": (1.6, 2.4),  # camera gamma (power-law response)
+    "saturation": (2.0, 8.0),  # highlight exposure / least exposure that clips
+    "noise": (2e-4, 2e-3),  # Poisson coefficient a (full-well units); b = a / 100
+    "vignetting": (0.3, 0.8),  # c: corner falloff 1 - (1 + c)^-2 = 31 % to 69 %
+    "nonuniform_motion": (2.0, 4.0),  # end / start speed (or its inverse)
+    "channel_gain": (0.05, 0.15),  # |log| of the R and B gain change (G fixed)
+    "exposure_gain": (0.08, 0.25),  # |log| of the gain change
+}
+CLIP = 6.2 / 3.0  # exposure at which Exp(3) reaches code 255
+
+
+@dataclass
+class Scenario:
+    kind: str
+    groups: list[Group]
+    truth: dict[str, float] = field(default_factory=dict)
+
+
+def scenario(effects: dict[str, float | None], rng: np.random.Generator,
+             shape: tuple[int, int] = (48, 64)) -> Scenario:
+    """Render data with the given hidden effects (``None`` magnitude: drawn from ``RANGES``);
+    an empty dict renders null data (the paper's model exactly true)."""
+    unknown = set(effects) - set(RANGES)
+    if unknown:
+        raise ValueError(f"unknown effect(s) {sorted(unknown)}; use {', '.join(RANGES)}")
+    mag = {e: (float(rng.uniform(*RANGES[e])) if m is None else float(m))
+           for e, m in effects.items()}
+    sign = float(rng.choice([-1.0, 1.0]))
+    cam = {"response": Gamma(mag["response_shape"]) if "response_shape" in mag else Exp(3.0)}
+    if "black_level" in mag:
+        cam["black_level"] = mag["black_level"]
+    if "noise" in mag:
+        cam["noise_a"], cam["noise_b"] = mag["noise"], mag["noise"] / 100.0
+    if "vignetting" in mag:
+        cam["vignetting"] = mag["vignetting"]
+    camera = Camera(**cam)
+    high = 0.35 if "response_shape" not in mag else 0.8
+    scene = random_scene(rng, shape, 3, low=0.03, high=high)
+    if "saturation" in mag:
+        _add_highlights(scene, rng, mag["saturation"] * CLIP)
+    if "black_level" in mag:  # an exposure series: the effect cancels in an equal pair
+        times = [4.0, 2.0, 1.0, 0.5]
+        imgs = [camera.capture(scene * 0.25, t, rng=rng) for t in times]
+        return Scenario("exposure-series", series_groups(imgs, times), mag)
+    length = float(rng.uniform(12, 16) if "vignetting" in mag else rng.uniform(6, 12))
+    angle = float(rng.uniform(-0.4, 0.4)) + (math.pi if rng.random() < 0.5 else 0.0)
+    motion = (length * math.cos(angle), length * math.sin(angle))
+    kw: dict = {"anchor": "start" if "vignetting" in mag else "center"}
+    if "nonuniform_motion" in mag:
+        n = int(math.ceil(math.hypot(*motion))) + 1
+        kw["weights"] = accelerating_weights(n, mag["nonuniform_motion"] ** sign)
+    if "exposure_gain" in mag:
+        kw["gain"] = math.exp(sign * mag["exposure_gain"])
+    if "channel_gain" in mag:
+        lg = sign * mag["channel_gain"]
+        kw["channel_gains"] = (math.exp(lg), 1.0, math.exp(-lg))
+    static = camera.capture(scene, rng=rng)
+    blurred = camera.capture(scene, motion=motion, rng=rng, **kw)
+    return Scenario("blur-pair", [pair_group(static, blurred, motion, anchor=kw["anchor"])], mag)
+
+
+def null_stack(rng: np.random.Generator, shape=(48, 64), frames: int = 6,
+               gamma: float | None = None) -> Scenario:
+    """A frame stack of a moving scene: ``frames`` short captures and the long one spanning
+    them, rendered as the exact temporal Eq. 8 (``gamma``: a power-law camera instead)."""
+    camera = Camera(response=Gamma(gamma) if gamma else Exp(3.0))
+    scene = random_scene(rng, (shape[0], shape[1] + 3 * frames), 3, low=0.03, high=0.35)
+    shots = [scene[:, 3 * t:3 * t + shape[1]] for t in range(frames)]
+    short = [camera.capture(s, 1.0 / frames, rng=rng) for s in shots]
+    exposure = sum(s / frames for s in shots)
+    long = camera.capture(exposure, 1.0, rng=rng)
+    truth = {"response_shape": gamma} if gamma else {}
+    return Scenario("frame-stack", [stack_group(short, long)], truth)
+
+
+def _add_highlights(scene: np.ndarray, rng: np.random.Generator, level: float) -> None:
+    h, w = scene.shape[:2]
+    yy, xx = np.mgrid[0:h, 0:w]
+    for _ in range(3):
+        y0, x0 = rng.uniform(0.25 * h, 0.75 * h), rng.uniform(0.25 * w, 0.75 * w)
+        r = rng.uniform(1.5, 3.0)
+        scene[(yy - y0) ** 2 + (xx - x0) ** 2 < r * r] = level
