@@ -182,11 +182,14 @@ def test_blur_file_failure_leaves_no_output(rng, tmp_path):
 def test_opencl_tiled_equals_untiled(opencl, rng):
     img = _image(rng, (64, 80, 3))
     flow = _cross_tile_flow(rng, 64, 80)
-    for motion in ((7.3, -2.5), flow, rng.random((5, 9))):
-        ref = clblur.blur(img, motion, backend="opencl")
-        out = np.zeros_like(img)
-        blur_tiled(img, out, motion, backend="opencl", tile=(16, 24))
-        np.testing.assert_array_equal(out, ref)
+    hdr = (rng.random((64, 80, 3)) * 0.2).astype(np.float32)
+    hdr[:12, :12] = 40.0  # scene-linear highlights in one tile only
+    for image, response in ((img, "exp"), (hdr, "linear")):
+        for motion in ((7.3, -2.5), (5.0, 0.0), flow, rng.random((5, 9))):
+            ref = clblur.blur(image, motion, response, backend="opencl")
+            out = np.zeros_like(image)
+            blur_tiled(image, out, motion, response, backend="opencl", tile=(16, 24))
+            np.testing.assert_array_equal(out, ref, err_msg=f"{response} {motion!r:.40}")
 
 
 @pytest.mark.parametrize("text, expected", [("2G", 2**31), ("500M", 500 * 2**20),
