@@ -139,6 +139,47 @@ def same_pixels(a: Path, b: Path) -> bool:
     return bool(np.array_equal(tifffile.imread(a), tifffile.imread(b)))
 
 
+# --------------------------------------------------------------------------- working set
+WORKING_SET_TITLE = "## Working set of the numpy reference per window pixel"
+
+
+def reference_working_set(side: int = 512) -> list[tuple[str, float]]:
+    """Peak bytes per pixel ``tracemalloc`` sees while the numpy reference blurs a
+    side x side RGB uint8 window (what ``clblur.tiling.window_bytes_per_px`` must bound)."""
+    import tracemalloc
+
+    from clblur import reference
+    from clblur.plan import make_plan
+    from clblur.tiling import window_bytes_per_px
+
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 256, (side, side, 3), dtype=np.uint8)
+    flow = flow_field(np.arange(side), np.arange(side), (side, side), 8.0)
+    rows = []
+    for label, motion in (("uniform (5, 2)", (5.0, 2.0)), ("per-pixel flow", flow)):
+        plan = make_plan(img, motion)
+        tracemalloc.start()
+        reference.blur(plan)
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        rows.append((label, peak / side**2))
+    rows.append(("estimate used for tiling (flow)", float(window_bytes_per_px(3, 1, True))))
+    return rows
+
+
+def write_working_set(path: Path) -> None:
+    from clblur.io import atomic_write_text
+
+    text = path.read_text() if path.is_file() else ""
+    text = text.split(WORKING_SET_TITLE)[0].rstrip("\n")
+    lines = ["", "", WORKING_SET_TITLE, "",
+             "    python bench/bench_large.py --working-set-only", "",
+             "| 512 x 512 RGB uint8 window | bytes per pixel |", "|---|---:|"]
+    lines += [f"| {label} | {v:.0f} |" for label, v in reference_working_set()]
+    atomic_write_text(path, text + "\n".join(lines) + "\n")
+    print(f"wrote {path}")
+
+
 # --------------------------------------------------------------------------- main
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -152,8 +193,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workdir", default="/tmp/clblur-bench-large")
     p.add_argument("--results", default=str(REPO / "bench" / "results_large.md"))
     p.add_argument("--keep", action="store_true", help="keep the generated files")
+    p.add_argument("--working-set-only", action="store_true",
+                   help="only measure the numpy reference's bytes per window pixel and add "
+                        "that section to --results")
     args = p.parse_args(argv)
     sys.path.insert(0, str(REPO))
+    if args.working_set_only:
+        write_working_set(Path(args.results))
+        return 0
 
     work = Path(args.workdir)
     work.mkdir(parents=True, exist_ok=True)

@@ -48,8 +48,8 @@ def window_bytes_per_px(channels: int, itemsize: int, per_pixel_flow: bool) -> i
     The numpy reference keeps about a dozen float64 H x W x C arrays alive (normalised values,
     linear values, accumulator, output, bilinear corners) and about twenty float64 H x W
     coordinate arrays; ``tracemalloc`` measured 248 B/px (uniform) and 321 B/px (flow) for a
-    512 x 512 RGB uint8 window (see bench/bench_large.py).  The OpenCL backend needs less.
-    Input and output windows, and the flow window, come on top.
+    512 x 512 RGB uint8 window (``python bench/bench_large.py --working-set-only``).  The
+    OpenCL backend needs less.  Input and output windows, and the flow window, come on top.
     """
     return 8 * (12 * channels + 20) + 2 * channels * itemsize + \
         (FLOW_BYTES_PER_PX if per_pixel_flow else 0)
