@@ -1,0 +1,142 @@
+"""Choosing calibration samples from an exposure series.
+
+Conventions
+-----------
+* A sample is one channel of one small flat patch (``patch`` x ``patch`` pixels, averaged),
+  observed in every image of the series: a row of normalised values, one per exposure.
+* A value is *valid* when ``low < v < high`` (defaults 0.02 and 0.98 of full scale, i.e.
+  codes 6..249 in uint8): clipped highlights and the noisy, black-level-dominated bottom carry
+  no usable response information and are masked, never fitted.
+* Patches are spread over the value range by stratifying on the pixel's mean value across the
+  stack, which increases with scene radiance for *any* monotone response; within a stratum the
+  flattest patches win (lowest local standard deviation), so a little misalignment between the
+  exposures or sensor noise barely changes the sample.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+VALID_LOW = 0.02
+VALID_HIGH = 0.98
+
+
+@dataclass(frozen=True)
+class SampleSet:
+    """Samples of one fit: ``values`` (P, n) normalised, ``valid`` (P, n), ``channel`` (P,)."""
+
+    values: np.ndarray
+    valid: np.ndarray
+    channel: np.ndarray
+    rows: np.ndarray
+    cols: np.ndarray
+
+    def __len__(self) -> int:
+        return self.values.shape[0]
+
+    def drop_exposure(self, index: int) -> SampleSet:
+        keep = np.arange(self.values.shape[1]) != index
+        v, ok = self.values[:, keep], self.valid[:, keep]
+        usable = ok.sum(axis=1) >= 2
+        return SampleSet(v[usable], ok[usable], self.channel[usable], self.rows[usable],
+                         self.cols[usable])
+
+    def select(self, mask: np.ndarray) -> SampleSet:
+        return SampleSet(self.values[mask], self.valid[mask], self.channel[mask],
+                         self.rows[mask], self.cols[mask])
+
+    @staticmethod
+    def concat(sets: list[SampleSet]) -> SampleSet:
+        return SampleSet(*(np.concatenate([getattr(s, f) for s in sets])
+                           for f in ("values", "valid", "channel", "rows", "cols")))
+
+
+@dataclass(frozen=True)
+class Sampling:
+    """Per-channel sample sets and the pixels they cover (excluded from evaluation)."""
+
+    per_channel: list[SampleSet]
+    footprint: np.ndarray  # H x W bool: pixels inside any sampled patch
+    patch: int
+    low: float
+    high: float
+
+
+def valid_mask(values: np.ndarray, low: float = VALID_LOW, high: float = VALID_HIGH):
+    return (values > low) & (values < high)
+
+
+def _box_mean(img: np.ndarray, patch: int) -> np.ndarray:
+    import cv2
+
+    if patch == 1:
+        return img
+    return cv2.blur(img, (patch, patch), borderType=cv2.BORDER_REFLECT)
+
+
+def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float = VALID_LOW,
+                  high: float = VALID_HIGH, seed: int = 0) -> Sampling:
+    """Choose up to ``n_samples`` flat patches per channel, spread over the value range."""
+    if not isinstance(n_samples, (int, np.integer)) or n_samples < 8:
+        raise ValueError(f"n_samples must be an integer >= 8, got {n_samples!r}")
+    if not isinstance(patch, (int, np.integer)) or patch < 1 or patch % 2 == 0:
+        raise ValueError(f"patch must be an odd positive integer, got {patch!r}")
+    if not 0.0 <= low < high <= 1.0:
+        raise ValueError(f"valid range needs 0 <= low < high <= 1, got {low}, {high}")
+    rng = np.random.default_rng(seed)
+    stack = series.values()  # (n, H, W, C) float32
+    n, h, w, channels = stack.shape
+    r = patch // 2
+    if h <= 2 * r or w <= 2 * r:
+        raise ValueError(f"images of {h} x {w} are too small for {patch} x {patch} patches")
+    footprint = np.zeros((h, w), dtype=bool)
+    sets = []
+    for c in range(channels):
+        chan = stack[..., c]
+        means = np.stack([_box_mean(chan[i], patch) for i in range(n)])
+        ok = valid_mask(means, low, high)
+        # flatness judged on the image with most valid pixels (best exposed overall)
+        ref = int(np.argmax(ok.reshape(n, -1).sum(axis=1)))
+        var = _box_mean(chan[ref] ** 2, patch) - means[ref] ** 2
+        std = np.sqrt(np.maximum(var, 0.0))
+        usable = ok.sum(axis=0) >= 2
+        usable[:r, :] = usable[h - r:, :] = False
+        usable[:, :r] = usable[:, w - r:] = False
+        rows, cols = _stratified_pick(means.mean(axis=0), std, usable, n_samples, rng)
+        if rows.size == 0:
+            continue
+        v = means[:, rows, cols].T.astype(np.float64)
+        sets.append(SampleSet(v, valid_mask(v, low, high), np.full(rows.size, c), rows, cols))
+        for dy in range(-r, r + 1):
+            for dx in range(-r, r + 1):
+                footprint[rows + dy, cols + dx] = True
+    if not sets or sum(len(s) for s in sets) < 8:
+        raise ValueError("no usable calibration samples: every pixel is saturated (>= "
+                         f"{high:g} of full scale) or under-exposed (<= {low:g}) in all but at "
+                         "most one exposure")
+    if len(sets) < channels:
+        missing = sorted(set(range(channels)) - {int(s.channel[0]) for s in sets})
+        raise ValueError(f"channel(s) {missing} have no usable samples (saturated or "
+                         "under-exposed everywhere)")
+    return Sampling(sets, footprint, patch, low, high)
+
+
+def _stratified_pick(level: np.ndarray, std: np.ndarray, usable: np.ndarray, n_samples: int,
+                     rng: np.random.Generator, per_bin: int = 4):
+    """Up to ``per_bin`` flattest usable pixels in each of ``n_samples/per_bin`` level bins."""
+    idx = np.flatnonzero(usable.ravel())
+    if idx.size == 0:
+        return np.empty(0, int), np.empty(0, int)
+    lev, sd = level.ravel()[idx], std.ravel()[idx]
+    bins = max(1, n_samples // per_bin)
+    edges = np.linspace(lev.min(), lev.max(), bins + 1)
+    which = np.clip(np.searchsorted(edges, lev, side="right") - 1, 0, bins - 1)
+    # random tie-break so equal-std pixels (e.g. a synthetic flat scene) spread over the image
+    order = np.lexsort((rng.random(idx.size), sd, which))
+    which_sorted = which[order]
+    first = np.searchsorted(which_sorted, np.arange(bins))
+    rank = np.arange(idx.size) - first[which_sorted]
+    chosen = idx[order[rank < per_bin]]
+    return np.unravel_index(chosen, level.shape)

@@ -1,0 +1,238 @@
+"""Exposure series: the images of one static scene taken at several known exposures.
+
+Conventions
+-----------
+* ``exposures`` are exposure *times* in seconds (any consistent unit), ``f_numbers`` the
+  aperture of each image or None when unknown.  The photometric exposure of image ``i`` is
+  ``t_i / N_i**2`` (``relative_exposures``); with no F-numbers it is just ``t_i``.
+* Images keep their file dtype (uint8 / uint16 / float32) and are H x W x C (a grey image gets
+  C = 1).  Values are normalised by the dtype's full scale (``clblur.pixels.imax``).
+* Sources, in order of precedence: a manifest of kind ``exposure-series``; a folder of images
+  plus a times file or sequence; EXIF ``ExposureTime`` / ``FNumber`` of the images.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from fractions import Fraction
+from pathlib import Path
+
+import numpy as np
+
+from clblur.io import read_image
+from clblur.manifest import load_manifest
+from clblur.pixels import imax
+
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
+_EXIF_IFD, _EXPOSURE_TIME, _F_NUMBER = 0x8769, 0x829A, 0x829D
+
+
+@dataclass(frozen=True)
+class ExposureSeries:
+    """A validated stack; construct it with ``load_series`` or ``ExposureSeries.create``."""
+
+    images: list[np.ndarray]
+    exposures: np.ndarray
+    f_numbers: np.ndarray | None
+    names: list[str]
+
+    @classmethod
+    def create(cls, images, exposures, f_numbers=None, names=None) -> ExposureSeries:
+        """Validate arrays already in memory (shapes, dtypes, times) and build a series."""
+        images = [_as_hwc(np.asarray(im), i) for i, im in enumerate(images)]
+        if len(images) < 2:
+            raise ValueError(f"an exposure series needs at least 2 images, got {len(images)}")
+        t = _check_times(exposures, len(images))
+        fn = None
+        if f_numbers is not None and any(f is not None for f in f_numbers):
+            if any(f is None for f in f_numbers) or len(f_numbers) != len(images):
+                raise ValueError("give an F-number for every image or for none")
+            fn = np.asarray(f_numbers, dtype=np.float64)
+            if not np.all(np.isfinite(fn)) or np.any(fn <= 0):
+                raise ValueError(f"F-numbers must be positive and finite, got {fn.tolist()}")
+        names = list(names) if names is not None else [f"image{i}" for i in range(len(images))]
+        first = images[0]
+        for name, im in zip(names, images, strict=True):
+            if im.shape != first.shape:
+                raise ValueError(f"images of different sizes: {names[0]} is {first.shape}, "
+                                 f"{name} is {im.shape}")
+            if im.dtype != first.dtype:
+                raise ValueError(f"images of different dtypes: {names[0]} is {first.dtype}, "
+                                 f"{name} is {im.dtype}")
+        key = t if fn is None else t / fn**2
+        order = np.argsort(key)
+        dup = np.flatnonzero(np.isclose(np.diff(key[order]), 0.0, rtol=1e-9, atol=0.0))
+        if dup.size:
+            a, b = order[dup[0]], order[dup[0] + 1]
+            raise ValueError(f"duplicate exposures: {names[a]} and {names[b]} both have "
+                             f"exposure {t[a]:g}" + ("" if fn is None else f" at f/{fn[a]:g}"))
+        return cls(images, t, fn, names)
+
+    @property
+    def dtype(self) -> np.dtype:
+        return self.images[0].dtype
+
+    @property
+    def full_scale(self) -> float:
+        return imax(self.dtype)
+
+    @property
+    def channels(self) -> int:
+        return self.images[0].shape[2]
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.images[0].shape[:2]
+
+    def relative_exposures(self) -> np.ndarray:
+        """Photometric exposure ``t / N**2`` divided by its maximum (the longest is 1)."""
+        x = self.exposures if self.f_numbers is None else self.exposures / self.f_numbers**2
+        return x / x.max()
+
+    def values(self) -> np.ndarray:
+        """All images normalised to [0, 1], float32, shape (n, H, W, C)."""
+        return np.stack([im.astype(np.float32) for im in self.images]) / np.float32(
+            self.full_scale)
+
+    def subset(self, keep) -> ExposureSeries:
+        """The series restricted to the images whose indices are in ``keep`` (order kept)."""
+        keep = [int(i) for i in keep]
+        fn = None if self.f_numbers is None else self.f_numbers[keep]
+        return ExposureSeries([self.images[i] for i in keep], self.exposures[keep], fn,
+                              [self.names[i] for i in keep])
+
+
+def _as_hwc(im: np.ndarray, index: int) -> np.ndarray:
+    if im.dtype not in (np.uint8, np.uint16, np.float32, np.float64):
+        raise TypeError(f"image {index}: unsupported dtype {im.dtype}")
+    if im.ndim == 2:
+        return im[:, :, None]
+    if im.ndim != 3:
+        raise ValueError(f"image {index}: expected H x W or H x W x C, got shape {im.shape}")
+    return im[:, :, :3] if im.shape[2] == 4 else im  # alpha carries no exposure
+
+
+def _check_times(times, n: int) -> np.ndarray:
+    if times is None:
+        raise ValueError("exposure times are missing")
+    t = np.asarray([parse_time(v) for v in times], dtype=np.float64)
+    if t.size != n:
+        raise ValueError(f"got {t.size} exposure times for {n} images")
+    bad = np.flatnonzero(~np.isfinite(t) | (t <= 0))
+    if bad.size:
+        raise ValueError(f"exposure times must be positive and finite; entry {bad[0]} is "
+                         f"{t[bad[0]]}")
+    return t
+
+
+def parse_time(value) -> float:
+    """A time as a number or a string such as ``0.25``, ``1/1024`` or ``1/60s``."""
+    if isinstance(value, (int, float, np.floating, np.integer)):
+        return float(value)
+    if not isinstance(value, str):
+        raise TypeError(f"exposure time must be a number or a string, got {value!r}")
+    text = value.strip().removesuffix("s").strip()
+    try:
+        return float(Fraction(text))
+    except (ValueError, ZeroDivisionError):
+        raise ValueError(f"cannot read exposure time {value!r}; use e.g. 0.5 or 1/1024") from None
+
+
+def read_times_file(path: str | os.PathLike) -> list[tuple[str | None, float]]:
+    """Lines ``TIME`` or ``NAME TIME`` (``#`` comments, blank lines ignored)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"times file not found: {path}")
+    rows = []
+    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        parts = line.split()
+        if len(parts) > 2:
+            raise ValueError(f"{path}:{lineno}: expected 'TIME' or 'NAME TIME', got {line!r}")
+        try:
+            rows.append((parts[0] if len(parts) == 2 else None, parse_time(parts[-1])))
+        except ValueError as e:
+            raise ValueError(f"{path}:{lineno}: {e}") from None
+    return rows
+
+
+def exif_exposure(path: Path) -> tuple[float | None, float | None]:
+    """(ExposureTime, FNumber) from an image's EXIF, None where absent."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            exif = im.getexif()
+            sub = exif.get_ifd(_EXIF_IFD)
+    except OSError:
+        return None, None
+
+    def get(tag):
+        v = sub.get(tag, exif.get(tag))
+        try:
+            return None if v is None else float(v)
+        except (TypeError, ValueError, ZeroDivisionError):
+            return None
+
+    return get(_EXPOSURE_TIME), get(_F_NUMBER)
+
+
+def load_series(source: str | os.PathLike, times=None) -> ExposureSeries:
+    """Load an exposure series from a manifest (``.json``) or a folder of images.
+
+    ``times``: for a folder, a times file path or a sequence of times in the images' sorted
+    name order; a file may also name each image (``NAME TIME``).  Without times, each image's
+    EXIF ExposureTime (and FNumber) is used.
+    """
+    source = Path(source)
+    if source.is_file():
+        if times is not None:
+            raise ValueError("times are given by the manifest; do not pass --times with one")
+        m = load_manifest(source)
+        if m.kind != "exposure-series":
+            raise ValueError(f"manifest {source} is of kind {m.kind!r}, expected "
+                             "'exposure-series'")
+        return ExposureSeries.create([read_image(e.path) for e in m.images],
+                                     [e.exposure for e in m.images],
+                                     [e.f_number for e in m.images],
+                                     [e.path.name for e in m.images])
+    if not source.is_dir():
+        raise ValueError(f"exposure series not found: {source} (give a manifest or a folder)")
+    files = sorted(p for p in source.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if not files:
+        raise ValueError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in folder {source}")
+    f_numbers = None
+    if times is None:
+        found = [exif_exposure(p) for p in files]
+        missing = [p.name for p, (t, _) in zip(files, found, strict=True) if t is None]
+        if missing:
+            raise ValueError(f"exposure times missing: no times file given and no EXIF "
+                             f"ExposureTime in {', '.join(missing[:3])}"
+                             + (" ..." if len(missing) > 3 else ""))
+        times = [t for t, _ in found]
+        fns = [f for _, f in found]
+        f_numbers = fns if all(f is not None and math.isfinite(f) and f > 0 for f in fns) \
+            else None
+    elif isinstance(times, (str, os.PathLike)):
+        times_path = Path(times)
+        rows = read_times_file(times_path)
+        if all(name is not None for name, _ in rows) and rows:
+            by_name = dict(rows)
+            files = [p for p in files if p.name in by_name]
+            missing = sorted(set(by_name) - {p.name for p in files})
+            if missing:
+                raise ValueError(f"times file names images not in {source}: {missing[:3]}")
+            times = [by_name[p.name] for p in files]
+        elif any(name is not None for name, _ in rows):
+            raise ValueError(f"times file {times_path}: name every image or none")
+        else:
+            times = [t for _, t in rows]
+            if len(times) != len(files):
+                raise ValueError(f"times file {times_path} lists {len(times)} times for "
+                                 f"{len(files)} images in {source}")
+    return ExposureSeries.create([read_image(p) for p in files], list(times), f_numbers,
+                                 [p.name for p in files])
