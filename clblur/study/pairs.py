@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from clblur.blur import blur
 from clblur.motion import PSF, Field, Uniform, anchor_value, parse_motion, sample_counts
 from clblur.study.histograms import Taps, as_hwc, build_group, sample_grid
 from clblur.study.model import Group
@@ -11,13 +12,20 @@ from clblur.study.model import Group
 
 def pair_group(static: np.ndarray, blurred: np.ndarray, motion, *, anchor: str = "center",
                exposure_ratio: float = 1.0, max_pixels: int = 60000,
-               name: str = "pair") -> Group:
-    """Study group of one blur pair; ``motion`` as in ``clblur.blur`` (vector, flow, PSF)."""
+               name: str = "pair", align_psf: int = 4) -> Group:
+    """Study group of one blur pair; ``motion`` as in ``clblur.blur`` (vector, flow, PSF).
+
+    A measured PSF's origin is not known to the pixel (camera-shake kernels are cropped
+    around their support), so a PSF is first re-centred by the integer shift, within
+    ``align_psf`` pixels, that best aligns the paper's prediction with the blurred image.
+    """
     src = as_hwc(static, "static image")
     tgt = as_hwc(blurred, "blurred image")
     if src.shape != tgt.shape:
         raise ValueError(f"static {src.shape} and blurred {tgt.shape} images differ in shape")
     m = parse_motion(motion, src.shape[:2])
+    if isinstance(m, PSF) and align_psf > 0:
+        m = PSF(shift_kernel(m.kernel, *best_shift(src, tgt, m.kernel, align_psf)))
     a = anchor_value(anchor)
     rows, cols = sample_grid(src.shape[:2], max_pixels)
     timed = not isinstance(m, PSF)
@@ -47,3 +55,28 @@ def _taps(m, a: float, yy: np.ndarray, xx: np.ndarray):
         for (i, j), hij in np.ndenumerate(m.kernel):
             if hij != 0:  # output p reads f(p - s), s = (j - cx, i - cy)
                 yield Taps(0, float(j - cx), float(i - cy), float(hij), None)
+
+
+def best_shift(static: np.ndarray, blurred: np.ndarray, kernel: np.ndarray,
+               search: int) -> tuple[int, int]:
+    """Integer (dy, dx) with ``blurred(p) ~ paper_prediction(p - (dy, dx))``."""
+    pred = blur(static, kernel, "exp", backend="numpy").astype(np.float64)
+    obs = blurred.astype(np.float64)
+    r = max(kernel.shape) // 2 + search
+    if min(obs.shape[:2]) <= 2 * r + 8:
+        return 0, 0
+    best = (np.inf, 0, 0)
+    for dy in range(-search, search + 1):
+        for dx in range(-search, search + 1):
+            d = (np.roll(pred, (dy, dx), (0, 1)) - obs)[r:-r, r:-r]
+            best = min(best, (float((d * d).mean()), dy, dx))
+    return best[1], best[2]
+
+
+def shift_kernel(kernel: np.ndarray, dy: int, dx: int) -> np.ndarray:
+    """Pad ``kernel`` so every displacement grows by (dx, dy) (centre stays at size // 2)."""
+    h, w = kernel.shape
+    out = np.zeros((h + 2 * abs(dy), w + 2 * abs(dx)))
+    oy, ox = abs(dy) + dy, abs(dx) + dx
+    out[oy:oy + h, ox:ox + w] = kernel
+    return out

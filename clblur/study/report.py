@@ -1,0 +1,147 @@
+"""The study report: JSON document (keys fixed by issue 4), markdown summary, figures."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from clblur.study.effects import EFFECT_NAMES
+from clblur.study.model import Group, inverse_table, null_params
+from clblur.study.select import Selection
+
+BASELINE_MODEL = ("paper: Eq. 3 response v = 1 - exp(-k x) (k cancels), Eq. 9 linear-domain "
+                  "average, clipped pixels at the least clipping exposure; quantisation only")
+
+
+def build_report(kind: str, sel: Selection) -> dict:
+    """The report document (``gain`` = held-out RMSE reduction in code values)."""
+    findings = [_finding(f) for f in sel.findings]
+    for e in EFFECT_NAMES:
+        if e in sel.not_testable:
+            findings.append({"effect": e, "significant": False, "statistic": None,
+                             "p_value": None, "estimate": None,
+                             "explanation": f"{e}: not testable on this data: "
+                                            f"{sel.not_testable[e]}."})
+    model = " + ".join(["paper"] + sel.effects)
+    return {
+        "kind": kind,
+        "baseline": {"model": BASELINE_MODEL, "heldout_rmse": sel.baseline_rmse,
+                     "heldout_nll": sel.baseline_nll},
+        "findings": findings,
+        "extended": {"model": model, "effects": list(sel.effects),
+                     "params": {k: float(v) for k, v in sel.params.items()},
+                     "heldout_rmse": sel.extended_rmse, "heldout_nll": sel.extended_nll},
+        "gain": sel.baseline_rmse - sel.extended_rmse,
+    }
+
+
+def _finding(f) -> dict:
+    return {"effect": f.effect, "significant": bool(f.significant),
+            "statistic": float(f.statistic), "p_value": float(f.p_value),
+            "estimate": _plain(f.estimate), "explanation": f.explanation}
+
+
+def _plain(v):
+    if isinstance(v, dict):
+        return {k: _plain(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    return float(v)
+
+
+def markdown(report: dict, title: str = "Study", figures: list[str] | None = None) -> str:
+    """A short markdown summary of a report (tables of findings and the gain)."""
+    b, x = report["baseline"], report["extended"]
+    lines = [f"# {title}", "", f"Data kind: `{report['kind']}`.", "",
+             "| model | held-out RMSE (codes) | held-out NLL (nats/value) |", "|---|---|---|",
+             f"| paper (baseline) | {b['heldout_rmse']:.3f} | {b['heldout_nll']:.3f} |",
+             f"| {x['model']} | {x['heldout_rmse']:.3f} | {x['heldout_nll']:.3f} |", "",
+             f"Gain: {report['gain']:.3f} code values of held-out RMSE.", "",
+             "| effect | significant | t | p | estimate |", "|---|---|---|---|---|"]
+    for f in report["findings"]:
+        t = "-" if f["statistic"] is None else f"{f['statistic']:.2f}"
+        p = "-" if f["p_value"] is None else f"{f['p_value']:.2g}"
+        est = "-" if f["estimate"] is None else ", ".join(
+            f"{k}={_short(v)}" for k, v in f["estimate"].items())
+        lines.append(f"| {f['effect']} | {'yes' if f['significant'] else 'no'} | {t} | {p} "
+                     f"| {est} |")
+    lines += ["", "Findings:", ""] + [f"- {f['explanation']}" for f in report["findings"]]
+    if figures:
+        lines += [""] + [f"![{Path(f).stem}]({f})" for f in figures]
+    return "\n".join(lines) + "\n"
+
+
+def _short(v) -> str:
+    if isinstance(v, list):
+        return "[" + ", ".join(f"{x:.3g}" for x in v) + "]"
+    return f"{v:.3g}"
+
+
+def grid_image(g: Group, values: np.ndarray) -> np.ndarray:
+    """Scatter per-pixel values (n,) back onto the sampling grid (NaN where not sampled)."""
+    ur, uc = np.unique(g.rows), np.unique(g.cols)
+    img = np.full((ur.size, uc.size), np.nan)
+    img[np.searchsorted(ur, g.rows), np.searchsorted(uc, g.cols)] = values
+    return img
+
+
+def figures(sel: Selection, groups: list[Group], out: Path, max_groups: int = 2) -> list[str]:
+    """Residual maps, a profile and the response curve as PNG files in ``out``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from clblur.io import atomic_write
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+
+    def save(fig, name):
+        path = out / name
+        atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=90))
+        plt.close(fig)
+        written.append(name)
+
+    for gi, g in enumerate(groups[:max_groups]):
+        rb = np.where(g.valid, g.target - sel.baseline_pred[gi], np.nan)
+        rx = np.where(g.valid, g.target - sel.extended_pred[gi], np.nan)
+        lim = float(np.nanpercentile(np.abs(rb), 99)) or 1.0
+        fig, ax = plt.subplots(1, 2, figsize=(9, 3.6))
+        for a, r, t in ((ax[0], rb, "paper (baseline)"), (ax[1], rx, "extended")):
+            im = a.imshow(grid_image(g, np.nanmean(r, axis=1)), cmap="RdBu_r", vmin=-lim,
+                          vmax=lim)
+            a.set_title(f"{t}: residual (codes)")
+            a.axis("off")
+        fig.colorbar(im, ax=ax, shrink=0.8)
+        fig.suptitle(f"{g.name}: observed - predicted, held-out")
+        save(fig, f"residuals_{gi}.png")
+        worst = np.nanargmax(np.nanmax(np.abs(rb), axis=1))
+        on_row = np.flatnonzero(g.rows == g.rows[worst])
+        on_row = on_row[np.argsort(g.cols[on_row])]
+        fig, ax = plt.subplots(figsize=(8, 3.4))
+        ax.plot(g.cols[on_row], g.target[on_row].mean(axis=1), "k.", ms=3, label="observed")
+        ax.plot(g.cols[on_row], sel.baseline_pred[gi][on_row].mean(axis=1), "r-", lw=1,
+                label="paper")
+        ax.plot(g.cols[on_row], sel.extended_pred[gi][on_row].mean(axis=1), "b-", lw=1,
+                label="extended")
+        ax.set_xlabel(f"column (row {g.rows[worst]}, through the largest baseline residual)")
+        ax.set_ylabel("code value (channel mean)")
+        ax.legend()
+        save(fig, f"profile_{gi}.png")
+    fig, ax = plt.subplots(figsize=(5, 4))
+    codes = np.arange(256)
+    for p, label, style in ((null_params(), "paper Eq. 3", "r-"),
+                            ({**null_params(), **sel.params}, "extended", "b-")):
+        t = inverse_table(p)
+        ax.plot(t[:-1] / t[-2], codes[:-1], style, label=label)
+    ax.set_xlabel("relative exposure (code 254 = 1)")
+    ax.set_ylabel("code value")
+    ax.set_xlim(0, 1)
+    ax.legend()
+    ax.set_title("response")
+    save(fig, "response.png")
+    return written
+

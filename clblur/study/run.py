@@ -1,0 +1,98 @@
+"""Run a study: manifest or arrays -> groups -> diagnosis -> report (and figures)."""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from clblur.io import atomic_write_text, read_flow, read_image, read_psf
+from clblur.manifest import Manifest, load_manifest
+from clblur.study.model import Group
+from clblur.study.pairs import pair_group
+from clblur.study.report import build_report, figures, markdown
+from clblur.study.select import Selection, select
+from clblur.study.series import series_groups
+from clblur.study.stacks import stack_group
+
+DEFAULT_PIXELS = 60000  # target pixels used in all (split evenly over pairs/stacks/steps)
+
+
+@dataclass
+class StudyResult:
+    report: dict
+    selection: Selection
+    groups: list[Group]
+
+
+def groups_from_manifest(manifest: Manifest, max_pixels: int = DEFAULT_PIXELS,
+                         progress: bool = False) -> list[Group]:
+    """Read the manifest's images and build the study groups of its kind."""
+    from tqdm import tqdm
+
+    if manifest.kind == "exposure-series":
+        imgs = [read_image(e.path) for e in manifest.images]
+        return series_groups(imgs, [e.exposure for e in manifest.images],
+                             [e.f_number for e in manifest.images], max_pixels=max_pixels)
+    if manifest.kind == "blur-pair":
+        per = max(1000, max_pixels // len(manifest.pairs))
+        out = []
+        for i, p in enumerate(tqdm(manifest.pairs, desc="pairs", disable=not progress)):
+            if p.motion is not None:
+                motion = p.motion
+            elif p.flow is not None:
+                motion = read_flow(p.flow)
+            else:
+                motion = read_psf(p.psf)
+            out.append(pair_group(read_image(p.static), read_image(p.blurred), motion,
+                                  anchor=p.anchor, exposure_ratio=p.exposure_ratio,
+                                  max_pixels=per, name=f"pair{i}:{Path(p.blurred).name}"))
+        return out
+    per = max(1000, max_pixels // len(manifest.stacks))
+    return [stack_group([read_image(f) for f in s.frames], read_image(s.long), max_pixels=per,
+                        name=f"stack{i}:{Path(s.long).name}")
+            for i, s in enumerate(tqdm(manifest.stacks, desc="stacks", disable=not progress))]
+
+
+def study_groups(kind: str, groups: list[Group], *, alpha: float = 0.05,
+                 progress: bool = False) -> StudyResult:
+    """Diagnose prepared groups (see ``clblur.study.select``) and build the report."""
+    from tqdm import tqdm
+
+    if not groups:
+        raise ValueError("nothing to study: no pairs, stacks or exposure steps")
+    if not 0 < alpha < 1:
+        raise ValueError(f"alpha must be in (0, 1), got {alpha}")
+    with tqdm(desc="effect tests", unit="test", disable=not progress) as bar:
+        sel = select(groups, alpha=alpha, progress=bar)
+    return StudyResult(build_report(kind, sel), sel, groups)
+
+
+def study(manifest: str | os.PathLike | Manifest, *, report: str | os.PathLike | None = None,
+          figures_dir: str | os.PathLike | None = None, max_pixels: int = DEFAULT_PIXELS,
+          alpha: float = 0.05, progress: bool = False) -> StudyResult:
+    """The API equivalent of ``clblur study``: run, and write the report (JSON, plus a
+    ``.md`` summary beside it) and figures when asked."""
+    m = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)
+    if not isinstance(max_pixels, int) or max_pixels < 1000:
+        raise ValueError(f"max_pixels must be an integer >= 1000, got {max_pixels!r}")
+    groups = groups_from_manifest(m, max_pixels, progress)
+    result = study_groups(m.kind, groups, alpha=alpha, progress=progress)
+    names = []
+    if figures_dir is not None:
+        names = [str(Path(figures_dir) / n) for n in
+                 figures(result.selection, groups, Path(figures_dir))]
+    if report is not None:
+        report = Path(report)
+        inputs = [m.path] + [p for e in m.images for p in [e.path]] + [
+            q for p in m.pairs for q in (p.static, p.blurred, p.flow, p.psf)] + [
+            q for s in m.stacks for q in (*s.frames, s.long)]
+        from clblur.io import refuse_overwrite
+
+        refuse_overwrite(report, *inputs)
+        atomic_write_text(report, json.dumps(result.report, indent=1) + "\n")
+        md = report.with_suffix(".md")
+        refuse_overwrite(md, *inputs)
+        atomic_write_text(md, markdown(result.report, f"Study of {m.path.name}", names))
+    return result
