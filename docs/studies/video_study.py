@@ -21,8 +21,9 @@ import numpy as np
 
 from clblur import video
 from clblur.data import data_dir
+from clblur.flow import FlowFolder
 from clblur.io import read_image
-from clblur.pixels import quantise
+from clblur.pixels import linearise, normalise, quantise
 from clblur.responses import response
 
 SYNTH = ["exp", "linear", "srgb", "gamma:2.2"]  # responses given to clblur video
@@ -34,8 +35,11 @@ FIG = Path(__file__).resolve().parent / "figures" / "video"
 
 
 def truth_exposure(frames: list[np.ndarray], c: int, resp_spec: str) -> np.ndarray:
+    """Linear-domain exposure over frames c-4..c+4, linearised exactly as clblur does (so a
+    clipped pixel gets the least saturating exposure, not the infinity of exp's inverse)."""
     r = response(resp_spec)
-    acc = sum(w * r.inverse(frames[c - 4 + k] / 255.0) for k, w in enumerate(WEIGHTS))
+    acc = sum(w * linearise(normalise(frames[c - 4 + k]), r, np.uint8, 1.0)
+              for k, w in enumerate(WEIGHTS))
     return quantise(r.forward(acc), np.uint8)
 
 
@@ -53,7 +57,7 @@ def run_clblur_video(argv: list[str]) -> None:
         raise RuntimeError(f"clblur video {' '.join(argv)} failed")
 
 
-def synthesise(names: list[Path], work: Path, backend: str) -> dict:
+def synthesise(names: list[Path], work: Path, backend: str, reuse: bool) -> dict:
     """Blur every 30 fps clip with every response; returns {(phase, spec): {index: image}}."""
     out = {}
     for phase in range(STRIDE // 2 + 1):
@@ -70,13 +74,38 @@ def synthesise(names: list[Path], work: Path, backend: str) -> dict:
             dst = work / f"out{phase}_{spec.replace(':', '').replace('.', '_')}"
             flow_args = (["--flow", str(flows)] if any(flows.iterdir())
                          else ["--save-flows", str(flows)])
-            run_clblur_video([str(clip), str(dst), "--shutter", "360", "--response", spec,
-                              "--backend", backend, "--quiet", *flow_args])
+            if not (reuse and all((dst / names[i].name).exists() for i in idx)):
+                run_clblur_video([str(clip), str(dst), "--shutter", "360", "--response", spec,
+                                  "--backend", backend, "--quiet", *flow_args])
             out[(phase, spec)] = {i: read_image(dst / names[i].name) for i in idx}
     return out
 
 
-def evaluate(frames, synth) -> dict:
+def straight_path(frames, work: Path, backend: str) -> dict:
+    """Ablation: interior frames blurred along a straight path (backward flow ignored and the
+    forward flow mirrored), with the same saved flows, to see what bending buys."""
+    out = {}
+    for phase in range(STRIDE // 2 + 1):
+        c = phase + STRIDE
+        fwd = FlowFolder(work / f"flows{phase}").get("forward", 1, frames[c].shape[:2])
+        out[c] = video.blur_frame(frames[c], None, fwd, "srgb", shutter=360, backend=backend)
+    return out
+
+
+def one_sided_truth(frames, synth) -> dict:
+    """Sensitivity to centring: PSNR of flow srgb against the plain 8-frame average c-4..c+3
+    (centred half a 240 fps frame early) instead of the symmetric 9-tap truth."""
+    r = response(PRIMARY_TRUTH)
+    vals = []
+    for phase in range(STRIDE // 2 + 1):
+        c = phase + STRIDE
+        acc = np.mean([linearise(normalise(frames[k]), r, np.uint8, 1.0)
+                       for k in range(c - 4, c + 4)], axis=0)
+        vals.append(psnr(synth[(phase, "srgb")][c], quantise(r.forward(acc), np.uint8)))
+    return {"flow srgb vs 8-frame c-4..c+3, truth " + PRIMARY_TRUTH: float(np.mean(vals))}
+
+
+def evaluate(frames, synth, straight=None) -> dict:
     rows = {}
     for (_phase, spec), imgs in synth.items():
         idx = sorted(imgs)
@@ -93,6 +122,8 @@ def evaluate(frames, synth) -> dict:
                     np.uint8)
     table = {}
     for (c, interior), methods in sorted(rows.items()):
+        if interior and straight is not None:
+            methods["flow srgb, straight (forward only)"] = straight[c]
         for t in TRUTHS:
             truth = truth_exposure(frames, c, t)
             for m, img in methods.items():
@@ -132,29 +163,31 @@ def figures(frames, rows, c: int = 10) -> None:
     panels = [("truth (8-frame linear mean, gamma 2.2)", truth)] + [
         (m, methods[m]) for m in ("sharp frame", "30 fps frame average", "flow exp",
                                   "flow linear", "flow srgb", "flow gamma:2.2")]
-    for name, (y0, x0, h, w) in {"crop_a": (300, 560, 240, 360),
+    for name, (y0, x0, h, w) in {"crop_legs": (300, 560, 240, 360),
+                                 "crop_shirt": (0, 520, 240, 360),
                                  "full": (0, 0, 720, 1280)}.items():
-        cols = 4 if name == "crop_a" else 2
+        cols = 2 if name == "full" else 4
         rows_n = -(-len(panels) // cols)
         fig, axes = plt.subplots(rows_n, cols, figsize=(4.2 * cols, 4.2 * rows_n * h / w + 0.4))
         for ax in axes.flat:
             ax.axis("off")
         for ax, (title, img) in zip(axes.flat, panels, strict=False):
             ax.imshow(img[y0:y0 + h, x0:x0 + w])
-            label = title if img is truth else f"{title}\nPSNR {psnr(img, truth):.2f} dB"
+            label = title if img is truth else \
+                f"{title}\nPSNR {psnr(img, truth):.2f} dB (whole frame)"
             ax.set_title(label, fontsize=9)
         fig.tight_layout()
         fig.savefig(FIG / f"gopro_{name}_frame{c}.png", dpi=80 if name == "full" else 110)
         plt.close(fig)
     # Where the responses disagree: |error| of exp and linear against the truth.
-    fig, axes = plt.subplots(1, 3, figsize=(15, 3.2))
+    fig, axes = plt.subplots(1, 3, figsize=(15, 3.4), layout="constrained")
     for ax, m in zip(axes, ("flow exp", "flow srgb", "flow linear"), strict=True):
         err = np.abs(methods[m].astype(np.int16) - truth).mean(axis=2)
         im = ax.imshow(err, cmap="magma", vmin=0, vmax=30)
         ax.set_title(f"|{m} - truth| (mean over RGB, code values)", fontsize=9)
         ax.axis("off")
-    fig.colorbar(im, ax=axes, shrink=0.8)
-    fig.savefig(FIG / f"gopro_error_frame{c}.png", dpi=80)
+    fig.colorbar(im, ax=axes, shrink=0.9)
+    fig.savefig(FIG / f"gopro_error_frame{c}.png", dpi=90)
     plt.close(fig)
 
 
@@ -162,6 +195,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--backend", default="auto")
     ap.add_argument("--work", default=None, help="keep intermediate clips here")
+    ap.add_argument("--reuse", action="store_true",
+                    help="with --work: keep blurred clips already there (re-evaluate only)")
     args = ap.parse_args()
     folder = data_dir(required=True) / "gopro240" / "frames"
     names = sorted(folder.glob("*.png"))
@@ -170,13 +205,18 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(args.work or tmp)
         work.mkdir(exist_ok=True)
-        synth = synthesise(names, work, args.backend)
-        table, rows = evaluate(frames, synth)
+        synth = synthesise(names, work, args.backend, args.reuse)
+        straight = straight_path(frames, work, args.backend)
+        table, rows = evaluate(frames, synth, straight)
+        sensitivity = one_sided_truth(frames, synth)
         figures(frames, rows)
     doc = {"truth_weights_c-4..c+4": WEIGHTS.tolist(), "psnr_db": table,
+           "sensitivity_psnr_db": sensitivity,
            "backend": args.backend}
     (FIG / "results.json").write_text(json.dumps(doc, indent=1) + "\n")
     print(summarise(table))
+    print("\n".join(f"\n{k}: {v:.2f} dB (mean of interior frames)"
+                    for k, v in sensitivity.items()))
 
 
 if __name__ == "__main__":
