@@ -30,10 +30,11 @@ import numpy as np
 
 from clblur import opencl_prep as prep
 from clblur.motion import Field, sample_counts
+from clblur.pixels import linearisation_table
 from clblur.plan import BlurPlan
 
 ENV_DEVICE = "CLBLUR_DEVICE"
-PIXELS_PER_ITEM = 16  # consecutive pixels of a row per work-item (amortises per-item cost)
+LANES = 8  # consecutive pixels of a row per work-item, run as vector lanes (integrate.cl)
 KERNEL_FILES = ("response.cl", "integrate.cl")
 _OUT_KINDS = {np.dtype(np.uint8): 0, np.dtype(np.uint16): 1, np.dtype(np.float32): 2,
               np.dtype(np.float64): 2}  # float64 output: computed in float32, widened on host
@@ -125,7 +126,7 @@ class _Runtime:
 
     def build_options(self, half: bool) -> tuple[str, ...]:
         cl = _cl()
-        opts = [f"-DPPW={PIXELS_PER_ITEM}"]
+        opts = []
         if self.device.single_fp_config & cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT:
             opts.append("-cl-fp32-correctly-rounded-divide-sqrt")  # v / (N-1) exact if integer
         if half:
@@ -253,69 +254,88 @@ def blur(plan: BlurPlan, device: str | None = None) -> np.ndarray:
         return _run(rt, plan)
 
 
+@dataclass
+class _Input:
+    """The uploaded image: integer codes with float64 linearisation tables, or float32
+    exposures linearised on the host."""
+
+    buffer: object
+    kind: int
+    luts: np.ndarray | None  # float64 (channels, Imax + 1) for integer images
+    max_abs: float
+
+
+def _upload_input(rt: _Runtime, plan: BlurPlan, img: np.ndarray) -> _Input:
+    if img.dtype.kind == "u":
+        luts = np.stack([linearisation_table(r, img.dtype, plan.saturation)
+                         for r in plan.responses])
+        return _Input(rt.upload("image", img), _IN_KINDS[img.dtype], luts,
+                      float(np.max(np.abs(luts))))
+    linear = prep.linearise_float_image(img, plan.responses, plan.saturation)
+    return _Input(rt.upload("image", linear), _IN_FLOAT, None, float(np.max(np.abs(linear))))
+
+
 def _run(rt: _Runtime, plan: BlurPlan) -> np.ndarray:
-    cl = _cl()
     img = np.ascontiguousarray(plan.image)
     h, w, channels = img.shape
-    fh, fw = plan.full_shape
-    r0, c0 = plan.origin
-    npix = h * w
-    taps = prep.space_invariant_taps(plan)
-    box = taps.box() if taps is not None else None
-
-    if img.dtype.kind == "u":
-        luts = prep.linearisation_luts(plan.responses, img.dtype, plan.saturation)
-        in_kind, image_buf = _IN_KINDS[img.dtype], rt.upload("image", img)
-        max_abs = float(np.max(np.abs(luts)))
-    else:
-        linear = prep.linearise_float_image(img, plan.responses, plan.saturation)
-        luts, in_kind, image_buf = None, _IN_FLOAT, rt.upload("image", linear)
-        max_abs = float(np.max(np.abs(linear)))
-    half = box is None and prep.half_storage_ok(plan, luts)
-    lin_buf = rt.buffer("linear", npix * 4 * (2 if half else 4))
-
+    src = _upload_input(rt, plan, img)
     out_kind = _OUT_KINDS[img.dtype]
     out = np.empty((h, w, channels), dtype=np.float32 if out_kind == 2 else img.dtype)
     out_buf = rt.buffer("output", out.nbytes)
-    dims = np.array([w, h, r0, c0, fw, fh], dtype=np.int32)
-
-    integrate = _integrator(rt, plan, half, taps, box, max_abs, dims)
+    integrate = _integrator(rt, plan, src)
     for cbase, cg in prep.channel_groups(channels):
-        lut = luts[cbase:cbase + cg] if luts is not None else np.zeros((1, 1), np.float32)
-        lut_buf = rt.upload("lut", lut)
-        rt.kernel(half, "linearise")(
-            rt.queue, (npix,), None, image_buf, np.int32(in_kind), np.int32(channels),
-            np.int32(cbase), np.int32(cg), lut_buf, np.int32(lut.shape[1]), lin_buf,
-            np.int32(npix))
-        params, tables = prep.response_params(plan.responses[cbase:cbase + cg])
-        store_args = (rt.upload("resp", params), rt.upload("tables", tables), out_buf,
-                      np.int32(_OUT_KINDS[img.dtype]), np.int32(channels), np.int32(cbase),
-                      np.int32(cg))
-        integrate(lin_buf, store_args)
-    cl.enqueue_copy(rt.queue, out, out_buf, is_blocking=True)
+        group = plan.responses[cbase:cbase + cg]
+        params, tables = prep.response_params(group)
+        thresholds = (prep.quantisation_thresholds(group, img.dtype) if img.dtype.kind == "u"
+                      else np.zeros(1, np.float32))
+        store_args = (rt.upload("resp", params), rt.upload("tables", tables),
+                      rt.upload("thresholds", thresholds), out_buf, np.int32(out_kind),
+                      np.int32(channels), np.int32(cbase), np.int32(cg))
+        integrate(cbase, cg, store_args)
+    _cl().enqueue_copy(rt.queue, out, out_buf, is_blocking=True)
     if img.dtype == np.float64:
         out = out.astype(np.float64)
     return plan.finish(out)
 
 
-def _integrator(rt: _Runtime, plan: BlurPlan, half: bool, taps, box, max_abs: float,
-                dims: np.ndarray):
-    """Upload what the strategy needs once; return ``run(lin_buf, store_args)`` per group."""
-    w, h = int(dims[0]), int(dims[1])
-    geometry = tuple(np.int32(v) for v in dims)
-    items = ((w + PIXELS_PER_ITEM - 1) // PIXELS_PER_ITEM, h)
+def _integrator(rt: _Runtime, plan: BlurPlan, src: _Input):
+    """Upload what the strategy needs once; return ``run(cbase, cg, store_args)``, which
+    integrates one channel group into the output buffer."""
+    h, w = plan.image.shape[:2]
+    fh, fw = plan.full_shape
+    r0, c0 = plan.origin
+    geometry = tuple(np.int32(v) for v in (w, h, r0, c0, fw, fh))
+    taps = prep.space_invariant_taps(plan)
+    box = taps.box() if taps is not None else None
 
     if box is not None:
         axis, lo, hi = box
-        scale = np.float32(prep.fixed_point_scale(max_abs, hi - lo + 1))
-        kern = rt.kernel(half, "integrate_box")
-        lines = h if axis == 0 else w
+        scale = prep.fixed_point_scale(src.max_abs, hi - lo + 1)
+        kern = rt.kernel(False, "integrate_box")
 
-        def run_box(lin_buf, store_args):
-            kern(rt.queue, (lines,), None, lin_buf, np.int32(axis), np.int32(lo), np.int32(hi),
-                 scale, *geometry, *store_args)
+        def run_box(cbase, cg, store_args):
+            if src.luts is not None:  # exact integers: the float64 table, rounded once
+                qlut = np.rint(src.luts[cbase:cbase + cg] * scale).astype(np.int64)
+            else:
+                qlut = np.zeros((1, 1), np.int64)
+            kern(rt.queue, (h if axis == 0 else w,), None, src.buffer, np.int32(src.kind),
+                 rt.upload("qlut", qlut), np.int32(qlut.shape[1]), np.float32(scale),
+                 np.int32(axis), np.int32(lo), np.int32(hi), *geometry, *store_args)
         return run_box
 
+    half = prep.half_storage_ok(plan, src.luts)
+    lin_buf = rt.buffer("linear", (h + 1) * (w + 1) * 4 * (2 if half else 4))  # padded
+    linearise = rt.kernel(half, "linearise")
+    channels = plan.image.shape[2]
+
+    def to_linear(cbase, cg):
+        lut = (src.luts[cbase:cbase + cg].astype(np.float32) if src.luts is not None
+               else np.zeros((1, 1), np.float32))
+        linearise(rt.queue, (w + 1, h + 1), None, src.buffer, np.int32(src.kind),
+                  np.int32(channels), np.int32(cbase), np.int32(cg), rt.upload("lut", lut),
+                  np.int32(lut.shape[1]), lin_buf, np.int32(w), np.int32(h))
+
+    items = ((w + LANES - 1) // LANES, h)
     if taps is not None:
         dx_buf, dy_buf = rt.upload("tap_dx", taps.dx), rt.upload("tap_dy", taps.dy)
         w_buf = rt.upload("tap_w", taps.w.astype(np.float32))
@@ -323,7 +343,8 @@ def _integrator(rt: _Runtime, plan: BlurPlan, half: bool, taps, box, max_abs: fl
                                               taps.dy.max()))
         kern = rt.kernel(half, "integrate_taps")
 
-        def run_taps(lin_buf, store_args):
+        def run_taps(cbase, cg, store_args):
+            to_linear(cbase, cg)
             kern(rt.queue, items, None, lin_buf, dx_buf, dy_buf, w_buf, np.int32(taps.w.size),
                  *extent, *geometry, *store_args)
         return run_taps
@@ -339,7 +360,8 @@ def _integrator(rt: _Runtime, plan: BlurPlan, half: bool, taps, box, max_abs: fl
     time_w_buf = rt.upload("time_weights", time_w)
     kern = rt.kernel(half, "integrate_field")
 
-    def run_field(lin_buf, store_args):
+    def run_field(cbase, cg, store_args):
+        to_linear(cbase, cg)
         kern(rt.queue, items, None, lin_buf, flow_buf, counts_buf, np.int32(host_counts),
              np.int32(plan.samples or 0), time_w_buf, np.int32(weighted),
              np.float32(plan.anchor), *geometry, *store_args)

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from clblur.motion import PSF, Field, Uniform, uniform_taps
-from clblur.pixels import linearisation_table, linearise, normalise
+from clblur.pixels import imax, linearise, normalise
 from clblur.plan import BlurPlan
 from clblur.responses import KIND_CODES, Gamma, Response, Table
 
@@ -134,10 +134,28 @@ def response_params(responses: tuple[Response, ...] | list[Response]
     return params, flat
 
 
-def linearisation_luts(responses, dtype: np.dtype, saturation: float) -> np.ndarray:
-    """float32 (channels, Imax + 1) exposure per code value, one row per channel."""
-    return np.stack([linearisation_table(r, dtype, saturation) for r in responses]
-                    ).astype(np.float32)
+def quantisation_thresholds(responses, dtype: np.dtype) -> np.ndarray:
+    """float32 (channels, 2^bits) exposures where each response crosses the code boundaries.
+
+    Entry k is ``I^-1((k + 1/2) / Imax)`` in float64: an exposure above it quantises to a code
+    above k.  A table response is flat outside its samples: levels above its last value are
+    never reached (+inf), levels below its first value are exceeded everywhere (-inf).
+    Boundaries whose exact tie rounds up (half to even: odd k) are lowered by one float32 step,
+    so an exposure equal to the float32 boundary rounds as ``numpy.rint`` does.  The padding
+    entry is +inf.
+    """
+    full = int(imax(dtype))
+    levels = (np.arange(full, dtype=np.float64) + 0.5) / full
+    rows = []
+    for r in responses:
+        t = np.asarray(r.inverse(levels), dtype=np.float64)
+        if isinstance(r, Table):
+            t = np.where(levels > r.value[-1], np.inf, np.where(levels < r.value[0], -np.inf, t))
+        t32 = t.astype(np.float32)
+        odd = (np.arange(full) % 2 == 1) & np.isfinite(t32)
+        t32[odd] = np.nextafter(t32[odd], np.float32(-np.inf))
+        rows.append(np.append(t32, np.float32(np.inf)))
+    return np.stack(rows)
 
 
 def linearise_float_image(image: np.ndarray, responses, saturation: float) -> np.ndarray:

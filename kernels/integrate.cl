@@ -1,15 +1,20 @@
 /* Linearise and integrate along the motion path (the pipeline of clblur/reference.py).
  *
  * Conventions
- * - Build options: -DSTORE_HALF (linear intermediate as half4, else float4), -DPPW=<pixels
- *   per work-item>, -DHAVE_FP64 when the device has doubles.  Appended after response.cl.
- * - The linear intermediate holds one group of up to 4 channels, RGBA-interleaved, for the
- *   window (h x w) that starts at full-image (r0, c0) of an fh x fw image.
- * - Positions are computed in full-image coordinates and clamped to the full image
- *   (clamp-to-edge), then shifted into the window and clamped again as a guard, so a tile
- *   with a sufficient halo computes exactly what the untiled image does.
- * - Floating-point contraction is off: every a*b+c is rounded as written, so results do not
- *   depend on how the compiler vectorises, and integer steps stay exact.
+ * - Build options: -DSTORE_HALF (linear intermediate as half, else float) and -DHAVE_FP64
+ *   when the device has doubles.  This file is appended to response.cl.
+ * - The window (h x w) starts at full-image (r0, c0) of an fh x fw image and lies inside it.
+ * - The linear intermediate holds one group of up to 4 channels, RGBA-interleaved, padded to
+ *   (h + 1) x (w + 1) pixels by repeating the last column and row: both horizontal
+ *   neighbours of a bilinear sample come from one 8-value load, clamped or not.
+ * - Clamp-to-edge is a clamp to the window: the window lies inside the image, so clamping
+ *   to the image and then to the window (the reference's guard) is the same; a tile with a
+ *   sufficient halo therefore computes exactly what the untiled image does.
+ * - Work-items handle LANES consecutive pixels of a row; per-pixel results never depend on
+ *   the grouping (inactive lanes are skipped, not multiplied by zero), so tiles reproduce the
+ *   untiled output bit for bit.
+ * - Floating-point contraction is off: every a*b+c is rounded as written (or is an explicit
+ *   fma), so results do not depend on how the compiler vectorises.
  */
 #pragma OPENCL FP_CONTRACT OFF
 
@@ -20,27 +25,33 @@
 #ifdef STORE_HALF
 #define STORE_T half
 #define LOAD4(i) vload_half4((i), lin)
+#define LOAD8(i) vload_half8(0, lin + 4 * (size_t)(i))     /* pixels i and i + 1 */
+#define LOAD16(i) vload_half16(0, lin + 4 * (size_t)(i))   /* pixels i .. i + 3 */
 #define STORE4(v, i) vstore_half4_rte((v), (i), lin)
 #else
 #define STORE_T float
 #define LOAD4(i) vload4((i), lin)
+#define LOAD8(i) vload8(0, lin + 4 * (size_t)(i))
+#define LOAD16(i) vload16(0, lin + 4 * (size_t)(i))
 #define STORE4(v, i) vstore4((v), (i), lin)
 #endif
 
 #define IN_U8 0
 #define IN_U16 1
 #define IN_F32 2
+#define LANES 8
 
-/* Linearise one channel group: integer codes through per-channel tables (lut[k * lut_len +
- * code]); float32 input is already linear (the host applied the inverse response in float64). */
+/* Linearise one channel group into the padded intermediate (global size (w + 1, h + 1)):
+ * integer codes through per-channel tables (lut[k * lut_len + code]); float32 input is
+ * already linear (the host applied the inverse response in float64). */
 __kernel void linearise(__global const uchar *image, int in_kind, int channels, int cbase,
                         int cg, __global const float *lut, int lut_len, __global STORE_T *lin,
-                        int npix)
+                        int w, int h)
 {
-    int i = get_global_id(0);
-    if (i >= npix) return;
+    int col = get_global_id(0), row = get_global_id(1);
+    if (col > w || row > h) return;
     float e[4] = {0.0f, 0.0f, 0.0f, 0.0f};
-    size_t base = (size_t)i * (size_t)channels + (size_t)cbase;
+    size_t base = ((size_t)min(row, h - 1) * w + min(col, w - 1)) * channels + cbase;
     for (int k = 0; k < cg; ++k) {
         if (in_kind == IN_U8)
             e[k] = lut[k * lut_len + image[base + k]];
@@ -49,7 +60,7 @@ __kernel void linearise(__global const uchar *image, int in_kind, int channels, 
         else
             e[k] = ((__global const float *)image)[base + k];
     }
-    STORE4((float4)(e[0], e[1], e[2], e[3]), i);
+    STORE4((float4)(e[0], e[1], e[2], e[3]), (size_t)row * (w + 1) + col);
 }
 
 #ifdef HAVE_FP64
@@ -66,126 +77,167 @@ static int sample_count(float vx, float vy)
 }
 #endif
 
-/* floor() for the offsets (calls a slow library routine on some CPUs): truncate, then step
- * down where truncation went up (negative non-integers). */
-static int floor_int(float v)
+/* floor() of offsets without the library call (slow on some CPU drivers): truncate, then
+ * step down where truncation went up (negative non-integers; true compares are -1). */
+static int8 floor_int8(float8 v)
 {
-    int t = convert_int(v);
-    return (float)t > v ? t - 1 : t;
+    int8 t = convert_int8(v);
+    return t + (convert_float8(t) > v);
 }
 
-/* Bilinear sample of the window at full-image position (x + fx, y + fy), x and y integers,
- * 0 <= fx, fy < 1.  Clamping the two integer neighbours to the image equals clamping the
- * position first (clamp-to-edge): beyond an edge both neighbours are the edge pixel. */
-static float4 bilinear(__global const STORE_T *lin, int x, float fx, int y, float fy, int w,
-                       int h, int r0, int c0, int fw, int fh)
-{
-    int ix0 = clamp(clamp(x, 0, fw - 1) - c0, 0, w - 1);
-    int ix1 = clamp(clamp(x + 1, 0, fw - 1) - c0, 0, w - 1);
-    int iy0 = clamp(clamp(y, 0, fh - 1) - r0, 0, h - 1);
-    int iy1 = clamp(clamp(y + 1, 0, fh - 1) - r0, 0, h - 1);
-    float4 a = LOAD4(iy0 * w + ix0), b = LOAD4(iy0 * w + ix1);
-    float4 c = LOAD4(iy1 * w + ix0), d = LOAD4(iy1 * w + ix1);
-    float4 top = a * (1.0f - fx) + b * fx;
-    float4 bottom = c * (1.0f - fx) + d * fx;
-    return top * (1.0f - fy) + bottom * fy;
-}
+/* One lane of the field kernel: bilinear sample at window pixel base + (fx, fy) from the
+ * padded intermediate, accumulated when tap j is among the lane's n taps. */
+#define FIELD_LANE(L)                                                                  \
+    if (j < n.s##L) {                                                                  \
+        float8 top = LOAD8(base.s##L), bottom = LOAD8(base.s##L + ws);                 \
+        float8 col = fma(bottom - top, (float8)(fy.s##L), top);                        \
+        float4 v = fma(col.hi - col.lo, (float4)(fx.s##L), col.lo);                   \
+        acc##L = weighted ? fma((float4)(time_w[j]), v, acc##L) : acc##L + v;          \
+    }
 
-/* Per-pixel motion field.  Sample j of pixel p lies at p - v * (j - a (N-1)) / (N-1), taken
- * as p + o with o = -(v / (N-1)) * (j - a (N-1)): exact whenever the step v / (N-1) is an
- * integer.  o is split into integer and fraction before it meets p, so the fraction keeps
- * the precision of |o| rather than of the pixel coordinate.
- * N is `fixed_n` when > 0, else counts[i] when `host_counts`, else computed here. */
+#define FIELD_STORE(L)                                                                 \
+    if (col0 + L < w)                                                                  \
+        store_pixel(weighted ? acc##L : acc##L / (float)n.s##L, out, out_kind,          \
+                    (size_t)row * w + col0 + L, channels, cbase, cg, resp, tables,     \
+                    thresholds);
+
+/* Per-pixel motion field.  Sample j of pixel p lies at p + o, o = -(v / (N-1)) (j - a (N-1))
+ * (the reference's p - v (j - a (N-1)) / (N-1), exact whenever the step v / (N-1) is an
+ * integer).  o is split into integer and fraction before it meets p, so the fraction keeps
+ * the precision of |o| rather than that of the pixel coordinate.  N is `fixed_n` when > 0,
+ * else counts[i] when `host_counts`, else computed here.  LANES pixels per work-item run
+ * as vector lanes; the tap loop runs to the largest N among them. */
 __kernel void integrate_field(__global const STORE_T *lin, __global const float *flow,
                               __global const int *counts, int host_counts, int fixed_n,
                               __global const float *time_w, int weighted, float anchor,
                               int w, int h, int r0, int c0, int fw, int fh,
                               __constant const float *resp, __global const float *tables,
+                              __global const float *thresholds,
                               __global uchar *out, int out_kind, int channels, int cbase, int cg)
 {
     int row = get_global_id(1);
-    int col0 = get_global_id(0) * PPW;
-    if (row >= h) return;
-    int py = row + r0;
-    int col_end = min(col0 + PPW, w);
-    for (int col = col0; col < col_end; ++col) {
-        int i = row * w + col;
-        float vx = flow[2 * i], vy = flow[2 * i + 1];
+    int col0 = get_global_id(0) * LANES;
+    if (row >= h || col0 >= w) return;
+    int ws = w + 1;
+    float vxs[LANES], vys[LANES];
+    int ns[LANES];
+    int nmax = 0;
+    for (int l = 0; l < LANES; ++l) {
+        int i = row * w + min(col0 + l, w - 1);
+        vxs[l] = flow[2 * i];
+        vys[l] = flow[2 * i + 1];
         int n = fixed_n;
         if (n <= 0) {
 #ifdef HAVE_FP64
-            n = host_counts ? counts[i] : sample_count(vx, vy);
+            n = host_counts ? counts[i] : sample_count(vxs[l], vys[l]);
 #else
             n = counts[i];
 #endif
         }
-        float den = (float)max(n - 1, 1);
-        float sx = vx / den, sy = vy / den;
-        float a_n1 = anchor * (float)(n - 1);
-        int px = col + c0;
-        float4 acc = (float4)(0.0f);
-        for (int j = 0; j < n; ++j) {
-            float t = (float)j - a_n1;
-            float ox = -(sx * t), oy = -(sy * t);
-            int ix = floor_int(ox), iy = floor_int(oy);
-            float4 s = bilinear(lin, px + ix, ox - (float)ix, py + iy, oy - (float)iy, w, h,
-                                r0, c0, fw, fh);
-            acc += weighted ? time_w[j] * s : s;
-        }
-        if (!weighted) acc = acc / (float)n;
-        store_pixel(acc, out, out_kind, (size_t)i, channels, cbase, cg, resp, tables);
+        ns[l] = n;
+        nmax = max(nmax, n);
     }
+    int8 n = vload8(0, ns);
+    float8 n1 = convert_float8(n - 1);
+    float8 den = fmax(n1, 1.0f);
+    float8 sx = vload8(0, vxs) / den, sy = vload8(0, vys) / den;
+    float8 a_n1 = anchor * n1;
+    int8 px = (int8)(col0) + (int8)(0, 1, 2, 3, 4, 5, 6, 7);
+    float4 acc0 = 0.0f, acc1 = 0.0f, acc2 = 0.0f, acc3 = 0.0f;
+    float4 acc4 = 0.0f, acc5 = 0.0f, acc6 = 0.0f, acc7 = 0.0f;
+    for (int j = 0; j < nmax; ++j) {
+        float8 t = (float8)((float)j) - a_n1;
+        float8 ox = -(sx * t), oy = -(sy * t);
+        int8 ix = floor_int8(ox), iy = floor_int8(oy);
+        float8 fx = ox - convert_float8(ix), fy = oy - convert_float8(iy);
+        int8 xi = px + ix, yi = (int8)(row) + iy;
+        /* Before the first pixel the sample is the first pixel; past the last, the padding
+         * repeats the last, so the fraction does not matter there. */
+        fx = select(fx, (float8)(0.0f), xi < 0);
+        fy = select(fy, (float8)(0.0f), yi < 0);
+        int8 base = clamp(yi, 0, h - 1) * ws + clamp(xi, 0, w - 1);
+        FIELD_LANE(0) FIELD_LANE(1) FIELD_LANE(2) FIELD_LANE(3)
+        FIELD_LANE(4) FIELD_LANE(5) FIELD_LANE(6) FIELD_LANE(7)
+    }
+    FIELD_STORE(0) FIELD_STORE(1) FIELD_STORE(2) FIELD_STORE(3)
+    FIELD_STORE(4) FIELD_STORE(5) FIELD_STORE(6) FIELD_STORE(7)
 }
 
-/* Space-invariant integer taps: g(p) = sum_t w_t L(clamp(p + d_t)).  Serves PSFs and uniform
- * motion, whose bilinear samples share their fractional parts and so rasterise exactly. */
+/* Space-invariant integer taps: g(p) = sum_t w_t L(clamp(p + d_t)), accumulated in tap order
+ * with one fma each.  Serves PSFs and uniform motion (whose bilinear samples share their
+ * fractional parts and so rasterise exactly).  Work-items whose LANES pixels read only
+ * inside the window load them as contiguous vectors; others clamp per pixel.  Both paths
+ * do the same arithmetic per pixel. */
 __kernel void integrate_taps(__global const STORE_T *lin, __global const int *tap_dx,
                              __global const int *tap_dy, __global const float *tap_w, int ntaps,
                              int dx_min, int dx_max, int dy_min, int dy_max,
                              int w, int h, int r0, int c0, int fw, int fh,
                              __constant const float *resp, __global const float *tables,
+                             __global const float *thresholds,
                              __global uchar *out, int out_kind, int channels, int cbase, int cg)
 {
     int row = get_global_id(1);
-    int col0 = get_global_id(0) * PPW;
-    if (row >= h) return;
-    int y = row + r0;
-    int col_end = min(col0 + PPW, w);
-    /* Rows whose taps all stay inside the window and the image need no clamping. */
-    bool rows_inside = y + dy_min >= max(r0, 0) && y + dy_max <= min(r0 + h, fh) - 1;
-    int x_lo = max(c0, 0), x_hi = min(c0 + w, fw) - 1;
-    for (int col = col0; col < col_end; ++col) {
-        int x = col + c0;
-        float4 acc = (float4)(0.0f);
-        if (rows_inside && x + dx_min >= x_lo && x + dx_max <= x_hi) {
-            int i = row * w + col;
-            for (int t = 0; t < ntaps; ++t)
-                acc += tap_w[t] * LOAD4(i + tap_dy[t] * w + tap_dx[t]);
-        } else {
+    int col0 = get_global_id(0) * LANES;
+    if (row >= h || col0 >= w) return;
+    int ws = w + 1;
+    float4 acc[LANES];
+    for (int l = 0; l < LANES; ++l) acc[l] = 0.0f;
+    if (col0 + dx_min >= 0 && col0 + LANES - 1 + dx_max <= w - 1 && row + dy_min >= 0 &&
+        row + dy_max <= h - 1) {
+        float16 lo = 0.0f, hi = 0.0f;  /* pixels col0 .. col0 + 3 and col0 + 4 .. col0 + 7 */
+        size_t origin = (size_t)row * ws + col0;
+        for (int t = 0; t < ntaps; ++t) {
+            size_t src = origin + tap_dy[t] * ws + tap_dx[t];
+            float16 wt = (float16)(tap_w[t]);
+            lo = fma(wt, LOAD16(src), lo);
+            hi = fma(wt, LOAD16(src + 4), hi);
+        }
+        acc[0] = lo.s0123; acc[1] = lo.s4567; acc[2] = lo.s89ab; acc[3] = lo.scdef;
+        acc[4] = hi.s0123; acc[5] = hi.s4567; acc[6] = hi.s89ab; acc[7] = hi.scdef;
+    } else {
+        for (int l = 0; l < LANES; ++l) {
+            int col = min(col0 + l, w - 1);
             for (int t = 0; t < ntaps; ++t) {
-                int sx = clamp(clamp(x + tap_dx[t], 0, fw - 1) - c0, 0, w - 1);
-                int sy = clamp(clamp(y + tap_dy[t], 0, fh - 1) - r0, 0, h - 1);
-                acc += tap_w[t] * LOAD4(sy * w + sx);
+                int x = clamp(col + tap_dx[t], 0, w - 1), y = clamp(row + tap_dy[t], 0, h - 1);
+                acc[l] = fma((float4)(tap_w[t]), LOAD4((size_t)y * ws + x), acc[l]);
             }
         }
-        store_pixel(acc, out, out_kind, (size_t)(row * w + col), channels, cbase, cg, resp,
-                    tables);
     }
+    for (int l = 0; l < LANES && col0 + l < w; ++l)
+        store_pixel(acc[l], out, out_kind, (size_t)row * w + col0 + l, channels, cbase, cg,
+                    resp, tables, thresholds);
 }
 
-/* Fixed-point image of a linear value: exact integers, so running sums do not drift and do
- * not depend on where a row (or a tile) starts. */
-static long4 fixed_point(float4 v, float scale)
+/* Fixed-point exposures of the channel group at pixel `pix` of the window: exact integers,
+ * so running sums neither drift nor depend on where a row (or a tile) starts.  Integer images
+ * read fixed-point tables (qlut[k * lut_len + code], rounded on the host); float32 images hold
+ * exposures already and are scaled here. */
+static long4 fixed_exposure(__global const uchar *image, int in_kind, size_t pix, int channels,
+                            int cbase, int cg, __global const long *qlut, int lut_len,
+                            float scale)
 {
-    return convert_long4_rte(v * scale);
+    long q[4] = {0, 0, 0, 0};
+    size_t base = pix * (size_t)channels + (size_t)cbase;
+    for (int k = 0; k < cg; ++k) {
+        if (in_kind == IN_U8)
+            q[k] = qlut[k * lut_len + image[base + k]];
+        else if (in_kind == IN_U16)
+            q[k] = qlut[k * lut_len + ((__global const ushort *)image)[base + k]];
+        else
+            q[k] = convert_long_rte(((__global const float *)image)[base + k] * scale);
+    }
+    return (long4)(q[0], q[1], q[2], q[3]);
 }
 
-/* Box of taps d = lo..hi along one axis, equal weights, as a running sum: cost per pixel does
- * not grow with the box length.  `axis` 0 slides along rows (one work-item per row), 1 along
- * columns (one work-item per column). */
-__kernel void integrate_box(__global const STORE_T *lin, int axis, int lo, int hi, float scale,
+/* Box of taps d = lo..hi along one axis with equal weights, straight from the input image
+ * (no linear intermediate), as a running sum: the cost per pixel does not grow with the box
+ * length.  `axis` 0 slides along rows (one work-item per row), 1 along columns (one
+ * work-item per column).  `scale` is the fixed-point unit: mean = sum / (count * scale). */
+__kernel void integrate_box(__global const uchar *image, int in_kind, __global const long *qlut,
+                            int lut_len, float scale, int axis, int lo, int hi,
                             int w, int h, int r0, int c0, int fw, int fh,
                             __constant const float *resp, __global const float *tables,
+                            __global const float *thresholds,
                             __global uchar *out, int out_kind, int channels, int cbase, int cg)
 {
     int line = get_global_id(0);
@@ -197,16 +249,18 @@ __kernel void integrate_box(__global const STORE_T *lin, int axis, int lo, int h
     int full = axis == 0 ? fw : fh;
     int count = hi - lo + 1;
     float norm = 1.0f / ((float)count * scale);
-#define SRC(p) (first + clamp(clamp((p), 0, full - 1) - org, 0, len - 1) * stride)
+#define SRC(p) (size_t)(first + clamp(clamp((p), 0, full - 1) - org, 0, len - 1) * stride)
+#define VALUE(p) fixed_exposure(image, in_kind, SRC(p), channels, cbase, cg, qlut, lut_len, scale)
     long4 sum = (long4)(0);
     for (int d = lo; d <= hi; ++d)
-        sum += fixed_point(LOAD4(SRC(org + d)), scale);
+        sum += VALUE(org + d);
     for (int k = 0; k < len; ++k) {
         int p = org + k;
         float4 mean = convert_float4(sum) * norm;
         store_pixel(mean, out, out_kind, (size_t)(first + k * stride), channels, cbase, cg,
-                    resp, tables);
-        sum += fixed_point(LOAD4(SRC(p + hi + 1)), scale) - fixed_point(LOAD4(SRC(p + lo)), scale);
+                    resp, tables, thresholds);
+        sum += VALUE(p + hi + 1) - VALUE(p + lo);
     }
+#undef VALUE
 #undef SRC
 }
