@@ -288,8 +288,11 @@ def _run(rt: _Runtime, plan: BlurPlan) -> np.ndarray:
         params, tables = prep.response_params(group)
         thresholds = (prep.quantisation_thresholds(group, img.dtype) if img.dtype.kind == "u"
                       else np.zeros(1, np.float32))
+        buckets = (prep.quantisation_buckets(thresholds) if img.dtype == np.uint8
+                   else np.zeros(4, np.int32))
         store_args = (rt.upload("resp", params), rt.upload("tables", tables),
-                      rt.upload("thresholds", thresholds), out_buf, np.int32(out_kind),
+                      rt.upload("thresholds", thresholds), rt.upload("buckets", buckets),
+                      out_buf, np.int32(out_kind),
                       np.int32(channels), np.int32(cbase), np.int32(cg))
         integrate(cbase, cg, store_args)
     _cl().enqueue_copy(rt.queue, out, out_buf, is_blocking=True)

@@ -154,8 +154,45 @@ def quantisation_thresholds(responses, dtype: np.dtype) -> np.ndarray:
         t32 = t.astype(np.float32)
         odd = (np.arange(full) % 2 == 1) & np.isfinite(t32)
         t32[odd] = np.nextafter(t32[odd], np.float32(-np.inf))
+        t32 = np.maximum.accumulate(t32)  # keep them sorted where two boundaries coincide
         rows.append(np.append(t32, np.float32(np.inf)))
     return np.stack(rows)
+
+
+BUCKET_SHIFT = 16  # keeps 7 mantissa bits: buckets 1/128 of an octave wide
+BUCKET_MAX_STEPS = 6
+
+
+def quantisation_buckets(thresholds: np.ndarray) -> np.ndarray:
+    """Bucket table for kernels/response.cl ``quantise_by_buckets`` (int32).
+
+    Layout: ``[shift, base, nb, kmax]`` then ``nb`` counts per channel.  Bucket b covers the
+    float32 values whose bit patterns shifted right by ``shift`` equal ``base + b`` (bucket 0
+    also everything below, the last everything above); its count is the number of thresholds
+    below its start, and ``kmax`` bounds the thresholds inside any bucket.  Returns the
+    header alone with ``nb = 0`` when some bucket holds more than BUCKET_MAX_STEPS thresholds
+    (the kernel then binary-searches).
+    """
+    t = thresholds[:, :-1]  # drop the +inf padding
+    finite = t[np.isfinite(t) & (t > 0)]
+    if finite.size == 0:
+        return np.zeros(4, np.int32)
+    lo = np.float32(finite.min() / 2)
+    hi = np.float32(min(float(finite.max()) * 2, 3e38))
+    base = int(lo.view(np.uint32)) >> BUCKET_SHIFT
+    nb = (int(hi.view(np.uint32)) >> BUCKET_SHIFT) - base + 1
+    starts = ((np.arange(nb, dtype=np.uint32) + base) << BUCKET_SHIFT).view(np.float32).copy()
+    starts[0] = 0.0
+    ends = np.append(starts[1:], np.float32(np.inf))
+    counts, kmax = [], 0
+    for row in thresholds:
+        q0 = np.searchsorted(row, starts, side="left")
+        q1 = np.searchsorted(row, ends, side="left")
+        kmax = max(kmax, int(np.max(q1 - q0)))
+        counts.append(q0)
+    if kmax > BUCKET_MAX_STEPS:
+        return np.zeros(4, np.int32)
+    return np.concatenate([[BUCKET_SHIFT, base, nb, kmax], *counts]).astype(np.int32)
 
 
 def linearise_float_image(image: np.ndarray, responses, saturation: float) -> np.ndarray:

@@ -99,7 +99,7 @@ static int8 floor_int8(float8 v)
     if (col0 + L < w)                                                                  \
         store_pixel(weighted ? acc##L : acc##L / (float)n.s##L, out, out_kind,          \
                     (size_t)row * w + col0 + L, channels, cbase, cg, resp, tables,     \
-                    thresholds);
+                    thresholds, buckets);
 
 /* Per-pixel motion field.  Sample j of pixel p lies at p + o, o = -(v / (N-1)) (j - a (N-1))
  * (the reference's p - v (j - a (N-1)) / (N-1), exact whenever the step v / (N-1) is an
@@ -112,7 +112,7 @@ __kernel void integrate_field(__global const STORE_T *lin, __global const float 
                               __global const float *time_w, int weighted, float anchor,
                               int w, int h, int r0, int c0, int fw, int fh,
                               __constant const float *resp, __global const float *tables,
-                              __global const float *thresholds,
+                              __global const float *thresholds, __global const int *buckets,
                               __global uchar *out, int out_kind, int channels, int cbase, int cg)
 {
     int row = get_global_id(1);
@@ -173,7 +173,7 @@ __kernel void integrate_taps(__global const STORE_T *lin, __global const int *ta
                              int dx_min, int dx_max, int dy_min, int dy_max,
                              int w, int h, int r0, int c0, int fw, int fh,
                              __constant const float *resp, __global const float *tables,
-                             __global const float *thresholds,
+                             __global const float *thresholds, __global const int *buckets,
                              __global uchar *out, int out_kind, int channels, int cbase, int cg)
 {
     int row = get_global_id(1);
@@ -205,7 +205,7 @@ __kernel void integrate_taps(__global const STORE_T *lin, __global const int *ta
     }
     for (int l = 0; l < LANES && col0 + l < w; ++l)
         store_pixel(acc[l], out, out_kind, (size_t)row * w + col0 + l, channels, cbase, cg,
-                    resp, tables, thresholds);
+                    resp, tables, thresholds, buckets);
 }
 
 /* Fixed-point exposures of the channel group at pixel `pix` of the window: exact integers,
@@ -237,7 +237,7 @@ __kernel void integrate_box(__global const uchar *image, int in_kind, __global c
                             int lut_len, float scale, int axis, int lo, int hi,
                             int w, int h, int r0, int c0, int fw, int fh,
                             __constant const float *resp, __global const float *tables,
-                            __global const float *thresholds,
+                            __global const float *thresholds, __global const int *buckets,
                             __global uchar *out, int out_kind, int channels, int cbase, int cg)
 {
     int line = get_global_id(0);
@@ -258,7 +258,7 @@ __kernel void integrate_box(__global const uchar *image, int in_kind, __global c
         int p = org + k;
         float4 mean = convert_float4(sum) * norm;
         store_pixel(mean, out, out_kind, (size_t)(first + k * stride), channels, cbase, cg,
-                    resp, tables, thresholds);
+                    resp, tables, thresholds, buckets);
         sum += VALUE(p + hi + 1) - VALUE(p + lo);
     }
 #undef VALUE

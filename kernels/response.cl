@@ -87,18 +87,39 @@ static int quantise_by_thresholds(float e, __global const float *thresholds, int
     return q;
 }
 
+/* The same count found from a bucket table (built on the host, see
+ * clblur.opencl_prep.quantisation_buckets): the float bit pattern of e >= 0 is monotone in
+ * e, so (bits >> shift) - base picks a narrow logarithmic bucket; buckets[4 + bucket] is
+ * the count of thresholds below the bucket's start, and at most kmax more thresholds lie
+ * inside any bucket.  Header: buckets[0..3] = shift, base, bucket count nb, kmax; channel
+ * k's table follows at 4 + k * nb. */
+static int quantise_by_buckets(float e, __global const float *thresholds,
+                               __global const int *buckets, int channel)
+{
+    e = e > 0.0f ? e : 0.0f;  /* also maps -0.0, whose bit pattern is not monotone */
+    int b = clamp((int)(as_uint(e) >> buckets[0]) - buckets[1], 0, buckets[2] - 1);
+    int q = buckets[4 + channel * buckets[2] + b];
+    for (int s = 0; s < buckets[3]; ++s)
+        q += thresholds[q] < e ? 1 : 0;
+    return q;
+}
+
 /* Forward-map and quantise the accumulated exposures of one pixel's channel group.
- * Integer outputs use per-channel threshold tables (2^8 or 2^16 floats per channel, one
- * evaluation-free binary search); float32 outputs evaluate the response. */
+ * Integer outputs compare the exposure with per-channel threshold tables (2^8 or 2^16
+ * floats per channel; buckets when the host built them, else binary search); float32
+ * outputs evaluate the response. */
 static void store_pixel(float4 acc, __global uchar *out, int out_kind, size_t pixel,
                         int channels, int cbase, int cg, __constant const float *resp,
-                        __global const float *tables, __global const float *thresholds)
+                        __global const float *tables, __global const float *thresholds,
+                        __global const int *buckets)
 {
     float e[4] = {acc.x, acc.y, acc.z, acc.w};
     size_t base = pixel * (size_t)channels + (size_t)cbase;
     for (int k = 0; k < cg; ++k) {
         if (out_kind == OUT_U8)
-            out[base + k] = (uchar)quantise_by_thresholds(e[k], thresholds + (k << 8), 8);
+            out[base + k] = (uchar)(buckets[2] > 0
+                ? quantise_by_buckets(e[k], thresholds + (k << 8), buckets, k)
+                : quantise_by_thresholds(e[k], thresholds + (k << 8), 8));
         else if (out_kind == OUT_U16)
             ((__global ushort *)out)[base + k] =
                 (ushort)quantise_by_thresholds(e[k], thresholds + (k << 16), 16);
