@@ -218,6 +218,9 @@ def from_dict(doc: dict) -> Response:
             return Table(params["exposure"], params["value"], params.get("meta"))
         except KeyError as e:
             raise ValueError(f"table response document lacks {e.args[0]!r}") from None
+    if kind == CHANNEL_SET_KIND:
+        raise ValueError("this document holds one response per channel; use it where "
+                         "per-channel responses are accepted (clblur.blur, clblur blur)")
     if kind not in _BY_KIND:
         raise ValueError(f"unknown response kind {kind!r}; known: "
                          f"{', '.join(sorted(KIND_CODES))}")
@@ -266,8 +269,47 @@ def response(spec: str | Response | dict) -> Response:
                      "or a response JSON file")
 
 
+CHANNEL_SET_KIND = "per-channel"
+
+
+def channel_set_to_dict(responses: Sequence[Response]) -> dict:
+    """A JSON document holding one response per channel (written by ``clblur calibrate``)."""
+    return {"format": "clblur-response", "version": FORMAT_VERSION, "kind": CHANNEL_SET_KIND,
+            "channels": [r.to_dict() for r in responses]}
+
+
+def save_channel_set(path: str | os.PathLike, responses: Sequence[Response]) -> None:
+    """Write per-channel responses as one JSON file (atomically)."""
+    from clblur.io import atomic_write_text
+
+    atomic_write_text(Path(path), json.dumps(channel_set_to_dict(responses), indent=2) + "\n")
+
+
+def _channel_set(spec) -> list[Response] | None:
+    """The responses of a per-channel document (dict or JSON path), else None."""
+    doc = spec
+    if isinstance(spec, (str, os.PathLike)) and str(spec).endswith(".json") \
+            and Path(spec).is_file():
+        try:
+            doc = json.loads(Path(spec).read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+            raise ValueError(f"cannot read response file {spec}: {e}") from None
+    if not (isinstance(doc, dict) and doc.get("kind") == CHANNEL_SET_KIND):
+        return None
+    channels = doc.get("channels")
+    if not isinstance(channels, list) or not channels:
+        raise ValueError("per-channel response document needs a non-empty 'channels' list")
+    return [from_dict(d) for d in channels]
+
+
 def per_channel(spec, channels: int) -> list[Response]:
-    """One response per channel: a single spec is shared, a sequence must match ``channels``."""
+    """One response per channel: a single spec is shared, a sequence must match ``channels``;
+    a per-channel document (``kind: per-channel``, e.g. from ``clblur calibrate``) acts as the
+    sequence it holds."""
+    if not isinstance(spec, (list, tuple, Response)):
+        found = _channel_set(spec)
+        if found is not None:
+            spec = found
     if isinstance(spec, (list, tuple)):
         if len(spec) != channels:
             raise ValueError(f"got {len(spec)} per-channel responses for an image with "
