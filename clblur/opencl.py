@@ -35,6 +35,8 @@ from clblur.plan import BlurPlan
 
 ENV_DEVICE = "CLBLUR_DEVICE"
 LANES = 8  # consecutive pixels of a row per work-item, run as vector lanes (integrate.cl)
+GROUP_SIZE = 16  # work-items per work-group along x; fixed, so drivers that specialise code
+# per work-group size (PoCL) build each kernel once rather than once per image size
 KERNEL_FILES = ("response.cl", "integrate.cl")
 _OUT_KINDS = {np.dtype(np.uint8): 0, np.dtype(np.uint16): 1, np.dtype(np.float32): 2,
               np.dtype(np.float64): 2}  # float64 output: computed in float32, widened on host
@@ -45,7 +47,11 @@ _PROBE_SOURCE = "__kernel void probe(__global float *x) { x[get_global_id(0)] +=
 
 
 class OpenCLUnavailable(RuntimeError):
-    """No OpenCL device matches the selector, or it cannot build and run code."""
+    """No OpenCL platform, or the device cannot create a context."""
+
+
+class DeviceNotFound(OpenCLUnavailable, ValueError):
+    """The selector names no device (bad input: the CLI reports it as one line)."""
 
 
 def _cl():
@@ -95,7 +101,7 @@ def _pick(selector: str):
                 (not m and selector.lower() in _label(platform, device).lower()):
             return pi, di, platform, device
     names = "; ".join(f"{pi}:{di} {_label(p, d)}" for pi, di, p, d in found)
-    raise OpenCLUnavailable(f"no OpenCL device matches {selector!r} (available: {names})")
+    raise DeviceNotFound(f"no OpenCL device matches {selector!r} (available: {names})")
 
 
 def _kernel_source() -> str:
@@ -254,6 +260,12 @@ def blur(plan: BlurPlan, device: str | None = None) -> np.ndarray:
         return _run(rt, plan)
 
 
+def _grid(*sizes: int) -> tuple[int, ...]:
+    """Global size: the first dimension rounded up to whole work-groups (kernels bound-check)."""
+    first = -(-sizes[0] // GROUP_SIZE) * GROUP_SIZE
+    return (first, *sizes[1:])
+
+
 @dataclass
 class _Input:
     """The uploaded image: integer codes with float64 linearisation tables, or float32
@@ -321,9 +333,10 @@ def _integrator(rt: _Runtime, plan: BlurPlan, src: _Input):
                 qlut = np.rint(src.luts[cbase:cbase + cg] * scale).astype(np.int64)
             else:
                 qlut = np.zeros((1, 1), np.int64)
-            kern(rt.queue, (h if axis == 0 else w,), None, src.buffer, np.int32(src.kind),
-                 rt.upload("qlut", qlut), np.int32(qlut.shape[1]), np.float32(scale),
-                 np.int32(axis), np.int32(lo), np.int32(hi), *geometry, *store_args)
+            kern(rt.queue, _grid(h if axis == 0 else w), (GROUP_SIZE,), src.buffer,
+                 np.int32(src.kind), rt.upload("qlut", qlut), np.int32(qlut.shape[1]),
+                 np.float32(scale), np.int32(axis), np.int32(lo), np.int32(hi), *geometry,
+                 *store_args)
         return run_box
 
     half = prep.half_storage_ok(plan, src.luts)
@@ -334,11 +347,11 @@ def _integrator(rt: _Runtime, plan: BlurPlan, src: _Input):
     def to_linear(cbase, cg):
         lut = (src.luts[cbase:cbase + cg].astype(np.float32) if src.luts is not None
                else np.zeros((1, 1), np.float32))
-        linearise(rt.queue, (w + 1, h + 1), None, src.buffer, np.int32(src.kind),
+        linearise(rt.queue, _grid(w + 1, h + 1), (GROUP_SIZE, 1), src.buffer, np.int32(src.kind),
                   np.int32(channels), np.int32(cbase), np.int32(cg), rt.upload("lut", lut),
                   np.int32(lut.shape[1]), lin_buf, np.int32(w), np.int32(h))
 
-    items = ((w + LANES - 1) // LANES, h)
+    items = _grid((w + LANES - 1) // LANES, h)
     if taps is not None:
         dx_buf, dy_buf = rt.upload("tap_dx", taps.dx), rt.upload("tap_dy", taps.dy)
         w_buf = rt.upload("tap_w", taps.w.astype(np.float32))
@@ -348,8 +361,8 @@ def _integrator(rt: _Runtime, plan: BlurPlan, src: _Input):
 
         def run_taps(cbase, cg, store_args):
             to_linear(cbase, cg)
-            kern(rt.queue, items, None, lin_buf, dx_buf, dy_buf, w_buf, np.int32(taps.w.size),
-                 *extent, *geometry, *store_args)
+            kern(rt.queue, items, (GROUP_SIZE, 1), lin_buf, dx_buf, dy_buf, w_buf,
+                 np.int32(taps.w.size), *extent, *geometry, *store_args)
         return run_taps
 
     assert isinstance(plan.motion, Field)
@@ -365,7 +378,7 @@ def _integrator(rt: _Runtime, plan: BlurPlan, src: _Input):
 
     def run_field(cbase, cg, store_args):
         to_linear(cbase, cg)
-        kern(rt.queue, items, None, lin_buf, flow_buf, counts_buf, np.int32(host_counts),
+        kern(rt.queue, items, (GROUP_SIZE, 1), lin_buf, flow_buf, counts_buf, np.int32(host_counts),
              np.int32(plan.samples or 0), time_w_buf, np.int32(weighted),
              np.float32(plan.anchor), *geometry, *store_args)
     return run_field
