@@ -23,7 +23,6 @@ Conventions
 
 from __future__ import annotations
 
-import argparse
 import os
 import time
 from dataclasses import dataclass, field
@@ -241,30 +240,35 @@ def register(subparsers) -> None:
         "video", help="motion-blur a video or image sequence along its optical flow",
         description="Blur every frame along its optical flow: backward flow for the first "
                     "half of the shutter, forward flow for the second, so the path can bend. "
-                    "IN and OUT are video files (.mp4 .mkv .mov .avi .webm) or image folders.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                    "IN and OUT are video files (.mp4 .mkv .mov .avi .webm) or image folders "
+                    "(an OUT without a suffix becomes a folder).")
     p.add_argument("input", metavar="IN")
     p.add_argument("output", metavar="OUT")
     p.add_argument("--shutter", type=float, default=DEFAULT_SHUTTER, metavar="DEG",
-                   help="shutter angle in degrees (360: open for the whole frame interval)")
+                   help="shutter angle in degrees, 0..360 (360: open for the whole frame "
+                        "interval; default 180)")
     p.add_argument("--flow", default="dis", metavar="dis|farneback|DIR",
-                   help="optical flow method, or a folder of forward_NNNNNN/backward_NNNNNN "
-                        ".flo/.npy files")
+                   help="optical flow method (default dis), or a folder of "
+                        "forward_NNNNNN/backward_NNNNNN .flo/.npy files")
     p.add_argument("--samples", type=int, default=None, metavar="N",
                    help="samples per pixel for each half of the shutter (default: "
                         "ceil(|v|)+1 per pixel)")
     p.add_argument("--response", default=DEFAULT_RESPONSE, metavar="SPEC",
-                   help="camera response: linear, exp, exp:K, gamma:G, srgb or a JSON file")
+                   help="camera response: linear, exp, exp:K, gamma:G, srgb or a JSON file "
+                        f"(default {DEFAULT_RESPONSE}; see docs/studies/video.md)")
     p.add_argument("--saturation", type=float, default=1.0, metavar="S",
-                   help="exposure of clipped pixels in units of the least saturating one")
-    p.add_argument("--backend", choices=["auto", "numpy", "opencl"], default="auto")
+                   help="exposure of clipped pixels in units of the least saturating one "
+                        "(>= 1, default 1)")
+    p.add_argument("--backend", choices=["auto", "numpy", "opencl"], default="auto",
+                   help="default auto: OpenCL when usable, else numpy")
     p.add_argument("--device", default=None, help="OpenCL device selector")
     p.add_argument("--fps", type=float, default=None,
                    help="frame rate of an image-sequence input (default 30)")
     p.add_argument("--codec", default=None,
                    help="video encoder (default: libx264 for .mp4/.mkv/.mov, mpeg4 for .avi, "
                         "libvpx-vp9 for .webm)")
-    p.add_argument("--crf", type=int, default=DEFAULT_CRF, help="encoder quality (lower: better)")
+    p.add_argument("--crf", type=int, default=DEFAULT_CRF,
+                   help=f"encoder quality, lower is better (default {DEFAULT_CRF})")
     p.add_argument("--save-flows", default=None, metavar="DIR",
                    help="also write the flows used, in the --flow DIR layout")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

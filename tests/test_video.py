@@ -384,3 +384,16 @@ def test_gopro_frames_blur_towards_the_long_exposure(shared_data):
     mse = np.mean((got.astype(float) - truth) ** 2)
     mse_sharp = np.mean((f[10].astype(float) - truth) ** 2)
     assert mse < 0.5 * mse_sharp
+
+
+def test_clblur_main_reports_bad_video_with_exit_code_2(tmp_path, capsys):
+    from clblur.cli import main
+
+    src = tmp_path / "in.mkv"
+    write_video(src, moving_frames(12))
+    (tmp_path / "cut.mkv").write_bytes(src.read_bytes()[: int(src.stat().st_size * 0.75)])
+    code = main(["video", str(tmp_path / "cut.mkv"), str(tmp_path / "out"), "--backend",
+                 "numpy", "--quiet"])
+    err_line = capsys.readouterr().err.strip()
+    assert code == 2 and err_line.startswith("clblur video: error:") and "kept the" in err_line
+    assert main(["video", str(src), str(tmp_path / "o.mp4"), "--shutter", "400"]) == 2

@@ -177,7 +177,7 @@ def figures(frames, rows, c: int = 10) -> None:
                 f"{title}\nPSNR {psnr(img, truth):.2f} dB (whole frame)"
             ax.set_title(label, fontsize=9)
         fig.tight_layout()
-        fig.savefig(FIG / f"gopro_{name}_frame{c}.png", dpi=80 if name == "full" else 110)
+        fig.savefig(FIG / f"gopro_{name}_frame{c}.png", dpi=80 if name == "full" else 90)
         plt.close(fig)
     # Where the responses disagree: |error| of exp and linear against the truth.
     fig, axes = plt.subplots(1, 3, figsize=(15, 3.4), layout="constrained")
