@@ -181,10 +181,12 @@ def fixed_halo(motion: Uniform | PSF, anchor: float) -> tuple[int, int]:
 
 def flow_halo(flow: np.ndarray, anchor: float) -> tuple[int, int]:
     """(rows, cols) halo covering every vector of ``flow`` (any H x W x 2 block)."""
-    v = np.asarray(flow, dtype=np.float32)
+    v = np.asarray(flow).reshape(-1, 2)
     if v.size == 0:
         return halo_for_reach(0.0), halo_for_reach(0.0)
-    amax = np.abs(v).reshape(-1, 2).max(axis=0).astype(np.float64)
+    # max and min in the stored dtype (float16 -> float32 is exact): no full-size temporaries
+    amax = np.maximum(np.abs(v.max(axis=0).astype(np.float64)),
+                      np.abs(v.min(axis=0).astype(np.float64)))
     if not np.isfinite(amax).all():
         raise ValueError("flow field contains NaN or infinite values")
     f = max(anchor, 1.0 - anchor)
@@ -309,7 +311,8 @@ def blur_tiled(src, dst, motion, response="exp", *, anchor: str = "center",
     budget = parse_size(memory_budget)
     per_px = window_bytes_per_px(channels, np.dtype(src.dtype).itemsize, tm.flow is not None)
     if tm.flow is not None:  # size tiles for the worst halo; each tile then uses its own
-        halo = global_flow_halo(tm.flow, a, max(budget // (w * FLOW_BYTES_PER_PX * 4), 1))
+        band_bytes = w * 2 * np.dtype(tm.flow.dtype).itemsize  # a band is mapped and copied
+        halo = global_flow_halo(tm.flow, a, max(budget // (4 * band_bytes), 1))
     else:
         halo = fixed_halo(tm.fixed, a)
     if tile is None:
