@@ -71,3 +71,12 @@ def test_bad_input(image):
         cdask.blur(x, (1, 0), backend="cuda")
     with pytest.raises(ValueError):
         cdask.blur(x, (1, 0), response="nonsense")
+
+
+def test_flow_file_is_read_per_chunk(rng, image, tmp_path):
+    flow = _flow(rng, *image.shape[:2])
+    np.save(tmp_path / "flow.npy", flow)
+    out = cdask.blur(da.from_array(image, chunks=(20, 16, 3)), str(tmp_path / "flow.npy"),
+                     backend="numpy")
+    np.testing.assert_array_equal(out.compute(scheduler="sync"),
+                                  clblur.blur(image, flow, backend="numpy"))
