@@ -37,7 +37,14 @@ from clblur.io import refuse_overwrite
 from clblur.pixels import linearise, normalise, quantise, validate_saturation
 from clblur.plan import check_image
 from clblur.responses import per_channel
-from clblur.video_io import DEFAULT_CRF, Frame, VideoReadError, open_sink, open_source
+from clblur.video_io import (
+    DEFAULT_CRF,
+    Frame,
+    ImageSequenceSource,
+    VideoReadError,
+    open_sink,
+    open_source,
+)
 
 # Chosen from docs/studies/video.md (GoPro 240 fps ground truth).
 DEFAULT_RESPONSE = "srgb"
@@ -137,8 +144,13 @@ class _Flows:
         """(forward flow of ``a``, backward flow of ``b``) for neighbours ``a``, ``b``."""
         if self.folder is not None:
             shape = a.image.shape[:2]
-            return (self.folder.get("forward", a.index, shape),
-                    self.folder.get("backward", b.index, shape))
+            fwd = self.folder.get("forward", a.index, shape)
+            bwd = self.folder.get("backward", b.index, shape)
+            if fwd is None and bwd is None:  # one may be mirrored, but not both missing
+                raise ValueError(f"{self.folder.path} has neither forward_{a.index:06d} nor "
+                                 f"backward_{b.index:06d}: no motion known between frames "
+                                 f"{a.index} and {b.index}")
+            return fwd, bwd
         return self.estimate(a.image, b.image), self.estimate(b.image, a.image)
 
 
@@ -162,6 +174,9 @@ def blur_video(src: str | os.PathLike, dst: str | os.PathLike, *,
     per_channel(response, 1)  # fail on a bad response before decoding anything
     flows = _Flows(flow, save_flows_to)
     source = open_source(src, fps)
+    if fps is not None and not isinstance(source, ImageSequenceSource):
+        source.close()
+        raise ValueError("fps only applies to image-sequence input; a video keeps its own rate")
     result = VideoResult(Path(dst), 0, source.fps, "none")
     sink, pending_audio = None, []
     timer = result.seconds

@@ -245,20 +245,33 @@ class VideoFileSink:
         self.tmp = _tmp_beside(self.path)
         self.container = av.open(str(self.tmp), "w", format=suffix.lstrip(".").replace(
             "mkv", "matroska"))
-        self.stream = None
+        self.stream = self.audio = None
         try:
-            self.stream = self.container.add_stream(codec, rate=fps)
-        except (av.FFmpegError, ValueError) as e:
-            self.close(keep=False)
-            raise ValueError(f"cannot encode with codec {codec!r}: {e}") from None
-        self.stream.width, self.stream.height = width, height
-        self.stream.pix_fmt = _pixel_format(codec, width, height)
-        if codec in ("libx264", "libx265", "libvpx-vp9"):
-            self.stream.options = {"crf": str(int(crf))}
-        self.audio = None
-        if audio_template is not None:
-            self.audio = self.container.add_stream_from_template(audio_template)
+            self._add_streams(codec, fps, width, height, crf, audio_template)
+        except BaseException:
+            self.close(keep=False)  # no half-made temporary file is left behind
+            raise
         self.written = 0
+
+    def _add_streams(self, codec, fps, width, height, crf, audio_template) -> None:
+        import av
+
+        try:
+            stream = self.container.add_stream(codec, rate=fps)
+        except (av.FFmpegError, ValueError) as e:
+            raise ValueError(f"cannot encode with codec {codec!r}: {e}") from None
+        stream.width, stream.height = width, height
+        stream.pix_fmt = _pixel_format(codec, width, height)
+        if codec in ("libx264", "libx265", "libvpx-vp9"):
+            stream.options = {"crf": str(int(crf))}
+        self.stream = stream
+        if audio_template is not None:
+            try:
+                self.audio = self.container.add_stream_from_template(audio_template)
+            except (av.FFmpegError, ValueError) as e:
+                raise ValueError(f"cannot copy the input's {audio_template.codec_context.name}"
+                                 f" audio into {self.path.suffix}: {e}; pick another "
+                                 "container (.mkv takes most codecs)") from None
 
     def write(self, frame: Frame, image: np.ndarray) -> None:
         import av

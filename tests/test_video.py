@@ -344,6 +344,36 @@ def test_refuses_to_overwrite_input_and_bad_options(tmp_path):
         blur_video(src, tmp_path / "o.mp4", response="sepia")
     with pytest.raises(ValueError, match="flow folder|unknown flow method"):
         blur_video(src, tmp_path / "o.mp4", flow="nonsense")
+    with pytest.raises(ValueError, match="fps only applies"):
+        blur_video(src, tmp_path / "o.mp4", fps=25)
+    (tmp_path / "flows").mkdir()
+    save_flows(tmp_path / "flows", 5, None, uniform_flow(1, 0))  # nothing for frames 0 and 1
+    with pytest.raises(ValueError, match="neither forward_000000 nor backward_000001"):
+        blur_video(src, tmp_path / "o.mp4", flow=str(tmp_path / "flows"), backend="numpy")
+    assert not list(tmp_path.glob("*o.mp4*"))
+
+
+def test_audio_the_container_cannot_hold_is_a_clear_error(tmp_path):
+    src = tmp_path / "in.mkv"
+    c = av.open(str(src), "w")
+    vs = c.add_stream("libx264", rate=24)
+    vs.height, vs.width, vs.pix_fmt = H, W, "yuv420p"
+    a = c.add_stream("pcm_s16le", rate=8000)
+    a.layout = "mono"
+    for i, img in enumerate(moving_frames(2)):
+        f = av.VideoFrame.from_ndarray(img, format="rgb24")
+        f.pts, f.time_base = i, Fraction(1, 24)
+        c.mux(vs.encode(f))
+    c.mux(vs.encode(None))
+    af = av.AudioFrame.from_ndarray(np.zeros((1, 800), np.int16), format="s16", layout="mono")
+    af.sample_rate, af.pts = 8000, 0
+    c.mux(a.encode(af))
+    c.mux(a.encode(None))
+    c.close()
+    with pytest.raises(ValueError, match="cannot copy the input's pcm_s16le audio into .webm"):
+        blur_video(src, tmp_path / "out.webm", backend="numpy")
+    assert list(tmp_path.iterdir()) == [src], "no output or temporary file may be left"
+    assert blur_video(src, tmp_path / "out.mkv", backend="numpy").audio == "copied"
 
 
 def parser() -> argparse.ArgumentParser:
