@@ -290,7 +290,6 @@ def cmd_batch(args) -> int:
     from clblur.commands import parse_vector
 
     out_dir = Path(args.out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     defaults = Job(src="", dst="", motion=parse_vector(args.motion) if args.motion else None,
                    psf=str(Path(args.psf).resolve()) if args.psf else None,
                    response=args.response, anchor=args.anchor, samples=args.samples,
@@ -305,6 +304,7 @@ def cmd_batch(args) -> int:
                      Path(args.manifest) if args.manifest else None)
     if not jobs:
         raise ValueError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in {args.in_dir}")
+    out_dir.mkdir(parents=True, exist_ok=True)
     stale = remove_partials(out_dir)
     if stale:
         print(f"removed {stale} partial file(s) left by an interrupted run", file=sys.stderr)
