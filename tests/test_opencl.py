@@ -2,9 +2,11 @@
 
 Tolerances (reasoning in docs/tolerances.md):
 
-* Integer outputs (uint8, uint16): every pixel within 1 code value of the reference, and a
+* Integer outputs (uint8, uint16): every pixel within 1 code value of the reference; a
   pixel may differ at all only where the reference's unrounded value lies within
-  ``TIE_LSB`` = 0.3 code values of a rounding boundary (k + 1/2).  The kernel rounds exactly
+  ``TIE_LSB`` = 0.3 code values of a rounding boundary (k + 1/2); and at most
+  ``MAX_DIFFER`` = 2 % of the pixels differ, not counting exact ties (within 1e-6 codes of
+  a boundary, where the reference itself rounds on float64 noise).  The kernel rounds exactly
   (it compares exposures with float64-derived boundaries); what moves a value across a
   boundary is float32 arithmetic and, for uint8 only, half-float storage of exposures, whose
   propagated error the backend bounds by 0.25 code values before it uses half storage.
@@ -33,6 +35,8 @@ from clblur.plan import make_plan
 from clblur.responses import Gamma, Table, response
 
 TIE_LSB = 0.3
+MAX_DIFFER = 0.02
+EXACT_TIE_LSB = 1e-6
 FLOAT_ATOL = 2e-5
 FLOAT_RTOL = 1e-5
 EQ9_TIE_LSB = 1e-3
@@ -131,6 +135,8 @@ def assert_matches_reference(backend, plan, tie_lsb=TIE_LSB) -> float:
         worst = distance[diff > 0].max()
         assert worst < tie_lsb, (f"a pixel {worst:.3f} codes from a rounding boundary differs; "
                                  f"allowed only within {tie_lsb}")
+        differ = np.mean((diff > 0) & (distance > EXACT_TIE_LSB))
+        assert differ <= MAX_DIFFER, f"{100 * differ:.2f}% of the pixels differ"
     return float(np.mean(diff > 0))
 
 
@@ -371,3 +377,44 @@ def test_buffers_are_reused_between_calls_of_one_size(opencl, rng):
     before = {k: id(v) for k, v in rt.buffers.items()}
     opencl.blur(plan)
     assert {k: id(v) for k, v in rt.buffers.items()} == before
+
+
+# --- measured error table for docs/tolerances.md: python tests/test_opencl.py ------------------
+
+def measure_errors() -> None:
+    """Print the measured errors behind docs/tolerances.md (same case mix as the suite)."""
+    from clblur import opencl
+
+    rng = np.random.default_rng(20061213)
+    stats: dict = {}
+    for dtype in DTYPES:
+        for name, resp in RESPONSES.items():
+            img = random_image(rng, dtype, 3)
+            motions = (smooth_flow(rng), discontinuous_flow(rng), (4.6, -2.3), (6.0, 0.0),
+                       rng.random((5, 7)))
+            for motion in motions:
+                for sat in (1.0, 2.5):
+                    plan = make_plan(img, motion, resp, saturation=sat)
+                    got, want = opencl.blur(plan), reference.blur(plan)
+                    key = (np.dtype(dtype).name, name)
+                    if plan.dtype.kind == "f":
+                        err = float(np.abs(got.astype(np.float64) - want).max())
+                        stats[key] = max(stats.get(key, 0.0), err)
+                        continue
+                    diff = np.abs(got.astype(np.int64) - want.astype(np.int64))
+                    scaled = (np.clip(unrounded(plan), 0, 1) * imax(dtype)).reshape(diff.shape)
+                    dist = np.abs(scaled - np.floor(scaled) - 0.5)
+                    n, d, far, top = stats.get(key, (0, 0, 0.0, 0))
+                    stats[key] = (n + diff.size, d + int((diff > 0).sum()),
+                                  max(far, float(dist[diff > 0].max()) if diff.any() else 0.0),
+                                  max(top, int(diff.max())))
+    for key, v in sorted(stats.items()):
+        if isinstance(v, float):
+            print(f"{key[0]:8s} {key[1]:7s} max abs error {v:.2e}")
+        else:
+            print(f"{key[0]:8s} {key[1]:7s} {100 * v[1] / v[0]:.2f}% differ (max {v[3]}), "
+                  f"farthest from a boundary {v[2]:.3f} codes")
+
+
+if __name__ == "__main__":
+    measure_errors()
