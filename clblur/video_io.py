@@ -2,8 +2,9 @@
 
 Conventions
 -----------
-* Frames are H x W x 3 RGB uint8 arrays (video files are decoded to ``rgb24``; image folders
-  keep the dtype of their files, uint8 or uint16, as ``clblur.io.read_image`` gives it).
+* Frames are H x W x 3 RGB arrays.  Video files decode to uint8 (``rgb24``); image folders keep
+  the dtype of their files (uint8, uint16, float32 TIFF), and an image-folder output keeps it
+  too (PNG, or TIFF for floats).  Encoding to video converts to 8 bits.
 * A path is an image sequence when it is a folder (or, for output, has no suffix or ends with
   a path separator); otherwise it is a video file and its suffix picks the container.
 * Audio is copied packet for packet (no re-encoding), so the output container must accept the
@@ -215,7 +216,7 @@ class ImageSequenceSink:
 
     def write(self, frame: Frame, image: np.ndarray) -> None:
         stem = frame.name if frame.name is not None else f"frame_{frame.index:06d}"
-        write_image(self.path / f"{stem}.png", image)
+        write_image(self.path / f"{stem}{'.tif' if image.dtype.kind == 'f' else '.png'}", image)
         self.written += 1
 
     def copy_audio(self, packet) -> None:  # pragma: no cover - never called (no audio)
@@ -316,6 +317,8 @@ def _to_rgb24(image: np.ndarray) -> np.ndarray:
         return np.ascontiguousarray(image)
     if image.dtype == np.uint16:  # 16-bit image sequences into an 8-bit codec
         return np.rint(image / 257.0).astype(np.uint8)
+    if image.dtype.kind == "f":  # normalised float frames (TIFF sequences)
+        return np.rint(np.clip(image, 0.0, 1.0) * 255.0).astype(np.uint8)
     raise TypeError(f"cannot encode {image.dtype} frames as video")
 
 
