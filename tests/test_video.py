@@ -222,6 +222,13 @@ def test_video_with_audio_keeps_rate_timing_and_audio(tmp_path):
     assert not list(tmp_path.glob(".*part*")), "temporary file left behind"
 
 
+def test_progress_bar_counts_frames(tmp_path, capsys):
+    src = tmp_path / "in.mp4"
+    write_video(src, moving_frames(3))
+    blur_video(src, tmp_path / "out", backend="numpy", progress=True)
+    assert "3/3" in capsys.readouterr().err
+
+
 def test_video_to_image_folder_reports_dropped_audio(tmp_path):
     src = tmp_path / "in.mkv"
     write_video(src, moving_frames(3), audio=True)
