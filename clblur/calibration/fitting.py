@@ -13,7 +13,8 @@ Conventions
   sample, with each sample's radiance re-estimated for the fitted curve and a Gaussian noise
   whose variance is the maximum-likelihood one.  Parameters counted: curve parameters, one
   radiance per sample, and the re-estimated exposures when ``refine_times`` is set; the same
-  samples are used for every model, so the numbers compare models directly.
+  sample values (``LIKELIHOOD_LOW < v < high``, whatever range a family was fitted on) are
+  scored for every model, so the numbers compare models directly.
 """
 
 from __future__ import annotations
@@ -24,10 +25,12 @@ import numpy as np
 from tqdm import tqdm
 
 from clblur.calibration.models import FAMILIES, MODELS, FamilyFit
-from clblur.calibration.sampling import VALID_HIGH, VALID_LOW, SampleSet, Sampling, \
-    sample_series
+from clblur.calibration.sampling import VALID_HIGH, VALID_LOW, SampleSet, Sampling, sample_series
 from clblur.calibration.series import ExposureSeries
 from clblur.responses import Exp, Response
+
+# Low end of the sample values on which every model's likelihood (and fit RMSE) is computed.
+LIKELIHOOD_LOW = 0.1
 
 
 @dataclass
@@ -89,14 +92,16 @@ def transfer(resp: Response, values: np.ndarray, ratio: float) -> np.ndarray:
 
 
 def fit(series: ExposureSeries, model: str, *, shared: bool = False, n_samples: int = 1000,
-        patch: int = 3, low: float = VALID_LOW, high: float = VALID_HIGH, seed: int = 0,
+        patch: int = 3, low: float | None = None, high: float = VALID_HIGH, seed: int = 0,
         refine_times: bool = False, sampling: Sampling | None = None, progress: bool = False,
         **opts) -> ResponseFit:
     """Fit response family ``model`` (one of ``MODELS``) to ``series``.
 
     ``shared``: one curve for all channels (each sample keeps its own radiance) instead of one
-    per channel.  ``n_samples``, ``patch``, ``low``, ``high``, ``seed``: sample selection (see
-    ``clblur.calibration.sampling``); pass ``sampling`` to reuse a selection.
+    per channel.  ``n_samples``, ``patch``, ``seed``: sample selection (see
+    ``clblur.calibration.sampling``); pass ``sampling`` to reuse a selection (the same patches
+    for every model, so their held-out pixels match).  ``low``/``high``: the valid range of
+    fitted values; ``low`` defaults to the family's ``default_low``.
     ``refine_times``: re-estimate the exposures (uncertain shutter times).  Further keyword
     options go to the family (``order`` for polynomial, ``smoothness``/``levels`` for
     nonparametric, ``components``/``emor_dir`` for emor).
@@ -106,11 +111,17 @@ def fit(series: ExposureSeries, model: str, *, shared: bool = False, n_samples: 
                         f"{type(series).__name__}")
     if model not in FAMILIES:
         raise ValueError(f"unknown response model {model!r}; choose from {', '.join(MODELS)}")
+    family = FAMILIES[model]
+    if low is None:
+        low = family.default_low
     if sampling is None:
-        sampling = sample_series(series, n_samples, patch=patch, low=low, high=high, seed=seed)
+        sampling = sample_series(series, n_samples, patch=patch, low=min(low, VALID_LOW),
+                                 high=high, seed=seed)
+    chosen = sampling
+    if (low, high) != (sampling.low, sampling.high):
+        sampling = sampling.with_range(low, high)
     tau = series.relative_exposures()
     groups = [SampleSet.concat(sampling.per_channel)] if shared else sampling.per_channel
-    family = FAMILIES[model]
     fits: list[FamilyFit] = []
     for samples in tqdm(groups, desc=f"fit {model}", disable=not progress, leave=False):
         fits.append(family.fit(samples, tau, full_scale=series.full_scale,
@@ -118,15 +129,15 @@ def fit(series: ExposureSeries, model: str, *, shared: bool = False, n_samples: 
     if model == "exp":
         fits = [_on_paper_axis(series, f, list(range(series.channels)) if shared else [c])
                 for c, f in enumerate(fits)]
-    loglik, n_obs, rss = 0.0, 0, 0.0
-    n_par = 0
-    for samples, f in zip(groups, fits, strict=True):
+    # the likelihood is judged on one common set of sample values for every model
+    common = chosen.with_range(max(LIKELIHOOD_LOW, chosen.low), high)
+    scored = [SampleSet.concat(common.per_channel)] if shared else common.per_channel
+    n_obs, rss, n_par = 0, 0.0, 0
+    for samples, f in zip(scored, fits, strict=True):
         res = forward_residuals(f.response, samples, f.tau) * series.full_scale
         rss += float(np.sum(res**2))
         n_obs += res.size
-        n_par += f.n_shape_params + len(samples)
-        if refine_times:
-            n_par += tau.size - 1
+        n_par += f.n_shape_params + len(samples)  # curve (+ exposures) + radiances
     sigma2 = max(rss / n_obs, 1e-12)
     loglik = -0.5 * n_obs * (np.log(2 * np.pi * sigma2) + 1.0)
     responses = [fits[0].response] * series.channels if shared else [f.response for f in fits]
@@ -136,9 +147,9 @@ def fit(series: ExposureSeries, model: str, *, shared: bool = False, n_samples: 
     if model == "exp":
         params["k"] = [f.params["k"] for f in fits]
         params["k_by_f_number"] = [f.params["k_by_f_number"] for f in fits]
-    options = dict(opts, shared=shared, refine_times=refine_times)
+    options = dict(opts, shared=shared, refine_times=refine_times, low=low, high=high)
     return ResponseFit(model, responses, params, float(loglik), n_par, n_obs,
-                       float(np.sqrt(rss / n_obs)), shared, sampling, options)
+                       float(np.sqrt(rss / n_obs)), shared, chosen, options)
 
 
 def _on_paper_axis(series: ExposureSeries, f: FamilyFit, channels: list[int]) -> FamilyFit:
@@ -181,10 +192,10 @@ def radiance_map(series: ExposureSeries, resp: Response, channel: int = 0,
         return np.exp(num / den)
 
 
-def forward_residuals(resp: Response, samples: SampleSet, tau: np.ndarray,
-                      iterations: int = 80) -> np.ndarray:
-    """Fitted minus observed normalised values of every valid sample, with each sample's
-    radiance chosen to minimise its squared error (vectorised golden-section search)."""
+def fit_radiances(resp: Response, samples: SampleSet, tau: np.ndarray,
+                  iterations: int = 80) -> np.ndarray:
+    """Each sample's log radiance minimising its squared forward error under ``resp``
+    (vectorised golden-section search; exposures ``exp(log_e) * tau``)."""
     v, ok = samples.values, samples.valid
     with np.errstate(divide="ignore", invalid="ignore"):
         guess = np.log(np.maximum(resp.inverse(v), 1e-12)) - np.log(tau)[None, :]
@@ -198,16 +209,16 @@ def forward_residuals(resp: Response, samples: SampleSet, tau: np.ndarray,
         return np.sum(np.where(ok, (pred - v) ** 2, 0.0), axis=1)
 
     ratio = (np.sqrt(5.0) - 1.0) / 2.0
-    a, b = hi - ratio * (hi - lo), lo + ratio * (hi - lo)
-    fa, fb = cost(a), cost(b)
     for _ in range(iterations):
-        left = fa < fb
+        a, b = hi - ratio * (hi - lo), lo + ratio * (hi - lo)
+        left = cost(a) < cost(b)
         hi = np.where(left, b, hi)
         lo = np.where(left, lo, a)
-        a_new = hi - ratio * (hi - lo)
-        b_new = lo + ratio * (hi - lo)
-        a, b = a_new, b_new
-        fa, fb = cost(a), cost(b)
-    best = 0.5 * (lo + hi)
-    pred = resp.forward(np.exp(best)[:, None] * tau[None, :])
-    return (pred - v)[ok]
+    return 0.5 * (lo + hi)
+
+
+def forward_residuals(resp: Response, samples: SampleSet, tau: np.ndarray) -> np.ndarray:
+    """Fitted minus observed normalised values of every valid sample (radiances re-fitted)."""
+    log_e = fit_radiances(resp, samples, tau)
+    pred = resp.forward(np.exp(log_e)[:, None] * tau[None, :])
+    return (pred - samples.values)[samples.valid]

@@ -10,10 +10,13 @@ Conventions
   family; a ``Table`` with ``meta = {"family", "params"}`` for the others, so ``clblur blur
   --response FILE`` runs them on the same kernel path), the family's parameters, the number of
   curve parameters and the exposures used (re-estimated when ``refine_times`` is set).
-* ``exp``, ``exp-offset`` and ``gamma-offset`` are fitted in the *forward* direction: least
-  squares on code values, the quantity the evaluation measures.  ``polynomial`` (Mitsunaga &
-  Nayar), ``nonparametric`` (Debevec & Malik) and ``emor`` (Grossberg & Nayar) are fitted in the
+* ``exp``, ``exp-offset``, ``gamma-offset`` and ``emor`` are fitted in the *forward*
+  direction: least squares on code values, the quantity the evaluation measures.
+  ``polynomial`` (Mitsunaga & Nayar) and ``nonparametric`` (Debevec & Malik) are fitted in the
   inverse direction as their authors specify, then made monotone.
+* ``refine_times`` (uncertain shutter times) re-estimates one exposure per image, tied to the
+  nominal value by a Gaussian prior (``TIME_SIGMA`` in log units) with the mean and the
+  overall trend of ``ln tau`` held at their nominal values (see ``_time_prior_rows``).
 """
 
 from __future__ import annotations
@@ -25,11 +28,22 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import isotonic_regression, least_squares
-from scipy.sparse.linalg import lsqr, spsolve
+from scipy.sparse.linalg import spsolve
 
 from clblur.responses import Exp, Response, Table
 
 TABLE_SIZE = 1024
+# Default low end of the fitted values.  The offset families model the black level, so they
+# see values down to just above code 0.  The free curves do not model it; near the black level
+# (13..25 DN on the Memorial stack, and not constant from image to image) they would bend to
+# follow its drift, so they are fitted from 10 % of full scale up (measured: held-out 4-stop
+# RMSE 9.6 -> 5.6 DN for nonparametric on Memorial, docs/studies/memorial-calibration.md).
+FLOOR_LOW = 0.02
+CURVE_LOW = 0.1
+# Uncertain shutter times: prior standard deviation of ln(tau) around the nominal value, and
+# the residual size (log exposure for the inverse fits) a one-sigma time error is worth.
+TIME_SIGMA = 0.1
+TIME_PRIOR_SCALE = 0.02
 
 
 @dataclass(frozen=True)
@@ -56,6 +70,31 @@ def _table(exposure: np.ndarray, value: np.ndarray, family: str, params: dict) -
                  meta={"family": family, "params": params})
 
 
+def time_deviation_basis(log_tau: np.ndarray) -> np.ndarray:
+    """Orthonormal columns spanning the exposure deviations that can be learnt.
+
+    A common offset of ``ln tau`` is the radiance scale and a common stretch is the curve's
+    exponent (``g -> g**a`` with ``tau -> tau**a`` fits equally well, down to the all-equal,
+    flat-curve solution), so neither can come from the data: refined exposures are
+    ``ln tau = ln tau_nominal + B z`` with ``B`` orthogonal to both (n x (n - 2)).
+    """
+    n = log_tau.size
+    if n < 3:
+        raise ValueError("refine_times needs at least 3 exposures")
+    fixed = np.stack([np.ones(n), log_tau - log_tau.mean()], axis=1)
+    q, _ = np.linalg.qr(fixed, mode="complete")
+    return q[:, 2:]
+
+
+def _n_time_params(tau: np.ndarray, refine_times: bool) -> int:
+    return tau.size - 2 if refine_times else 0
+
+
+def _refined_tau(tau: np.ndarray, basis: np.ndarray, z: np.ndarray) -> np.ndarray:
+    t = tau * np.exp(basis @ z)
+    return t / t.max()
+
+
 def _not_supported(family: str, refine_times: bool) -> None:
     if refine_times:
         raise ValueError(f"refine_times is not supported by the {family} model; use exp, "
@@ -70,6 +109,7 @@ class ForwardFamily:
     """
 
     name = ""
+    default_low = FLOOR_LOW
     theta0: tuple[float, ...] = ()
     lower: tuple[float, ...] = ()
     upper: tuple[float, ...] = ()
@@ -91,11 +131,14 @@ class ForwardFamily:
         if opts:
             raise TypeError(f"unknown option(s) for the {self.name} model: {sorted(opts)}")
         theta, log_e, log_tau = _joint_forward_fit(self, samples, tau, full_scale, refine_times)
-        return FamilyFit(self.export(theta), self.named(theta), len(self.theta0),
-                         np.exp(log_tau))
+        return FamilyFit(self.export(theta), self.named(theta),
+                         len(self.theta0) + _n_time_params(tau, refine_times), np.exp(log_tau))
 
 
-def _joint_forward_fit(family: ForwardFamily, samples, tau, full_scale, refine_times):
+def _joint_forward_fit(family: ForwardFamily, samples, tau, full_scale, refine_times,
+                       time_sigma: float = TIME_SIGMA):
+    """Least squares on code values over (curve parameters, log radiance per sample[, log
+    exposure per image]); returns ``(theta, log_e, log_tau)`` with ``max(tau) == 1``."""
     v, ok = samples.values, samples.valid
     n_s, n_e = v.shape
     m = len(family.theta0)
@@ -108,35 +151,35 @@ def _joint_forward_fit(family: ForwardFamily, samples, tau, full_scale, refine_t
     log_e0 = np.where(np.isfinite(log_e0), log_e0, np.log(1e-12))
     pi, ii = np.nonzero(ok)
     target = v[pi, ii]
-    free_tau = np.flatnonzero(np.arange(n_e) != int(np.argmax(tau))) if refine_times \
-        else np.empty(0, int)
-    n_t = free_tau.size
+    basis = time_deviation_basis(log_tau0) if refine_times else np.zeros((n_e, 0))
+    n_t = basis.shape[1]
+    prior_w = 1.0 / time_sigma  # a one-sigma deviation costs as much as a 1-DN residual
 
     def unpack(p):
-        lt = log_tau0.copy()
-        lt[free_tau] = p[m + n_s:]
-        return p[:m], p[m:m + n_s], lt
+        return p[:m], p[m:m + n_s], log_tau0 + basis @ p[m + n_s:]
 
     def residuals(p):
         theta, log_e, lt = unpack(p)
-        return (family.forward(np.exp(log_e[pi] + lt[ii]), theta) - target) * full_scale
+        r = (family.forward(np.exp(log_e[pi] + lt[ii]), theta) - target) * full_scale
+        return np.concatenate([r, prior_w * p[m + n_s:]]) if n_t else r
 
+    n_res = target.size + n_t
     rows = np.arange(target.size)
-    pattern = [sp.csr_matrix(np.ones((target.size, m))) if m else None,
-               sp.csr_matrix((np.ones(target.size), (rows, pi)), shape=(target.size, n_s))]
+    blocks = [sp.csr_matrix((np.ones(target.size), (rows, pi)), shape=(n_res, n_s))]
+    if m:
+        blocks.insert(0, sp.csr_matrix(np.vstack([np.ones((target.size, m)),
+                                                  np.zeros((n_t, m))])))
     if n_t:
-        col = np.full(n_e, -1)
-        col[free_tau] = np.arange(n_t)
-        hit = col[ii] >= 0
-        pattern.append(sp.csr_matrix((np.ones(hit.sum()), (rows[hit], col[ii][hit])),
-                                     shape=(target.size, n_t)))
-    sparsity = sp.hstack([p for p in pattern if p is not None]).tocsr()
-    p0 = np.concatenate([theta0, log_e0, log_tau0[free_tau]])
+        blocks.append(sp.csr_matrix(np.ones((n_res, n_t))))
+    sparsity = sp.hstack(blocks).tocsr()
+    p0 = np.concatenate([theta0, log_e0, np.zeros(n_t)])
     lower = np.concatenate([family.lower, np.full(n_s + n_t, -np.inf)])
     upper = np.concatenate([family.upper, np.full(n_s + n_t, np.inf)])
     sol = least_squares(residuals, p0, jac_sparsity=sparsity, bounds=(lower, upper),
                         method="trf", tr_solver="lsmr", x_scale="jac", max_nfev=200)
-    return unpack(sol.x)
+    theta, log_e, log_tau = unpack(sol.x)
+    shift = log_tau.max()  # keep the longest exposure at 1; radiances absorb the shift
+    return theta, log_e + shift, log_tau - shift
 
 
 class ExpFamily(ForwardFamily):
@@ -214,12 +257,16 @@ def _consecutive_pairs(samples, tau):
 class PolynomialFamily:
     """Mitsunaga & Nayar 1999: inverse response ``g(v) = sum_n c_n v**n`` with ``g(1) = 1``.
 
+    ``c_0`` is fixed at 0 (no exposure at code 0): with a free constant the exposure-domain
+    error is minimised by flattening the curve wherever the samples are sparse (measured on
+    the Memorial stack: non-monotone curves and held-out errors near 100 DN).
     Minimises ``sum (g(v_q) - R_q g(v_q+1))**2`` over neighbouring exposures; with
     ``refine_times`` the ratios ``R_q`` are re-estimated from the curve and the fit repeated.
     Exposure convention: full scale at exposure 1.
     """
 
     name = "polynomial"
+    default_low = CURVE_LOW
 
     def fit(self, samples, tau, *, full_scale, refine_times=False, order: int = 6,
             iterations: int = 30, **opts) -> FamilyFit:
@@ -229,10 +276,12 @@ class PolynomialFamily:
             raise ValueError(f"polynomial order must be an integer in 1..12, got {order!r}")
         sorted_idx, pairs = _consecutive_pairs(samples, tau)
         ratios = tau[sorted_idx[:-1]] / tau[sorted_idx[1:]]
+        nominal = ratios.copy()
+        basis = time_deviation_basis(np.log(tau[sorted_idx])) if refine_times else None
         if sum(a.size for a, _ in pairs) <= order:
             raise ValueError("too few samples valid in neighbouring exposures for the "
                              f"polynomial model of order {order}")
-        powers = np.arange(order + 1)
+        powers = np.arange(1, order + 1)
         coef = None
         for _ in range(iterations if refine_times else 1):
             rows, rhs = [], []
@@ -241,24 +290,37 @@ class PolynomialFamily:
                 rows.append(d[:, :-1] - d[:, -1:])
                 rhs.append(-d[:, -1])
             c, *_ = np.linalg.lstsq(np.concatenate(rows), np.concatenate(rhs), rcond=None)
-            coef = np.append(c, 1.0 - c.sum())
+            coef = np.concatenate([[0.0], c, [1.0 - c.sum()]])
             if not refine_times:
                 break
             new = np.array([_ratio(coef, va, vb, r) for (va, vb), r
                             in zip(pairs, ratios, strict=True)])
+            new = _project_ratios(new, nominal, basis)
             done = np.max(np.abs(np.log(new / ratios))) < 1e-6
             ratios = new
             if done:
                 break
         tau_fit = np.empty_like(tau)
-        tau_fit[sorted_idx] = np.concatenate([np.cumprod(ratios[::-1])[::-1], [1.0]])
+        tau_fit[sorted_idx] = np.exp(_log_tau_from_ratios(ratios))
         v = np.linspace(0.0, 1.0, TABLE_SIZE)
         g = np.polyval(coef[::-1], v)
         params = {"order": int(order), "coefficients": coef.tolist()}
         if refine_times:
             params["exposure_ratios"] = ratios.tolist()
         return FamilyFit(_table(g, v, self.name, params), params,
-                         order + (ratios.size if refine_times else 0), tau_fit)
+                         order + (basis.shape[1] if refine_times else 0), tau_fit)
+
+
+def _log_tau_from_ratios(ratios: np.ndarray) -> np.ndarray:
+    """Neighbour ratios (ascending exposures) -> ln tau with the longest at 0."""
+    return np.concatenate([np.cumsum(np.log(ratios)[::-1])[::-1], [0.0]])
+
+
+def _project_ratios(ratios, nominal, basis) -> np.ndarray:
+    """Keep only the learnable part of the ratio update (see ``time_deviation_basis``)."""
+    dev = _log_tau_from_ratios(ratios) - _log_tau_from_ratios(nominal)
+    log_tau = _log_tau_from_ratios(nominal) + basis @ (basis.T @ dev)
+    return np.exp(-np.diff(log_tau))
 
 
 def _ratio(coef, va, vb, fallback):
@@ -277,18 +339,23 @@ class NonparametricFamily:
 
     Solves ``w(v)(ln g(v) - ln E_p - ln tau_i) = 0`` and ``lam w(z) (ln g)''(z) = 0`` jointly
     (``ln g`` interpolated linearly between levels), then projects ``ln g`` onto
-    non-decreasing sequences (isotonic regression).  Exposure convention: full scale at 1.
+    non-decreasing sequences (isotonic regression).  With ``refine_times`` the ``ln tau_i`` are
+    unknowns too, tied to the nominal times by a Gaussian prior of ``time_sigma`` (log units;
+    the prior also fixes the ``g -> g**a, tau -> tau**a`` ambiguity).  Exposure convention:
+    full scale at 1.
     """
 
     name = "nonparametric"
+    default_low = CURVE_LOW
 
     def fit(self, samples, tau, *, full_scale, refine_times=False, smoothness: float = 30.0,
-            levels: int | None = None, **opts) -> FamilyFit:
+            levels: int | None = None, time_sigma: float = TIME_SIGMA, **opts) -> FamilyFit:
         if opts:
             raise TypeError(f"unknown option(s) for the nonparametric model: {sorted(opts)}")
-        _not_supported(self.name, refine_times)
         if not smoothness > 0:
             raise ValueError(f"smoothness must be positive, got {smoothness!r}")
+        if not time_sigma > 0:
+            raise ValueError(f"time_sigma must be positive, got {time_sigma!r}")
         if levels is not None:
             n_lev = int(levels)
         else:  # one level per code value for uint8, 1024 bins for deeper or float images
@@ -296,18 +363,24 @@ class NonparametricFamily:
         if n_lev < 16:
             raise ValueError(f"levels must be at least 16, got {levels!r}")
         v, ok = samples.values, samples.valid
-        n_s = v.shape[0]
+        n_s, n_e = v.shape
+        basis = time_deviation_basis(np.log(tau)) if refine_times else np.zeros((n_e, 0))
+        n_t = basis.shape[1]
+        n_var = n_lev + n_s + n_t
         pi, ii = np.nonzero(ok)
         pos = v[pi, ii] * (n_lev - 1)
         z0 = np.clip(np.floor(pos).astype(int), 0, n_lev - 2)
         a = pos - z0
         w = _hat(v[pi, ii])
-        n_obs = pi.size
-        r = np.arange(n_obs)
-        data = sp.csr_matrix(
-            (np.concatenate([w * (1 - a), w * a, -w]),
-             (np.concatenate([r, r, r]), np.concatenate([z0, z0 + 1, n_lev + pi]))),
-            shape=(n_obs, n_lev + n_s))
+        r = np.arange(pi.size)
+        cols = [z0, z0 + 1, n_lev + pi]
+        vals = [w * (1 - a), w * a, -w]
+        data = sp.csr_matrix((np.concatenate(vals), (np.tile(r, len(cols)),
+                                                     np.concatenate(cols))),
+                             shape=(pi.size, n_var))
+        if n_t:  # ln tau_i = nominal + (B z)_i: dense coefficients on the n - 2 unknowns z
+            data = data + sp.hstack([sp.csr_matrix((pi.size, n_lev + n_s)),
+                                     sp.csr_matrix(-w[:, None] * basis[ii])]).tocsr()
         zc = np.arange(1, n_lev - 1)
         # second differences shrink with the level spacing squared; keep lam per uint8 step
         ws = smoothness * _hat(zc / (n_lev - 1)) * ((n_lev - 1) / 255.0) ** 2
@@ -315,40 +388,48 @@ class NonparametricFamily:
         smooth = sp.csr_matrix(
             (np.concatenate([ws, -2 * ws, ws]),
              (np.concatenate([rs, rs, rs]), np.concatenate([zc - 1, zc, zc + 1]))),
-            shape=(zc.size, n_lev + n_s))
-        anchor = sp.csr_matrix(([1.0], ([0], [n_lev // 2])), shape=(1, n_lev + n_s))
-        mat = sp.vstack([data, smooth, anchor]).tocsr()
-        rhs = np.concatenate([w * np.log(tau[ii]), np.zeros(zc.size + 1)])
-        sol = spsolve((mat.T @ mat).tocsc(), mat.T @ rhs)
+            shape=(zc.size, n_var))
+        blocks = [data, smooth, sp.csr_matrix(([1.0], ([0], [n_lev // 2])), shape=(1, n_var))]
+        rhs = [w * np.log(tau[ii]), np.zeros(zc.size + 1)]
+        if n_t:
+            blocks.append(sp.hstack([sp.csr_matrix((n_t, n_lev + n_s)),
+                                     TIME_PRIOR_SCALE / time_sigma * sp.identity(n_t)]))
+            rhs.append(np.zeros(n_t))
+        mat = sp.vstack(blocks).tocsr()
+        sol = spsolve((mat.T @ mat).tocsc(), mat.T @ np.concatenate(rhs))
         log_g = sol[:n_lev]
+        tau_fit = _refined_tau(tau, basis, sol[n_lev + n_s:])
         counts = np.bincount(np.clip(np.rint(pos).astype(int), 0, n_lev - 1),
                              minlength=n_lev).astype(float)
         log_g = isotonic_regression(log_g, weights=counts + 1.0).x
         value = np.arange(n_lev) / (n_lev - 1)
         params = {"smoothness": float(smoothness), "levels": n_lev}
+        if n_t:
+            params["relative_exposures"] = tau_fit.tolist()
         return FamilyFit(_table(np.exp(log_g - log_g[-1]), value, self.name, params), params,
-                         n_lev - 1, tau.copy())
+                         n_lev - 1 + n_t, tau_fit)
 
 
 @dataclass(frozen=True)
 class EmorBasis:
-    """Grossberg & Nayar's inverse EMoR: ``g(B) = g0(B) + sum_m c_m hinv_m(B)`` on grid B."""
+    """Grossberg & Nayar's EMoR: ``f(E) = f0(E) + sum_m c_m h_m(E)`` sampled on grid E."""
 
     grid: np.ndarray
     mean: np.ndarray
-    components: np.ndarray  # (25, 1024)
+    components: np.ndarray  # (25, len(grid))
 
     @classmethod
     def load(cls, folder: str | os.PathLike | None = None) -> EmorBasis:
+        """Read ``emor.txt`` from ``folder`` (default: the shared data's ``crf`` folder)."""
         from clblur.data import data_dir
 
         if folder is None:
             root = data_dir()
             if root is None:
                 raise ValueError("EMoR basis not found: pass emor_dir= (--emor-dir) or set "
-                                 "CLBLUR_DATA to a folder holding crf/invemor.txt")
+                                 "CLBLUR_DATA to a folder holding crf/emor.txt")
             folder = root / "crf"
-        path = Path(folder) / "invemor.txt"
+        path = Path(folder) / "emor.txt"
         if not path.is_file():
             raise ValueError(f"EMoR basis file not found: {path}")
         blocks, current = {}, None
@@ -359,52 +440,63 @@ class EmorBasis:
             elif current is not None and line.strip():
                 blocks[current].extend(float(t) for t in line.split())
         try:
-            grid, mean = np.array(blocks["B"]), np.array(blocks["g0"])
-            comps = np.array([blocks[f"hinv({m})"] for m in range(1, 26)])
-        except KeyError as e:
-            raise ValueError(f"{path}: missing block {e.args[0]!r}") from None
+            grid, mean = np.array(blocks["E"]), np.array(blocks["f0"])
+            comps = np.array([blocks[f"h({m})"] for m in range(1, 26)])
+        except (KeyError, ValueError) as e:
+            raise ValueError(f"{path}: missing or ragged block ({e})") from None
         if grid.size != mean.size or comps.shape[1] != grid.size:
             raise ValueError(f"{path}: blocks of different lengths")
         return cls(grid, mean, comps)
 
 
-class EmorFamily:
-    """Grossberg & Nayar's EMoR: mean inverse curve plus ``components`` principal components.
+class _EmorCurve(ForwardFamily):
+    name = "emor"
 
-    Linear least squares for the coefficients and the radiances on
-    ``g(v_pi) = E_p tau_i``, each row divided by the current ``g(v_pi)`` (relative error,
-    re-weighted twice) and hat-weighted.  Exposure convention: ``g(1) = 1``.
+    def __init__(self, basis: EmorBasis, components: int):
+        self.basis, self.m = basis, components
+        self.theta0 = (0.0,) * components
+        self.lower, self.upper = (-np.inf,) * components, (np.inf,) * components
+
+    def curve(self, theta) -> np.ndarray:
+        return self.basis.mean + np.asarray(theta) @ self.basis.components[:self.m]
+
+    def forward(self, x, theta):
+        return np.interp(x, self.basis.grid, self.curve(theta))
+
+    def inverse(self, v, theta):
+        f = _strictly_increasing(np.clip(self.curve(theta), 0.0, 1.0))
+        return np.interp(v, f, self.basis.grid)
+
+    def named(self, theta):
+        return {"components": self.m, "coefficients": [float(t) for t in theta]}
+
+    def export(self, theta):
+        f = _strictly_increasing(np.clip(self.curve(theta), 0.0, 1.0))
+        f = (f - f[0]) / (f[-1] - f[0])  # f(0) = 0, f(1) = 1 as in the basis
+        return _table(self.basis.grid, f, self.name, self.named(theta))
+
+
+class EmorFamily:
+    """Grossberg & Nayar's EMoR: mean curve plus ``components`` principal components.
+
+    Fitted in the forward direction like the closed-form families (coefficients and one
+    radiance per sample, least squares on code values).  Exposure convention: full scale at
+    exposure 1, as in the basis.
     """
 
     name = "emor"
+    default_low = CURVE_LOW
 
     def fit(self, samples, tau, *, full_scale, refine_times=False, components: int = 5,
             emor_dir=None, **opts) -> FamilyFit:
         if opts:
             raise TypeError(f"unknown option(s) for the emor model: {sorted(opts)}")
-        _not_supported(self.name, refine_times)
         if not isinstance(components, (int, np.integer)) or not 1 <= components <= 25:
             raise ValueError(f"EMoR components must be an integer in 1..25, got {components!r}")
-        basis = EmorBasis.load(emor_dir)
-        v, ok = samples.values, samples.valid
-        n_s = v.shape[0]
-        pi, ii = np.nonzero(ok)
-        vv = v[pi, ii]
-        g0 = np.interp(vv, basis.grid, basis.mean)
-        h = np.stack([np.interp(vv, basis.grid, c) for c in basis.components[:components]], 1)
-        coef = np.zeros(components)
-        r = np.arange(pi.size)
-        for _ in range(3):
-            scale = _hat(vv) / np.maximum(g0 + h @ coef, 1e-3)
-            dense = sp.csr_matrix(h * scale[:, None])
-            rad = sp.csr_matrix((-tau[ii] * scale, (r, pi)), shape=(pi.size, n_s))
-            mat = sp.hstack([dense, rad]).tocsr()
-            sol = lsqr(mat, -g0 * scale, atol=1e-12, btol=1e-12, iter_lim=20000)[0]
-            coef = sol[:components]
-        g = basis.mean + coef @ basis.components[:components]
-        params = {"components": int(components), "coefficients": coef.tolist()}
-        return FamilyFit(_table(g, basis.grid, self.name, params), params, components,
-                         tau.copy())
+        curve = _EmorCurve(EmorBasis.load(emor_dir), int(components))
+        theta, _, log_tau = _joint_forward_fit(curve, samples, tau, full_scale, refine_times)
+        return FamilyFit(curve.export(theta), curve.named(theta),
+                         int(components) + _n_time_params(tau, refine_times), np.exp(log_tau))
 
 
 FAMILIES = {f.name: f for f in (ExpFamily(), ExpOffsetFamily(), GammaOffsetFamily(),

@@ -11,6 +11,8 @@ Conventions
   stack, which increases with scene radiance for *any* monotone response; within a stratum the
   flattest patches win (lowest local standard deviation), so a little misalignment between the
   exposures or sensor noise barely changes the sample.
+* A patch is valid in an image only if all its pixels are; a patch whose valid values fall by
+  more than ``monotone_tolerance`` while the exposure grows is rejected (corrupt or moving).
 """
 
 from __future__ import annotations
@@ -21,6 +23,9 @@ import numpy as np
 
 VALID_LOW = 0.02
 VALID_HIGH = 0.98
+# A patch whose value drops by more than this (normalised) while the exposure grows is not a
+# static, noise-limited observation (a moving object, a misaligned edge, a corrupt pixel).
+MONOTONE_TOLERANCE = 0.03
 
 
 @dataclass(frozen=True)
@@ -32,25 +37,34 @@ class SampleSet:
     channel: np.ndarray
     rows: np.ndarray
     cols: np.ndarray
+    lowest: np.ndarray  # (P, n) darkest pixel of each patch, to re-apply another valid range
+    highest: np.ndarray  # (P, n) brightest pixel of each patch
+
+    FIELDS = ("values", "valid", "channel", "rows", "cols", "lowest", "highest")
 
     def __len__(self) -> int:
         return self.values.shape[0]
 
+    def _rows(self, mask) -> SampleSet:
+        return SampleSet(*(getattr(self, f)[mask] for f in self.FIELDS))
+
     def drop_exposure(self, index: int) -> SampleSet:
         keep = np.arange(self.values.shape[1]) != index
-        v, ok = self.values[:, keep], self.valid[:, keep]
-        usable = ok.sum(axis=1) >= 2
-        return SampleSet(v[usable], ok[usable], self.channel[usable], self.rows[usable],
-                         self.cols[usable])
+        cut = SampleSet(self.values[:, keep], self.valid[:, keep], self.channel, self.rows,
+                        self.cols, self.lowest[:, keep], self.highest[:, keep])
+        return cut._rows(cut.valid.sum(axis=1) >= 2)
 
-    def select(self, mask: np.ndarray) -> SampleSet:
-        return SampleSet(self.values[mask], self.valid[mask], self.channel[mask],
-                         self.rows[mask], self.cols[mask])
+    def with_range(self, low: float, high: float) -> SampleSet:
+        """The same patches with validity re-judged for ``low < v < high`` (>= 2 valid)."""
+        valid = self.valid & (self.lowest > low) & (self.highest < high)
+        cut = SampleSet(self.values, valid, self.channel, self.rows, self.cols, self.lowest,
+                        self.highest)
+        return cut._rows(valid.sum(axis=1) >= 2)
 
     @staticmethod
     def concat(sets: list[SampleSet]) -> SampleSet:
         return SampleSet(*(np.concatenate([getattr(s, f) for s in sets])
-                           for f in ("values", "valid", "channel", "rows", "cols")))
+                           for f in SampleSet.FIELDS))
 
 
 @dataclass(frozen=True)
@@ -62,6 +76,18 @@ class Sampling:
     patch: int
     low: float
     high: float
+
+    def with_range(self, low: float, high: float) -> Sampling:
+        """Same patches (and footprint), validity re-judged; only narrower ranges make sense."""
+        if low < self.low or high > self.high:
+            raise ValueError(f"valid range ({low}, {high}) is wider than the sampling's "
+                             f"({self.low}, {self.high}); resample instead")
+        sets = [s.with_range(low, high) for s in self.per_channel]
+        empty = [i for i, s in enumerate(sets) if len(s) == 0]
+        if empty:
+            raise ValueError(f"channel(s) {empty} keep no sample valid in two exposures within "
+                             f"({low}, {high})")
+        return Sampling(sets, self.footprint, self.patch, low, high)
 
 
 def valid_mask(values: np.ndarray, low: float = VALID_LOW, high: float = VALID_HIGH):
@@ -76,8 +102,31 @@ def _box_mean(img: np.ndarray, patch: int) -> np.ndarray:
     return cv2.blur(img, (patch, patch), borderType=cv2.BORDER_REFLECT)
 
 
+def _box_min(img: np.ndarray, patch: int) -> np.ndarray:
+    import cv2
+
+    return img if patch == 1 else cv2.erode(img, np.ones((patch, patch), np.uint8),
+                                            borderType=cv2.BORDER_REFLECT)
+
+
+def _box_max(img: np.ndarray, patch: int) -> np.ndarray:
+    import cv2
+
+    return img if patch == 1 else cv2.dilate(img, np.ones((patch, patch), np.uint8),
+                                             borderType=cv2.BORDER_REFLECT)
+
+
+def _monotone(means: np.ndarray, ok: np.ndarray, order: np.ndarray, tol: float) -> np.ndarray:
+    """True where the valid values never fall by more than ``tol`` as the exposure grows."""
+    v = np.where(ok, means, np.nan)[order]
+    best_so_far = np.fmax.accumulate(np.where(np.isnan(v), -np.inf, v), axis=0)
+    drop = np.where(np.isnan(v), 0.0, best_so_far - v)
+    return drop.max(axis=0) <= tol
+
+
 def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float = VALID_LOW,
-                  high: float = VALID_HIGH, seed: int = 0) -> Sampling:
+                  high: float = VALID_HIGH, seed: int = 0,
+                  monotone_tolerance: float = MONOTONE_TOLERANCE) -> Sampling:
     """Choose up to ``n_samples`` flat patches per channel, spread over the value range."""
     if not isinstance(n_samples, (int, np.integer)) or n_samples < 8:
         raise ValueError(f"n_samples must be an integer >= 8, got {n_samples!r}")
@@ -86,6 +135,7 @@ def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float =
     if not 0.0 <= low < high <= 1.0:
         raise ValueError(f"valid range needs 0 <= low < high <= 1, got {low}, {high}")
     rng = np.random.default_rng(seed)
+    tau_order = np.argsort(series.relative_exposures())
     stack = series.values()  # (n, H, W, C) float32
     n, h, w, channels = stack.shape
     r = patch // 2
@@ -96,19 +146,24 @@ def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float =
     for c in range(channels):
         chan = stack[..., c]
         means = np.stack([_box_mean(chan[i], patch) for i in range(n)])
-        ok = valid_mask(means, low, high)
+        # a patch is valid only if every pixel in it is: one clipped pixel biases the mean
+        lowest = np.stack([_box_min(chan[i], patch) for i in range(n)])
+        highest = np.stack([_box_max(chan[i], patch) for i in range(n)])
+        ok = (lowest > low) & (highest < high)
         # flatness judged on the image with most valid pixels (best exposed overall)
         ref = int(np.argmax(ok.reshape(n, -1).sum(axis=1)))
         var = _box_mean(chan[ref] ** 2, patch) - means[ref] ** 2
         std = np.sqrt(np.maximum(var, 0.0))
-        usable = ok.sum(axis=0) >= 2
+        usable = (ok.sum(axis=0) >= 2) & _monotone(means, ok, tau_order, monotone_tolerance)
         usable[:r, :] = usable[h - r:, :] = False
         usable[:, :r] = usable[:, w - r:] = False
         rows, cols = _stratified_pick(means.mean(axis=0), std, usable, n_samples, rng)
         if rows.size == 0:
             continue
         v = means[:, rows, cols].T.astype(np.float64)
-        sets.append(SampleSet(v, valid_mask(v, low, high), np.full(rows.size, c), rows, cols))
+        sets.append(SampleSet(v, ok[:, rows, cols].T, np.full(rows.size, c), rows, cols,
+                              lowest[:, rows, cols].T.astype(np.float64),
+                              highest[:, rows, cols].T.astype(np.float64)))
         for dy in range(-r, r + 1):
             for dx in range(-r, r + 1):
                 footprint[rows + dy, cols + dx] = True

@@ -1,0 +1,110 @@
+"""``clblur calibrate``: fit response models to an exposure series, evaluate, write the best.
+
+    clblur calibrate MANIFEST_OR_DIR [--times FILE] [--model M ...] -o response.json
+                     [--report DIR] [--shared] [--refine-times] [--samples N] ...
+
+Every model is fitted, evaluated by leave-one-exposure-out prediction, and the one with the
+lowest mean held-out RMSE is written (one curve per channel unless ``--shared``).
+"""
+
+from __future__ import annotations
+
+import shlex
+import sys
+
+import numpy as np
+from tqdm import tqdm
+
+from clblur.calibration.models import MODELS
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "calibrate", help="fit camera response curves to an exposure series",
+        description="Fit response models (the paper's Eq. 3 and richer families) to images of "
+                    "one scene at several exposures; evaluate them on held-out pixels and "
+                    "exposures; write the best as a response JSON for clblur blur --response.")
+    p.add_argument("source", help="exposure-series manifest (.json) or folder of images")
+    p.add_argument("--times", metavar="FILE",
+                   help="exposure times for a folder: one per line in file-name order, or "
+                        "'NAME TIME' lines; fractions like 1/1024 allowed (default: EXIF)")
+    p.add_argument("--model", nargs="+", choices=MODELS, metavar="M",
+                   help=f"models to fit: {', '.join(MODELS)} (default: all; emor only when "
+                        "its basis files are found)")
+    p.add_argument("-o", "--output", required=True, help="response JSON to write")
+    p.add_argument("--report", metavar="DIR", help="write a report folder (markdown + PNG)")
+    p.add_argument("--shared", action="store_true",
+                   help="one curve for all channels instead of one per channel")
+    p.add_argument("--refine-times", action="store_true",
+                   help="re-estimate the exposures (uncertain shutter times)")
+    p.add_argument("--samples", type=int, default=1000, metavar="N",
+                   help="calibration patches per channel (default 1000)")
+    p.add_argument("--patch", type=int, default=3, help="patch size, odd (default 3)")
+    p.add_argument("--seed", type=int, default=0, help="sampling seed (default 0)")
+    p.add_argument("--emor-dir", metavar="DIR",
+                   help="folder with invemor.txt (default: $CLBLUR_DATA/crf)")
+    p.add_argument("--gaps", type=float, nargs="+", default=[1, 4], metavar="STOPS",
+                   help="prediction gaps in stops (default 1 4)")
+    p.add_argument("--no-refit", action="store_true",
+                   help="evaluate the full fit instead of refitting without each target "
+                        "exposure (faster, slightly optimistic)")
+    p.add_argument("--eval-pixels", type=int, default=None, metavar="N",
+                   help="score a random subset of N held-out pixels (default: all)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=run)
+
+
+def _models(args) -> list[str]:
+    if args.model:
+        return list(dict.fromkeys(args.model))
+    from clblur.calibration.models import EmorBasis
+
+    names = list(MODELS)
+    try:
+        EmorBasis.load(args.emor_dir)
+    except ValueError as e:
+        print(f"clblur calibrate: skipping emor ({e})", file=sys.stderr)
+        names.remove("emor")
+    return names
+
+
+def run(args) -> int:
+    from clblur.calibration import evaluate, fit, load_series
+    from clblur.calibration.sampling import sample_series
+    from clblur.io import refuse_overwrite
+    from clblur.responses import save_channel_set
+
+    refuse_overwrite(args.output, args.source, args.times)
+    series = load_series(args.source, args.times)
+    sampling = sample_series(series, args.samples, patch=args.patch, seed=args.seed)
+    fits, evaluations = {}, {}
+    names = _models(args)
+    for name in tqdm(names, desc="models", disable=args.quiet):
+        opts = {"emor_dir": args.emor_dir} if name == "emor" else {}
+        fits[name] = fit(series, name, shared=args.shared, sampling=sampling,
+                         refine_times=args.refine_times, progress=not args.quiet, **opts)
+        evaluations[name] = evaluate(series, fits[name], gaps=args.gaps,
+                                     refit=not args.no_refit, max_pixels=args.eval_pixels,
+                                     seed=args.seed, progress=not args.quiet)
+    best = min(names, key=lambda n: float(np.nanmean(list(evaluations[n]["rmse"].values()))))
+    gaps = list(evaluations[best]["rmse"])
+    print("model          " + "  ".join(f"{g:>5}-stop" for g in gaps) + "        AIC")
+    for n in names:
+        e = evaluations[n]
+        print(f"{n:<14} " + "  ".join(f"{e['rmse'][g]:10.2f}" for g in gaps)
+              + f"  {e['aic']:10.0f}" + ("   <- best" if n == best else ""))
+    chosen = fits[best]
+    if args.shared or len(chosen.responses) == 1:
+        chosen.responses[0].save(args.output)
+    else:
+        save_channel_set(args.output, chosen.responses)
+    print(f"wrote {args.output} ({best}, {'shared' if args.shared else 'per channel'})")
+    if args.report:
+        from clblur.calibration.report import write_report
+
+        command = "clblur " + " ".join(shlex.quote(a) for a in sys.argv[2:]) \
+            if len(sys.argv) > 2 else ""
+        path = write_report(args.report, series, fits, evaluations, best, command)
+        print(f"wrote {path}")
+    return 0
+

@@ -1,0 +1,197 @@
+"""Calibration report: markdown plus PNG figures (matplotlib, Agg backend).
+
+Figures follow the paper: Figure 1 plots code value against exposure time for a few samples;
+Figure 2 plots the same samples against *normalised* exposure (each sample's time multiplied
+by its fitted radiance) so they collapse onto the response curve, with every fitted model
+drawn over them.  Residual plots show fitted minus observed code values against the observed
+value for each model.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from clblur.calibration.fitting import ResponseFit, fit_radiances
+from clblur.calibration.series import ExposureSeries
+from clblur.io import atomic_write, atomic_write_text
+
+CHANNEL_NAMES = {1: ["grey"], 3: ["red", "green", "blue"]}
+COLOURS = ["tab:red", "tab:green", "tab:blue"]
+
+
+def _channel_names(n: int) -> list[str]:
+    return CHANNEL_NAMES.get(n, [f"channel {i}" for i in range(n)])
+
+
+def _save(fig, path: Path) -> None:
+    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110))
+
+
+def _pick_samples(fit: ResponseFit, channel: int, count: int = 8) -> np.ndarray:
+    """Indices of ``count`` samples spread over brightness, preferring many valid exposures."""
+    s = fit.sampling.per_channel[channel]
+    level = np.nanmean(np.where(s.valid, s.values, np.nan), axis=1)
+    rich = np.flatnonzero(s.valid.sum(axis=1) >= max(3, s.valid.shape[1] // 4))
+    pool = rich if rich.size >= count else np.arange(len(s))
+    order = pool[np.argsort(level[pool])]
+    return order[np.linspace(0, order.size - 1, min(count, order.size)).astype(int)]
+
+
+def figure_values_vs_time(series: ExposureSeries, fit: ResponseFit, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = _channel_names(series.channels)
+    fig, axes = plt.subplots(1, series.channels, figsize=(4.2 * series.channels, 3.6),
+                             squeeze=False)
+    t = series.exposures if series.f_numbers is None else series.exposures / series.f_numbers**2
+    for c, ax in enumerate(axes[0]):
+        s = fit.sampling.per_channel[c]
+        for k in _pick_samples(fit, c):
+            ok = s.valid[k]
+            ax.plot(t, s.values[k] * series.full_scale, color="0.8", lw=0.8)
+            ax.plot(t[ok], s.values[k, ok] * series.full_scale, "o-", ms=3, lw=1)
+        ax.set_xscale("log", base=2)
+        ax.set_xlabel("exposure time (s)" if series.f_numbers is None else "t / N^2")
+        ax.set_ylabel("code value")
+        ax.set_title(f"{names[c]}: samples vs exposure (paper Fig. 1)")
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    _save(fig, path)
+    plt.close(fig)
+
+
+def figure_normalised_curves(series: ExposureSeries, fits: dict[str, ResponseFit],
+                             reference: str, path: Path) -> None:
+    """Samples on the reference model's normalised exposure axis, with every model's curve."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = _channel_names(series.channels)
+    ref = fits[reference]
+    tau = series.relative_exposures()
+    fig, axes = plt.subplots(1, series.channels, figsize=(4.2 * series.channels, 3.8),
+                             squeeze=False)
+    for c, ax in enumerate(axes[0]):
+        s = ref.sampling.per_channel[c]
+        resp = ref.responses[c]
+        log_e = fit_radiances(resp, s, tau)
+        x = np.exp(log_e)[:, None] * tau[None, :]
+        top = float(resp.inverse(np.array(0.98)))
+        ax.plot((x / top)[s.valid], (s.values * series.full_scale)[s.valid], ".", ms=1.5,
+                color="0.6", alpha=0.5, label=f"samples (axis of {reference})")
+        grid = np.geomspace(1e-4, 1.5, 400)
+        for name, f in fits.items():
+            r = f.responses[c]
+            # match each curve to the reference axis at mid-grey: only the shape is compared
+            scale = float(r.inverse(np.array(0.5)) / (resp.inverse(np.array(0.5)) / top))
+            ax.plot(grid, r.forward(grid * scale) * series.full_scale, lw=1.3, label=name)
+        ax.set_xscale("log")
+        ax.set_xlim(1e-3, 1.5)
+        ax.set_xlabel("normalised exposure")
+        ax.set_ylabel("code value")
+        ax.set_title(f"{names[c]}: normalised curves (paper Fig. 2)")
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    _save(fig, path)
+    plt.close(fig)
+
+
+def figure_residuals(series: ExposureSeries, fits: dict[str, ResponseFit], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tau = series.relative_exposures()
+    n = len(fits)
+    cols = min(3, n)
+    rows = math.ceil(n / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.2 * rows), squeeze=False,
+                             sharey=True)
+    for ax in axes.ravel()[n:]:
+        ax.axis("off")
+    for ax, (name, f) in zip(axes.ravel(), fits.items(), strict=False):
+        for c in range(series.channels):
+            s = f.sampling.per_channel[c]
+            resp = f.responses[c]
+            log_e = fit_radiances(resp, s, tau)
+            pred = resp.forward(np.exp(log_e)[:, None] * tau[None, :])
+            res = ((pred - s.values) * series.full_scale)[s.valid]
+            obs = (s.values * series.full_scale)[s.valid]
+            ax.plot(obs, res, ".", ms=1, alpha=0.4, color=COLOURS[c % 3])
+            edges = np.linspace(0, series.full_scale, 33)
+            idx = np.digitize(obs, edges)
+            med = [np.median(res[idx == i]) if np.any(idx == i) else np.nan
+                   for i in range(1, edges.size)]
+            ax.plot(0.5 * (edges[1:] + edges[:-1]), med, "-", color=COLOURS[c % 3], lw=1.5)
+        ax.axhline(0, color="k", lw=0.6)
+        ax.set_ylim(-30, 30)
+        ax.set_title(f"{name}: fit residual (RMS {f.rmse_fit:.2f})", fontsize=9)
+        ax.set_xlabel("observed code value")
+        ax.set_ylabel("fitted - observed")
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    _save(fig, path)
+    plt.close(fig)
+
+
+def comparison_table(evaluations: dict[str, dict], gaps) -> str:
+    head = ["model"] + [f"{g}-stop RMSE" for g in gaps] + \
+        [f"{g}-stop R/G/B" for g in gaps] + ["fit RMSE", "params", "AIC", "BIC"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name, e in evaluations.items():
+        cells = [name] + [f"{e['rmse'][g]:.2f}" for g in gaps]
+        cells += [" / ".join(f"{v:.2f}" for v in e["rmse_per_channel"][g]) for g in gaps]
+        cells += [f"{e['rmse_fit']:.2f}", str(e["n_params"]), f"{e['aic']:.0f}",
+                  f"{e['bic']:.0f}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def write_report(folder: str | Path, series: ExposureSeries, fits: dict[str, ResponseFit],
+                 evaluations: dict[str, dict], best: str, command: str = "") -> Path:
+    """Write ``report.md``, ``evaluation.json`` and the figures into ``folder`` (created)."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    reference = best if best in fits else next(iter(fits))
+    figure_values_vs_time(series, fits[reference], folder / "fig1_values_vs_time.png")
+    figure_normalised_curves(series, fits, reference, folder / "fig2_normalised_curves.png")
+    figure_residuals(series, fits, folder / "residuals.png")
+    gaps = list(next(iter(evaluations.values()))["rmse"]) if evaluations else []
+    doc = {name: {"fit": fits[name].summary(), "evaluation": evaluations.get(name)}
+           for name in fits}
+    atomic_write_text(folder / "evaluation.json", json.dumps(doc, indent=1, default=float)
+                      + "\n")
+    t = series.exposures
+    lines = [
+        "# Calibration report", "",
+        f"Series: {len(series.images)} images, {series.shape[1]} x {series.shape[0]} x "
+        f"{series.channels} {series.dtype}, exposures {t.min():g} s ... {t.max():g} s.",
+        f"Best model (lowest mean held-out RMSE over the gaps): **{best}**.", "",
+    ]
+    if command:
+        lines += ["Command:", "", "```", command, "```", ""]
+    if evaluations:
+        lines += ["## Held-out prediction (code values) and information criteria", "",
+                  comparison_table(evaluations, gaps), "",
+                  "RMSE: predicting each image from the images 1 and 4 stops away through "
+                  "the model fitted without it; pixels outside every sampled patch, valid "
+                  "in both images and flat in their 3 x 3 neighbourhood.  AIC/BIC: forward "
+                  "residuals of the fitted samples (Gaussian noise), see "
+                  "`clblur.calibration.fitting`.", ""]
+    lines += ["## Figures", "",
+              "![values vs time](fig1_values_vs_time.png)", "",
+              "![normalised curves](fig2_normalised_curves.png)", "",
+              "![residuals](residuals.png)", ""]
+    atomic_write_text(folder / "report.md", "\n".join(lines))
+    return folder / "report.md"
