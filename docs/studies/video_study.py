@@ -78,6 +78,12 @@ def synthesise(names: list[Path], work: Path, backend: str, reuse: bool) -> dict
                 run_clblur_video([str(clip), str(dst), "--shutter", "360", "--response", spec,
                                   "--backend", backend, "--quiet", *flow_args])
             out[(phase, spec)] = {i: read_image(dst / names[i].name) for i in idx}
+        # the same default response with OpenCV's other flow, to compare flow methods
+        dst = work / f"out{phase}_srgb_farneback"
+        if not (reuse and all((dst / names[i].name).exists() for i in idx)):
+            run_clblur_video([str(clip), str(dst), "--shutter", "360", "--response", "srgb",
+                              "--flow", "farneback", "--backend", backend, "--quiet"])
+        out[(phase, "srgb, Farneback flow")] = {i: read_image(dst / names[i].name) for i in idx}
     return out
 
 
