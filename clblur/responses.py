@@ -147,13 +147,18 @@ class Gamma(Response):
 
 
 class SRGB(Response):
-    """IEC 61966-2-1 sRGB transfer function (linear segment below 0.0031308)."""
+    """IEC 61966-2-1 sRGB transfer function (linear segment below 0.04045 / 12.92).
+
+    The standard rounds the exposure knee to 0.0031308; we use the exact image of the value
+    knee 0.04045 so that ``forward(inverse(v)) == v`` holds across the knee too.
+    """
 
     kind = "srgb"
+    knee = 0.04045 / 12.92
 
     def forward(self, x):
         x = np.maximum(np.asarray(x, dtype=np.float64), 0.0)
-        return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+        return np.where(x <= self.knee, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
     def inverse(self, v):
         v = np.maximum(np.asarray(v, dtype=np.float64), 0.0)

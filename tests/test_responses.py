@@ -52,7 +52,7 @@ def test_srgb_table_linear_round_trip(v):
 
 def test_srgb_is_continuous_at_the_knee():
     r = SRGB()
-    lo, hi = r.forward(np.array([0.0031308 - 1e-12, 0.0031308 + 1e-12]))
+    lo, hi = r.forward(np.array([r.knee - 1e-12, r.knee + 1e-12]))
     assert abs(lo - hi) < 1e-6
 
 
