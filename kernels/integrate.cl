@@ -44,23 +44,29 @@
 /* Linearise one channel group into the padded intermediate (global size (w + 1, h + 1)):
  * integer codes through per-channel tables (lut[k * lut_len + code]); float32 input is
  * already linear (the host applied the inverse response in float64). */
+static float linear_channel(__global const uchar *image, int in_kind, size_t index, int k,
+                            __global const float *lut, int lut_len)
+{
+    if (in_kind == IN_U8)
+        return lut[k * lut_len + image[index]];
+    if (in_kind == IN_U16)
+        return lut[k * lut_len + ((__global const ushort *)image)[index]];
+    return ((__global const float *)image)[index];
+}
+
 __kernel void linearise(__global const uchar *image, int in_kind, int channels, int cbase,
                         int cg, __global const float *lut, int lut_len, __global STORE_T *lin,
                         int w, int h)
 {
     int col = get_global_id(0), row = get_global_id(1);
     if (col > w || row > h) return;
-    float e[4] = {0.0f, 0.0f, 0.0f, 0.0f};
     size_t base = ((size_t)min(row, h - 1) * w + min(col, w - 1)) * channels + cbase;
-    for (int k = 0; k < cg; ++k) {
-        if (in_kind == IN_U8)
-            e[k] = lut[k * lut_len + image[base + k]];
-        else if (in_kind == IN_U16)
-            e[k] = lut[k * lut_len + ((__global const ushort *)image)[base + k]];
-        else
-            e[k] = ((__global const float *)image)[base + k];
-    }
-    STORE4((float4)(e[0], e[1], e[2], e[3]), (size_t)row * (w + 1) + col);
+    float4 e = (float4)(0.0f);
+    e.x = linear_channel(image, in_kind, base, 0, lut, lut_len);
+    if (cg > 1) e.y = linear_channel(image, in_kind, base + 1, 1, lut, lut_len);
+    if (cg > 2) e.z = linear_channel(image, in_kind, base + 2, 2, lut, lut_len);
+    if (cg > 3) e.w = linear_channel(image, in_kind, base + 3, 3, lut, lut_len);
+    STORE4(e, (size_t)row * (w + 1) + col);
 }
 
 #ifdef HAVE_FP64
@@ -212,21 +218,27 @@ __kernel void integrate_taps(__global const STORE_T *lin, __global const int *ta
  * so running sums neither drift nor depend on where a row (or a tile) starts.  Integer images
  * read fixed-point tables (qlut[k * lut_len + code], rounded on the host); float32 images hold
  * exposures already and are scaled here. */
+static long fixed_channel(__global const uchar *image, int in_kind, size_t index, int k,
+                          __global const long *qlut, int lut_len, float scale)
+{
+    if (in_kind == IN_U8)
+        return qlut[k * lut_len + image[index]];
+    if (in_kind == IN_U16)
+        return qlut[k * lut_len + ((__global const ushort *)image)[index]];
+    return convert_long_rte(((__global const float *)image)[index] * scale);
+}
+
 static long4 fixed_exposure(__global const uchar *image, int in_kind, size_t pix, int channels,
                             int cbase, int cg, __global const long *qlut, int lut_len,
                             float scale)
 {
-    long q[4] = {0, 0, 0, 0};
     size_t base = pix * (size_t)channels + (size_t)cbase;
-    for (int k = 0; k < cg; ++k) {
-        if (in_kind == IN_U8)
-            q[k] = qlut[k * lut_len + image[base + k]];
-        else if (in_kind == IN_U16)
-            q[k] = qlut[k * lut_len + ((__global const ushort *)image)[base + k]];
-        else
-            q[k] = convert_long_rte(((__global const float *)image)[base + k] * scale);
-    }
-    return (long4)(q[0], q[1], q[2], q[3]);
+    long4 q = (long4)(0);
+    q.x = fixed_channel(image, in_kind, base, 0, qlut, lut_len, scale);
+    if (cg > 1) q.y = fixed_channel(image, in_kind, base + 1, 1, qlut, lut_len, scale);
+    if (cg > 2) q.z = fixed_channel(image, in_kind, base + 2, 2, qlut, lut_len, scale);
+    if (cg > 3) q.w = fixed_channel(image, in_kind, base + 3, 3, qlut, lut_len, scale);
+    return q;
 }
 
 /* Box of taps d = lo..hi along one axis with equal weights, straight from the input image

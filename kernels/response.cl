@@ -104,27 +104,35 @@ static int quantise_by_buckets(float e, __global const float *thresholds,
     return q;
 }
 
+/* Forward-map and quantise one channel's accumulated exposure into out[index]. */
+static void store_channel(float e, __global uchar *out, int out_kind, size_t index, int k,
+                          __constant const float *resp, __global const float *tables,
+                          __global const float *thresholds, __global const int *buckets)
+{
+    if (out_kind == OUT_U8)
+        out[index] = (uchar)(buckets[2] > 0
+                             ? quantise_by_buckets(e, thresholds + (k << 8), buckets, k)
+                             : quantise_by_thresholds(e, thresholds + (k << 8), 8));
+    else if (out_kind == OUT_U16)
+        ((__global ushort *)out)[index] =
+            (ushort)quantise_by_thresholds(e, thresholds + (k << 16), 16);
+    else
+        ((__global float *)out)[index] = forward_response(e, resp + k * RESP_STRIDE, tables);
+}
+
 /* Forward-map and quantise the accumulated exposures of one pixel's channel group.
  * Integer outputs compare the exposure with per-channel threshold tables (2^8 or 2^16
  * floats per channel; buckets when the host built them, else binary search); float32
- * outputs evaluate the response. */
+ * outputs evaluate the response.  Channels are spelled out (no private array), which keeps
+ * them in registers. */
 static void store_pixel(float4 acc, __global uchar *out, int out_kind, size_t pixel,
                         int channels, int cbase, int cg, __constant const float *resp,
                         __global const float *tables, __global const float *thresholds,
                         __global const int *buckets)
 {
-    float e[4] = {acc.x, acc.y, acc.z, acc.w};
     size_t base = pixel * (size_t)channels + (size_t)cbase;
-    for (int k = 0; k < cg; ++k) {
-        if (out_kind == OUT_U8)
-            out[base + k] = (uchar)(buckets[2] > 0
-                ? quantise_by_buckets(e[k], thresholds + (k << 8), buckets, k)
-                : quantise_by_thresholds(e[k], thresholds + (k << 8), 8));
-        else if (out_kind == OUT_U16)
-            ((__global ushort *)out)[base + k] =
-                (ushort)quantise_by_thresholds(e[k], thresholds + (k << 16), 16);
-        else
-            ((__global float *)out)[base + k] = forward_response(e[k], resp + k * RESP_STRIDE,
-                                                                 tables);
-    }
+    store_channel(acc.x, out, out_kind, base, 0, resp, tables, thresholds, buckets);
+    if (cg > 1) store_channel(acc.y, out, out_kind, base + 1, 1, resp, tables, thresholds, buckets);
+    if (cg > 2) store_channel(acc.z, out, out_kind, base + 2, 2, resp, tables, thresholds, buckets);
+    if (cg > 3) store_channel(acc.w, out, out_kind, base + 3, 3, resp, tables, thresholds, buckets);
 }
