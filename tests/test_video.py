@@ -476,4 +476,6 @@ def test_float_tiff_sequence_round_trip(tmp_path):
     blur_video(tmp_path / "in", tmp_path / "out", backend="numpy")
     out = read_image(tmp_path / "out" / "0.tif")
     assert out.dtype == np.float32 and out.shape == (H, W, 3)
-    assert blur_video(tmp_path / "in", tmp_path / "v.mkv", backend="numpy").frames == 2
+    assert blur_video(tmp_path / "in", tmp_path / "v.mkv", fps=25, backend="numpy").frames == 2
+    info = probe(tmp_path / "v.mkv")
+    assert info["fps"] == 25 and info["times"] == [0.0, 0.04]
