@@ -92,8 +92,8 @@ def cmd_info(args) -> int:
     if not found:
         print("OpenCL devices: none found")
     for d in found:
-        state = "builds and runs kernels" if d["usable"] else f"UNUSABLE: {d['error']}"
-        print(f"[{d['selector']}] {d['platform']} / {d['name']} ({d['type']}, {d['version']}, "
+        state = "builds and runs kernels" if d["works"] else f"UNUSABLE: {d['error']}"
+        print(f"[{d['index']}] {d['platform']} / {d['device']} ({d['type']}, {d['version']}, "
               f"fp64={'yes' if d['fp64'] else 'no'}): {state}")
     ok, why = opencl.usable(None)
     print(f"default device: {opencl.current_device() if ok else 'none (' + why + ')'}")
