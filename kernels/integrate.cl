@@ -98,7 +98,7 @@ static int8 floor_int8(float8 v)
         float8 top = LOAD8(base.s##L), bottom = LOAD8(base.s##L + ws);                 \
         float8 col = fma(bottom - top, (float8)(fy.s##L), top);                        \
         float4 v = fma(col.hi - col.lo, (float4)(fx.s##L), col.lo);                   \
-        acc##L = weighted ? fma((float4)(time_w[j]), v, acc##L) : acc##L + v;          \
+        acc##L = fma((float4)(wj), v, acc##L);                                         \
     }
 
 #define FIELD_STORE(L)                                                                 \
@@ -162,6 +162,7 @@ __kernel void integrate_field(__global const STORE_T *lin, __global const float 
         fx = select(fx, (float8)(0.0f), xi < 0);
         fy = select(fy, (float8)(0.0f), yi < 0);
         int8 base = clamp(yi, 0, h - 1) * ws + clamp(xi, 0, w - 1);
+        float wj = weighted ? time_w[j] : 1.0f;  /* fma(1, v, acc) == acc + v exactly */
         FIELD_LANE(0) FIELD_LANE(1) FIELD_LANE(2) FIELD_LANE(3)
         FIELD_LANE(4) FIELD_LANE(5) FIELD_LANE(6) FIELD_LANE(7)
     }
