@@ -1,0 +1,164 @@
+"""Loading exposure series (manifest, folder + times, EXIF), bad input, and the CLI."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from clblur.calibration import ExposureSeries, fit, load_series
+from clblur.calibration.series import parse_time
+from clblur.cli import main
+from clblur.io import write_image
+
+
+def ramp_stack(n=5, shape=(24, 36), dtype=np.uint8):
+    """A horizontal radiance ramp through a gamma curve at times 2**-i (enough to fit)."""
+    full = 255 if dtype == np.uint8 else 65535
+    x = np.geomspace(0.02, 1.0, shape[1])[None, :, None] * np.ones((shape[0], 1, 3))
+    return [np.clip(np.rint(full * np.clip(x * 2.0**-i * 4, 0, 1) ** (1 / 2.2)), 0,
+                    full).astype(dtype) for i in range(n)], [2.0**-i for i in range(n)]
+
+
+def write_folder(folder, images, suffix=".png"):
+    folder.mkdir(exist_ok=True)
+    for i, im in enumerate(images):
+        write_image(folder / f"e{i:02d}{suffix}", im)
+
+
+def test_parse_time_accepts_fractions():
+    assert parse_time("1/1024") == pytest.approx(1 / 1024)
+    assert parse_time(" 0.5s ") == 0.5
+    assert parse_time(32) == 32.0
+    with pytest.raises(ValueError, match="cannot read exposure time"):
+        parse_time("fast")
+
+
+def test_folder_with_times_file_in_name_order(tmp_path):
+    images, times = ramp_stack()
+    write_folder(tmp_path / "s", images)
+    (tmp_path / "t.txt").write_text("# seconds\n" + "\n".join(
+        ["1", "1/2", "1/4", "1/8", "1/16"]) + "\n")
+    series = load_series(tmp_path / "s", tmp_path / "t.txt")
+    assert series.exposures.tolist() == times and series.f_numbers is None
+    assert series.names[0] == "e00.png" and series.images[0].shape == (24, 36, 3)
+    np.testing.assert_array_equal(series.images[2], images[2])
+
+
+def test_times_file_naming_images(tmp_path):
+    images, _ = ramp_stack(3)
+    write_folder(tmp_path / "s", images, ".tif")
+    (tmp_path / "t.txt").write_text("e02.tif 1/4\ne00.tif 1\ne01.tif 0.5\n")
+    series = load_series(tmp_path / "s", tmp_path / "t.txt")
+    assert series.exposures.tolist() == [1.0, 0.5, 0.25]
+    (tmp_path / "bad.txt").write_text("e00.tif 1\n0.5\n")
+    with pytest.raises(ValueError, match="name every image or none"):
+        load_series(tmp_path / "s", tmp_path / "bad.txt")
+
+
+def test_manifest_with_f_numbers_and_uint16(tmp_path):
+    images, times = ramp_stack(4, dtype=np.uint16)
+    write_folder(tmp_path, images, ".tif")
+    doc = {"kind": "exposure-series",
+           "images": [{"path": f"e{i:02d}.tif", "exposure": t, "f_number": 4.0}
+                      for i, t in enumerate(times)]}
+    (tmp_path / "m.json").write_text(json.dumps(doc))
+    series = load_series(tmp_path / "m.json")
+    assert series.dtype == np.uint16 and series.full_scale == 65535.0
+    assert series.f_numbers.tolist() == [4.0] * 4
+    assert series.relative_exposures().tolist() == [1.0, 0.5, 0.25, 0.125]
+    with pytest.raises(ValueError, match="times are given by the manifest"):
+        load_series(tmp_path / "m.json", times=[1, 2, 3, 4])
+
+
+def test_exif_fallback(tmp_path):
+    from PIL import Image
+
+    images, times = ramp_stack(3)
+    folder = tmp_path / "jpg"
+    folder.mkdir()
+    for i, (im, t) in enumerate(zip(images, times, strict=True)):
+        exif = Image.Exif()
+        exif[0x829A] = t  # ExposureTime
+        exif[0x829D] = 2.8  # FNumber
+        Image.fromarray(im).save(folder / f"e{i}.jpg", exif=exif, quality=95)
+    series = load_series(folder)
+    assert series.exposures.tolist() == pytest.approx(times)
+    assert series.f_numbers.tolist() == pytest.approx([2.8] * 3)
+    write_folder(tmp_path / "png", images)
+    with pytest.raises(ValueError, match="exposure times missing"):
+        load_series(tmp_path / "png")
+
+
+@pytest.mark.parametrize("images, times, match", [
+    ("one", [1.0], "at least 2 images"),
+    ("sizes", [1.0, 0.5], "different sizes"),
+    ("ok", [1.0, -0.5], "positive and finite"),
+    ("ok", [1.0, 0.0], "positive and finite"),
+    ("ok", [1.0, 1.0], "duplicate exposures"),
+    ("ok", None, "exposure times are missing"),
+    ("ok", [1.0], "1 exposure times for 2 images"),
+])
+def test_bad_series_are_named(images, times, match):
+    a = np.full((8, 8, 3), 100, np.uint8)
+    stacks = {"one": [a], "sizes": [a, np.zeros((8, 9, 3), np.uint8)], "ok": [a, a // 2]}
+    with pytest.raises(ValueError, match=match):
+        ExposureSeries.create(stacks[images], times)
+
+
+def test_all_saturated_stack_is_refused():
+    full = [np.full((16, 16, 3), 255, np.uint8)] * 3
+    series = ExposureSeries.create(full, [1.0, 0.5, 0.25])
+    with pytest.raises(ValueError, match="saturated"):
+        fit(series, "exp")
+
+
+def test_folder_errors(tmp_path):
+    images, _ = ramp_stack(3)
+    write_folder(tmp_path / "s", images)
+    (tmp_path / "short.txt").write_text("1\n0.5\n")
+    with pytest.raises(ValueError, match="lists 2 times for 3 images"):
+        load_series(tmp_path / "s", tmp_path / "short.txt")
+    with pytest.raises(ValueError, match="not found"):
+        load_series(tmp_path / "nowhere")
+    with pytest.raises(ValueError, match="times file not found"):
+        load_series(tmp_path / "s", tmp_path / "missing.txt")
+    (tmp_path / "pairs.json").write_text(json.dumps({"kind": "frame-stack", "stacks": []}))
+    with pytest.raises(ValueError, match="expected 'exposure-series'"):
+        load_series(tmp_path / "pairs.json")
+
+
+def test_cli_writes_response_report_and_blurs_with_it(tmp_path, capsys):
+    images, _ = ramp_stack(6, shape=(40, 60))
+    write_folder(tmp_path / "s", images)
+    (tmp_path / "t.txt").write_text("\n".join(f"1/{2**i}" for i in range(6)))
+    out, report = tmp_path / "resp.json", tmp_path / "report"
+    code = main(["calibrate", str(tmp_path / "s"), "--times", str(tmp_path / "t.txt"),
+                 "--model", "exp", "gamma-offset", "-o", str(out), "--report", str(report),
+                 "--samples", "64", "--no-refit", "--quiet"])
+    assert code == 0
+    text = capsys.readouterr().out
+    assert "<- best" in text and "gamma-offset" in text
+    doc = json.loads(out.read_text())
+    assert doc["kind"] == "per-channel" and len(doc["channels"]) == 3
+    assert {"report.md", "evaluation.json", "fig1_values_vs_time.png",
+            "fig2_normalised_curves.png", "residuals.png"} <= {p.name for p in report.iterdir()}
+    assert "| gamma-offset |" in (report / "report.md").read_text()
+    blurred = tmp_path / "b.png"
+    assert main(["blur", str(tmp_path / "s" / "e02.png"), str(blurred), "--motion", "5,0",
+                 "--response", str(out), "--backend", "numpy"]) == 0
+    assert blurred.is_file()
+
+
+def test_cli_bad_input_exits_2(tmp_path, capsys):
+    images, _ = ramp_stack(3)
+    write_folder(tmp_path / "s", images)
+    (tmp_path / "t.txt").write_text("1\n1\n0.5\n")
+    code = main(["calibrate", str(tmp_path / "s"), "--times", str(tmp_path / "t.txt"),
+                 "-o", str(tmp_path / "r.json")])
+    assert code == 2
+    assert "duplicate exposures" in capsys.readouterr().err
+    code = main(["calibrate", str(tmp_path / "s"), "--times", str(tmp_path / "t.txt"),
+                 "-o", str(tmp_path / "t.txt")])
+    assert code == 2 and "refusing to overwrite" in capsys.readouterr().err
