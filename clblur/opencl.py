@@ -298,8 +298,8 @@ def _run(rt: _Runtime, plan: BlurPlan) -> np.ndarray:
     for cbase, cg in prep.channel_groups(channels):
         group = plan.responses[cbase:cbase + cg]
         params, tables = prep.response_params(group)
-        thresholds = (prep.quantisation_thresholds(group, img.dtype) if img.dtype.kind == "u"
-                      else np.zeros(1, np.float32))
+        thresholds = (prep.quantisation_thresholds(prep.four_channels(group), img.dtype)
+                      if img.dtype.kind == "u" else np.zeros(1, np.float32))
         buckets = (prep.quantisation_buckets(thresholds) if img.dtype == np.uint8
                    else np.zeros(4, np.int32))
         store_args = (rt.upload("resp", params), rt.upload("tables", tables),
@@ -325,18 +325,27 @@ def _integrator(rt: _Runtime, plan: BlurPlan, src: _Input):
 
     if box is not None:
         axis, lo, hi = box
-        scale = prep.fixed_point_scale(src.max_abs, hi - lo + 1)
-        kern = rt.kernel(False, "integrate_box")
+        scale = np.float32(prep.fixed_point_scale(src.max_abs, hi - lo + 1))
+        # Lanes run across the box: columns for a vertical box, rows (transposed) for a
+        # horizontal one.
+        transposed = axis == 0
+        across, length = (h, w) if transposed else (w, h)
+        stride = -(-across // LANES) * LANES  # whole 8-pixel vectors stay in bounds
+        plane = rt.buffer("plane", stride * length * 16)
+        to_plane, kern = rt.kernel(False, "linearise_plane"), rt.kernel(False, "integrate_box")
+        channels = plan.image.shape[2]
+        shape_args = (np.int32(stride), np.int32(across), np.int32(length),
+                      np.int32(transposed))
 
         def run_box(cbase, cg, store_args):
-            if src.luts is not None:  # exact integers: the float64 table, rounded once
-                qlut = np.rint(src.luts[cbase:cbase + cg] * scale).astype(np.int64)
-            else:
-                qlut = np.zeros((1, 1), np.int64)
-            kern(rt.queue, _grid(h if axis == 0 else w), (GROUP_SIZE,), src.buffer,
-                 np.int32(src.kind), rt.upload("qlut", qlut), np.int32(qlut.shape[1]),
-                 np.float32(scale), np.int32(axis), np.int32(lo), np.int32(hi), *geometry,
-                 *store_args)
+            lut = (src.luts[cbase:cbase + cg].astype(np.float32) if src.luts is not None
+                   else np.zeros((1, 1), np.float32))
+            to_plane(rt.queue, _grid(stride, length), (GROUP_SIZE, 1), src.buffer,
+                     np.int32(src.kind), np.int32(channels), np.int32(cbase), np.int32(cg),
+                     rt.upload("lut", lut), np.int32(lut.shape[1]), plane, *shape_args,
+                     np.int32(w))
+            kern(rt.queue, _grid(-(-across // LANES)), (GROUP_SIZE,), plane, *shape_args,
+                 np.int32(lo), np.int32(hi), scale, np.int32(w), *store_args)
         return run_box
 
     half = prep.half_storage_ok(plan, src.luts)

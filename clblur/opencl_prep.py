@@ -109,6 +109,13 @@ def channel_groups(channels: int) -> list[tuple[int, int]]:
     return [(c, min(GROUP, channels - c)) for c in range(0, channels, GROUP)]
 
 
+def four_channels(group):
+    """A channel group padded to four by repeating its first response (the kernels read
+    per-channel tables for all four lanes; the padding lanes are never stored)."""
+    group = list(group)
+    return group + [group[0]] * (GROUP - len(group))
+
+
 def response_params(responses: tuple[Response, ...] | list[Response]
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Pack up to four channels' forward responses for kernels/response.cl.

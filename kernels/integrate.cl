@@ -215,65 +215,74 @@ __kernel void integrate_taps(__global const STORE_T *lin, __global const int *ta
                     resp, tables, thresholds, buckets);
 }
 
-/* Fixed-point exposures of the channel group at pixel `pix` of the window: exact integers,
- * so running sums neither drift nor depend on where a row (or a tile) starts.  Integer images
- * read fixed-point tables (qlut[k * lut_len + code], rounded on the host); float32 images hold
- * exposures already and are scaled here. */
-static long fixed_channel(__global const uchar *image, int in_kind, size_t index, int k,
-                          __global const long *qlut, int lut_len, float scale)
+/* Linearise one channel group into a float4 "plane" for the box kernel: plane row k,
+ * column x holds window pixel (row k, col x), or (row x, col k) when `transposed`, so the box
+ * always slides along plane rows' index k and its lanes are contiguous.  Columns from
+ * `across` up to the stride `ps` repeat the last one (whole-vector loads stay in bounds). */
+__kernel void linearise_plane(__global const uchar *image, int in_kind, int channels, int cbase,
+                              int cg, __global const float *lut, int lut_len,
+                              __global float *plane, int ps, int across, int len, int transposed,
+                              int w)
 {
-    if (in_kind == IN_U8)
-        return qlut[k * lut_len + image[index]];
-    if (in_kind == IN_U16)
-        return qlut[k * lut_len + ((__global const ushort *)image)[index]];
-    return convert_long_rte(((__global const float *)image)[index] * scale);
+    int x = get_global_id(0), k = get_global_id(1);
+    if (x >= ps || k >= len) return;
+    int a = min(x, across - 1);
+    size_t pix = transposed ? (size_t)a * w + k : (size_t)k * w + a;
+    size_t base = pix * channels + cbase;
+    float4 e = (float4)(0.0f);
+    e.x = linear_channel(image, in_kind, base, 0, lut, lut_len);
+    if (cg > 1) e.y = linear_channel(image, in_kind, base + 1, 1, lut, lut_len);
+    if (cg > 2) e.z = linear_channel(image, in_kind, base + 2, 2, lut, lut_len);
+    if (cg > 3) e.w = linear_channel(image, in_kind, base + 3, 3, lut, lut_len);
+    vstore4(e, (size_t)k * ps + x, plane);
 }
 
-static long4 fixed_exposure(__global const uchar *image, int in_kind, size_t pix, int channels,
-                            int cbase, int cg, __global const long *qlut, int lut_len,
-                            float scale)
+/* Fixed-point image of LANES pixels (4 channels each): exact integers, so running sums
+ * neither drift nor depend on where a line (or a tile) starts. */
+static long16 fixed_lo(__global const float *plane, size_t at, float scale)
 {
-    size_t base = pix * (size_t)channels + (size_t)cbase;
-    long4 q = (long4)(0);
-    q.x = fixed_channel(image, in_kind, base, 0, qlut, lut_len, scale);
-    if (cg > 1) q.y = fixed_channel(image, in_kind, base + 1, 1, qlut, lut_len, scale);
-    if (cg > 2) q.z = fixed_channel(image, in_kind, base + 2, 2, qlut, lut_len, scale);
-    if (cg > 3) q.w = fixed_channel(image, in_kind, base + 3, 3, qlut, lut_len, scale);
-    return q;
+    return convert_long16_rte(vload16(0, plane + 4 * at) * scale);
 }
 
-/* Box of taps d = lo..hi along one axis with equal weights, straight from the input image
- * (no linear intermediate), as a running sum: the cost per pixel does not grow with the box
- * length.  `axis` 0 slides along rows (one work-item per row), 1 along columns (one
- * work-item per column).  `scale` is the fixed-point unit: mean = sum / (count * scale). */
-__kernel void integrate_box(__global const uchar *image, int in_kind, __global const long *qlut,
-                            int lut_len, float scale, int axis, int lo, int hi,
-                            int w, int h, int r0, int c0, int fw, int fh,
+static long16 fixed_hi(__global const float *plane, size_t at, float scale)
+{
+    return convert_long16_rte(vload16(0, plane + 4 * (at + 4)) * scale);
+}
+
+#define BOX_STORE(L, S)                                                                   \
+    if (x0 + L < across)                                                                   \
+        store_pixel(S, out, out_kind,                                                      \
+                    transposed ? (size_t)(x0 + L) * w + k : (size_t)k * w + x0 + L,         \
+                    channels, cbase, cg, resp, tables, thresholds, buckets);
+
+/* Box of taps d = lo..hi along plane index k with equal weights, as running sums: the cost
+ * per pixel does not grow with the box length.  LANES neighbouring lines run as vector lanes.
+ * Taps clamp to the window (which lies inside the image: the same as clamping to the image
+ * and then to the window).  mean = sum / (count * scale). */
+__kernel void integrate_box(__global const float *plane, int ps, int across, int len,
+                            int transposed, int lo, int hi, float scale, int w,
                             __constant const float *resp, __global const float *tables,
                             __global const float *thresholds, __global const int *buckets,
                             __global uchar *out, int out_kind, int channels, int cbase, int cg)
 {
-    int line = get_global_id(0);
-    int len = axis == 0 ? w : h;            /* pixels along the line in the window */
-    if (line >= (axis == 0 ? h : w)) return;
-    int stride = axis == 0 ? 1 : w;          /* window index step along the line */
-    int first = axis == 0 ? line * w : line; /* window index of the line's first pixel */
-    int org = axis == 0 ? c0 : r0;           /* full-image coordinate of that pixel */
-    int full = axis == 0 ? fw : fh;
-    int count = hi - lo + 1;
-    float norm = 1.0f / ((float)count * scale);
-#define SRC(p) (size_t)(first + clamp(clamp((p), 0, full - 1) - org, 0, len - 1) * stride)
-#define VALUE(p) fixed_exposure(image, in_kind, SRC(p), channels, cbase, cg, qlut, lut_len, scale)
-    long4 sum = (long4)(0);
-    for (int d = lo; d <= hi; ++d)
-        sum += VALUE(org + d);
-    for (int k = 0; k < len; ++k) {
-        int p = org + k;
-        float4 mean = convert_float4(sum) * norm;
-        store_pixel(mean, out, out_kind, (size_t)(first + k * stride), channels, cbase, cg,
-                    resp, tables, thresholds, buckets);
-        sum += VALUE(p + hi + 1) - VALUE(p + lo);
+    int x0 = get_global_id(0) * LANES;
+    if (x0 >= across) return;
+    float norm = 1.0f / ((float)(hi - lo + 1) * scale);
+    long16 sum_lo = (long16)(0), sum_hi = (long16)(0);
+    for (int d = lo; d <= hi; ++d) {
+        size_t at = (size_t)clamp(d, 0, len - 1) * ps + x0;
+        sum_lo += fixed_lo(plane, at, scale);
+        sum_hi += fixed_hi(plane, at, scale);
     }
-#undef VALUE
-#undef SRC
+    for (int k = 0; k < len; ++k) {
+        float16 m_lo = convert_float16(sum_lo) * norm, m_hi = convert_float16(sum_hi) * norm;
+        BOX_STORE(0, m_lo.s0123) BOX_STORE(1, m_lo.s4567)
+        BOX_STORE(2, m_lo.s89ab) BOX_STORE(3, m_lo.scdef)
+        BOX_STORE(4, m_hi.s0123) BOX_STORE(5, m_hi.s4567)
+        BOX_STORE(6, m_hi.s89ab) BOX_STORE(7, m_hi.scdef)
+        size_t enter = (size_t)clamp(k + hi + 1, 0, len - 1) * ps + x0;
+        size_t leave = (size_t)clamp(k + lo, 0, len - 1) * ps + x0;
+        sum_lo += fixed_lo(plane, enter, scale) - fixed_lo(plane, leave, scale);
+        sum_hi += fixed_hi(plane, enter, scale) - fixed_hi(plane, leave, scale);
+    }
 }

@@ -131,6 +131,26 @@ static void store_pixel(float4 acc, __global uchar *out, int out_kind, size_t pi
                         __global const int *buckets)
 {
     size_t base = pixel * (size_t)channels + (size_t)cbase;
+    if (out_kind == OUT_U8 && buckets[2] > 0) {
+        /* quantise_by_buckets for the four channels at once (the host pads the threshold
+         * and bucket tables to four channels, so no lane reads out of range) */
+        int nb = buckets[2];
+        float4 e = select((float4)(0.0f), acc, acc > 0.0f);
+        int4 b = clamp((as_int4(e) >> buckets[0]) - buckets[1], 0, nb - 1);
+        __global const int *counts = buckets + 4;
+        int4 q = (int4)(counts[b.x], counts[nb + b.y], counts[2 * nb + b.z],
+                        counts[3 * nb + b.w]);
+        for (int s = 0; s < buckets[3]; ++s) {
+            float4 t = (float4)(thresholds[q.x], thresholds[256 + q.y], thresholds[512 + q.z],
+                                thresholds[768 + q.w]);
+            q -= t < e;  /* a true vector comparison is -1 */
+        }
+        out[base] = (uchar)q.x;
+        if (cg > 1) out[base + 1] = (uchar)q.y;
+        if (cg > 2) out[base + 2] = (uchar)q.z;
+        if (cg > 3) out[base + 3] = (uchar)q.w;
+        return;
+    }
     store_channel(acc.x, out, out_kind, base, 0, resp, tables, thresholds, buckets);
     if (cg > 1) store_channel(acc.y, out, out_kind, base + 1, 1, resp, tables, thresholds, buckets);
     if (cg > 2) store_channel(acc.z, out, out_kind, base + 2, 2, resp, tables, thresholds, buckets);
