@@ -235,13 +235,24 @@ def usable(device: str | None = None) -> tuple[bool, str]:
     return answer
 
 
+def _device_type(bits: int) -> str:
+    cl = _cl()
+    names = [name for name in ("GPU", "CPU", "ACCELERATOR", "CUSTOM")
+             if bits & getattr(cl.device_type, name)]
+    return " | ".join(names) or str(bits)
+
+
 def devices() -> list[dict]:
     """Every OpenCL device with its properties and whether it builds and runs a kernel."""
     cl = _cl()
     rows = []
-    for pi, di, platform, dev in _enumerate():
+    try:
+        found = _enumerate()
+    except OpenCLUnavailable:
+        return rows
+    for pi, di, platform, dev in found:
         row = {"index": f"{pi}:{di}", "platform": platform.name.strip(),
-               "device": dev.name.strip(), "type": cl.device_type.to_string(dev.type),
+               "device": dev.name.strip(), "type": _device_type(dev.type),
                "version": dev.version.strip(), "fp64": bool(dev.double_fp_config)}
         try:
             ctx = cl.Context([dev])

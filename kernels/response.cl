@@ -47,7 +47,8 @@ static float forward_response(float x, __constant const float *resp, __global co
         return powr(fmax(x, 0.0f), p);
     case KIND_SRGB: {
         float xc = fmax(x, 0.0f);
-        return xc <= 0.0031308f ? 12.92f * xc : 1.055f * powr(xc, 1.0f / 2.4f) - 0.055f;
+        /* knee at the exact image of the value knee 0.04045, as clblur.responses.SRGB */
+        return xc <= 0.04045f / 12.92f ? 12.92f * xc : 1.055f * powr(xc, 1.0f / 2.4f) - 0.055f;
     }
     case KIND_TABLE: {
         int off = (int)resp[2], n = (int)resp[3];
