@@ -157,7 +157,7 @@ def random_scene(rng: np.random.Generator, shape: tuple[int, int] = (48, 64),
     for _ in range(int(rng.integers(6, 11))):
         level = rng.uniform(0.0, 1.0, size=channels)
         y0, x0 = rng.uniform(0, h), rng.uniform(0, w)
-        ry, rx = rng.uniform(3, h / 3), rng.uniform(3, w / 3)
+        ry, rx = rng.uniform(2, max(3, h / 3)), rng.uniform(2, max(3, w / 3))
         if rng.random() < 0.5:
             mask = (np.abs(yy - y0) < ry) & (np.abs(xx - x0) < rx)
         else:
@@ -170,4 +170,4 @@ def random_scene(rng: np.random.Generator, shape: tuple[int, int] = (48, 64),
         y0, x0 = rng.uniform(0.2 * h, 0.8 * h), rng.uniform(0.2 * w, 0.8 * w)
         r = rng.uniform(1.5, 3.5)
         img[(yy - y0) ** 2 + (xx - x0) ** 2 < r * r] = high * highlight_gain
-    return img if channels > 1 else img
+    return img

@@ -7,7 +7,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from clblur.io import atomic_write_text, read_flow, read_image, read_psf
+from clblur.io import atomic_write_text, read_flow, read_image, read_psf, refuse_overwrite
 from clblur.manifest import Manifest, load_manifest
 from clblur.study.model import Group
 from clblur.study.pairs import pair_group
@@ -77,6 +77,12 @@ def study(manifest: str | os.PathLike | Manifest, *, report: str | os.PathLike |
     m = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)
     if not isinstance(max_pixels, int) or max_pixels < 1000:
         raise ValueError(f"max_pixels must be an integer >= 1000, got {max_pixels!r}")
+    inputs = [m.path] + [e.path for e in m.images] + [
+        q for p in m.pairs for q in (p.static, p.blurred, p.flow, p.psf)] + [
+        q for s in m.stacks for q in (*s.frames, s.long)]
+    if report is not None:  # refuse before the work, not after
+        refuse_overwrite(report, *inputs)
+        refuse_overwrite(Path(report).with_suffix(".md"), *inputs)
     groups = groups_from_manifest(m, max_pixels, progress)
     result = study_groups(m.kind, groups, alpha=alpha, progress=progress)
     names = []
@@ -85,14 +91,8 @@ def study(manifest: str | os.PathLike | Manifest, *, report: str | os.PathLike |
                  figures(result.selection, groups, Path(figures_dir))]
     if report is not None:
         report = Path(report)
-        inputs = [m.path] + [p for e in m.images for p in [e.path]] + [
-            q for p in m.pairs for q in (p.static, p.blurred, p.flow, p.psf)] + [
-            q for s in m.stacks for q in (*s.frames, s.long)]
-        from clblur.io import refuse_overwrite
-
-        refuse_overwrite(report, *inputs)
         atomic_write_text(report, json.dumps(result.report, indent=1) + "\n")
-        md = report.with_suffix(".md")
-        refuse_overwrite(md, *inputs)
-        atomic_write_text(md, markdown(result.report, f"Study of {m.path.name}", names))
+        links = [os.path.relpath(n, report.parent) for n in names]  # relative to the .md
+        atomic_write_text(report.with_suffix(".md"),
+                          markdown(result.report, f"Study of {m.path.name}", links))
     return result

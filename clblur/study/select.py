@@ -6,8 +6,11 @@ Conventions
   checkerboard.  A model is fitted (maximum likelihood, ``model.pixel_nll``) on one fold and
   scored on the other, both ways round, so every block is scored by parameters that never saw
   it (cross-fitting).
-* Test of effect ``e`` given the current model ``S``: ``d_b`` = held-out NLL of block ``b``
-  under ``S`` minus under ``S + e``.  The statistic is the one-sided t statistic of the mean
+* Test of effect ``e`` given the current model ``S``: ``d_b`` = held-out improvement of
+  block ``b`` from ``S`` to ``S + e``: for ``noise`` the drop of the negative log-likelihood;
+  for the systematic effects (which change the prediction) half the drop of the squared
+  residuals weighted by the variance of ``S``, so a mere re-shaping of the variance cannot
+  pass for a better prediction.  The statistic is the one-sided t statistic of the mean
   of ``d_b`` over blocks (blocks are nearly independent even when pixels inside one are not);
   the p-value is Student's t with ``B - 1`` degrees of freedom.  Blocks where the extension
   leaves every prediction unchanged (e.g. no clipped source pixel on any path, for
@@ -15,9 +18,11 @@ Conventions
   noise lose held-out likelihood on average, so under the null the test is conservative.
 * Significance: ``p < alpha / m`` (Bonferroni over the ``m`` effects tested in a round), so
   null data give no finding at all with probability >= 1 - alpha.
-* Forward selection: the most significant effect joins the model, the rest are re-tested
-  against the enlarged model, until none is significant.  Findings are ranked by the order
-  they joined, then by statistic.
+* Forward selection: of the significant effects, the one with the largest held-out gain
+  joins the model, the rest are re-tested against the enlarged model, until none is
+  significant.  Systematic effects are tested with the noise model free in both fits (a
+  nuisance); ``noise`` itself is tested only when no systematic effect is significant.
+  Findings are ranked by the order they joined, then by statistic.
 """
 
 from __future__ import annotations
@@ -101,6 +106,19 @@ class _Folds:
                                    for f in (0, 1)]
         return self.cache[effects]
 
+    def block_fit_gain(self, base: list[dict], ext: list[dict]) -> np.ndarray:
+        """Held-out drop of squared residuals per block, weighted by the base model's
+        variance: how much better ``ext`` predicts the mean, noise model held fixed."""
+        out = np.zeros(self.nblocks)
+        for f in (0, 1):
+            for g in self.part[f]:
+                pb, var = predict(g, base[1 - f])
+                pe, _ = predict(g, ext[1 - f])
+                gain = ((g.target - pb) ** 2 - (g.target - pe) ** 2) / var
+                out += np.bincount(g.block, weights=np.where(g.valid, gain, 0.0).sum(axis=1),
+                                   minlength=self.nblocks)
+        return 0.5 * out  # in nats, like the likelihood: -log L has r^2 / (2 var)
+
     def block_nll(self, params: list[dict]) -> np.ndarray:
         """Held-out NLL per block: fold f scored with the parameters fitted on the other."""
         out = np.zeros(self.nblocks)
@@ -132,7 +150,7 @@ def fit(groups: list[Group], free: list[str], start: dict, nvalid: int) -> dict:
 
         z0 = np.clip((np.array([s0[n] for n in names]) - lo) / (hi - lo), 0.0, 1.0)
         res = optimize.minimize(objective, z0, method="L-BFGS-B", bounds=[(0, 1)] * len(z0),
-                                options={"maxiter": 300})
+                                options={"maxiter": 300, "ftol": 1e-8, "gtol": 1e-6})
         if res.fun < best_val:
             best_val = res.fun
             best = dict(s0)
@@ -164,39 +182,53 @@ def select(groups: list[Group], alpha: float = 0.05, progress=None) -> Selection
     candidates = [e for e in EFFECTS if e not in skip]
     current: frozenset = frozenset()
     null = null_params()
-    cur_params = folds.fit(current, [null, null], channels)
     findings: dict[str, Finding] = {}
     order: list[str] = []
     nvalid = sum(folds.nvalid)
     rnd = 0
+
+    def test(model: frozenset, effect: str, start: list[dict]):
+        if progress is not None:
+            progress.set_postfix_str(f"round {rnd}: {effect}")
+        p_base = folds.fit(model, start, channels)
+        p_e = folds.fit(model | {effect}, p_base, channels)
+        if effect == "noise":
+            d = folds.block_nll(p_base) - folds.block_nll(p_e)
+        else:
+            d = folds.block_fit_gain(p_base, p_e)
+        d = d[used]
+        d = d[np.abs(d) > 1e-9]  # blocks the effect cannot reach carry no evidence
+        t, pv = t_test(d)
+        gain = float(d.sum()) / max(nvalid, 1)
+        est = readable_estimate(effect, _average(p_e), channels)
+        findings[effect] = Finding(effect, False, t, pv, est, explain(effect, est, False, gain),
+                                   gain, rnd)
+        if progress is not None:
+            progress.update(1)
+        return effect, pv, gain, p_e
+
+    cur_params = folds.fit(current, [null, null], channels)
     while candidates:
         rnd += 1
-        base = folds.block_nll(cur_params)
-        tested = []
-        for e in candidates:
-            if progress is not None:
-                progress.set_postfix_str(f"round {rnd}: {e}")
-            p_e = folds.fit(current | {e}, cur_params, channels)
-            d = (base - folds.block_nll(p_e))[used]
-            d = d[np.abs(d) > 1e-9]  # blocks the effect cannot reach carry no evidence
-            t, pv = t_test(d)
-            tested.append((e, t, pv, p_e, float(d.sum()) / max(nvalid, 1)))
-            if progress is not None:
-                progress.update(1)
         level = alpha / len(candidates)
-        for e, t, pv, p_e, gain in tested:
-            est = readable_estimate(e, _average(p_e), channels)
-            findings[e] = Finding(e, False, t, pv, est, explain(e, est, False, gain), gain, rnd)
-        winners = [r for r in tested if r[2] < level]
+        # Systematic effects compete with the noise model free in both fits (a nuisance), so
+        # extra variance cannot masquerade as a better mean and vice versa; noise is judged
+        # on its own only when no systematic effect is left to add.
+        nuisance = frozenset({"noise"}) if "noise" in candidates else frozenset()
+        tested = [test(current | nuisance, e, [cur_params[0], cur_params[1]])
+                  for e in candidates if e != "noise"]
+        winners = [r for r in tested if r[1] < level]
+        if not winners and "noise" in candidates:
+            winners = [r for r in [test(current, "noise", cur_params)] if r[1] < level]
         if not winners:
             break
         # strongest = largest held-out likelihood gain among the significant effects
-        e, t, pv, p_e, gain = max(winners, key=lambda r: r[4])
+        e, pv, gain, _ = max(winners, key=lambda r: r[2])
         findings[e].significant = True
         findings[e].explanation = explain(e, findings[e].estimate, True, gain)
         order.append(e)
         current = current | {e}
-        cur_params = p_e
+        cur_params = folds.fit(current, cur_params, channels)
         candidates.remove(e)
     ranked = [findings[e] for e in order] + sorted(
         (f for e, f in findings.items() if e not in order), key=lambda f: -f.statistic)

@@ -92,13 +92,15 @@ def scenario(effects: dict[str, float | None], rng: np.random.Generator,
 def null_stack(rng: np.random.Generator, shape=(48, 64), frames: int = 6,
                gamma: float | None = None) -> Scenario:
     """A frame stack of a moving scene: ``frames`` short captures and the long one spanning
-    them, rendered as the exact temporal Eq. 8 (``gamma``: a power-law camera instead)."""
+    them, rendered as the exact temporal Eq. 8 (``gamma``: a power-law camera instead).
+
+    The long capture's total exposure equals the frames' mean exposure (as when frames are
+    averaged into a longer exposure, or the long one is taken through an ND filter)."""
     camera = Camera(response=Gamma(gamma) if gamma else Exp(3.0))
     scene = random_scene(rng, (shape[0], shape[1] + 3 * frames), 3, low=0.03, high=0.35)
     shots = [scene[:, 3 * t:3 * t + shape[1]] for t in range(frames)]
-    short = [camera.capture(s, 1.0 / frames, rng=rng) for s in shots]
-    exposure = sum(s / frames for s in shots)
-    long = camera.capture(exposure, 1.0, rng=rng)
+    short = [camera.capture(s, rng=rng) for s in shots]
+    long = camera.capture(sum(shots) / frames, rng=rng)
     truth = {"response_shape": gamma} if gamma else {}
     return Scenario("frame-stack", [stack_group(short, long)], truth)
 
