@@ -88,11 +88,13 @@ def run(args) -> int:
                                      seed=args.seed, progress=not args.quiet)
     best = min(names, key=lambda n: float(np.nanmean(list(evaluations[n]["rmse"].values()))))
     gaps = list(evaluations[best]["rmse"])
-    print("model          " + "  ".join(f"{g:>5}-stop" for g in gaps) + "        AIC")
+    print("held-out RMSE (code values), target darker / brighter / both; AIC")
+    print("model         " + "".join(f"{str(g) + '-stop':>22}" for g in gaps) + "         AIC")
     for n in names:
         e = evaluations[n]
-        print(f"{n:<14} " + "  ".join(f"{e['rmse'][g]:10.2f}" for g in gaps)
-              + f"  {e['aic']:10.0f}" + ("   <- best" if n == best else ""))
+        cells = "".join(f"{e['rmse_darker'][g]:8.2f}{e['rmse_brighter'][g]:7.2f}"
+                        f"{e['rmse'][g]:7.2f}" for g in gaps)
+        print(f"{n:<14}{cells}  {e['aic']:10.0f}" + ("   <- best" if n == best else ""))
     chosen = fits[best]
     if args.shared or len(chosen.responses) == 1:
         chosen.responses[0].save(args.output)

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clblur.calibration.fitting import ResponseFit, fit_radiances
+from clblur.calibration.fitting import LIKELIHOOD_LOW, ResponseFit, fit_radiances
 from clblur.calibration.series import ExposureSeries
 from clblur.io import atomic_write, atomic_write_text
 
@@ -121,8 +121,10 @@ def figure_residuals(series: ExposureSeries, fits: dict[str, ResponseFit], path:
     for ax in axes.ravel()[n:]:
         ax.axis("off")
     for ax, (name, f) in zip(axes.ravel(), fits.items(), strict=False):
+        # the values every model's likelihood is computed on (see fitting.LIKELIHOOD_LOW)
+        common = f.sampling.with_range(max(LIKELIHOOD_LOW, f.sampling.low), f.sampling.high)
         for c in range(series.channels):
-            s = f.sampling.per_channel[c]
+            s = common.per_channel[c]
             resp = f.responses[c]
             log_e = fit_radiances(resp, s, tau)
             pred = resp.forward(np.exp(log_e)[:, None] * tau[None, :])
@@ -146,11 +148,14 @@ def figure_residuals(series: ExposureSeries, fits: dict[str, ResponseFit], path:
 
 
 def comparison_table(evaluations: dict[str, dict], gaps) -> str:
-    head = ["model"] + [f"{g}-stop RMSE" for g in gaps] + \
-        [f"{g}-stop R/G/B" for g in gaps] + ["fit RMSE", "params", "AIC", "BIC"]
+    head = ["model"] + [f"{g}-stop both" for g in gaps] + [f"{g}-stop darker" for g in gaps] \
+        + [f"{g}-stop brighter" for g in gaps] + [f"{g}-stop R/G/B" for g in gaps] \
+        + ["fit RMSE", "params", "AIC", "BIC"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, e in evaluations.items():
         cells = [name] + [f"{e['rmse'][g]:.2f}" for g in gaps]
+        cells += [f"{e['rmse_darker'][g]:.2f}" for g in gaps]
+        cells += [f"{e['rmse_brighter'][g]:.2f}" for g in gaps]
         cells += [" / ".join(f"{v:.2f}" for v in e["rmse_per_channel"][g]) for g in gaps]
         cells += [f"{e['rmse_fit']:.2f}", str(e["n_params"]), f"{e['aic']:.0f}",
                   f"{e['bic']:.0f}"]
@@ -184,11 +189,14 @@ def write_report(folder: str | Path, series: ExposureSeries, fits: dict[str, Res
     if evaluations:
         lines += ["## Held-out prediction (code values) and information criteria", "",
                   comparison_table(evaluations, gaps), "",
-                  "RMSE: predicting each image from the images 1 and 4 stops away through "
-                  "the model fitted without it; pixels outside every sampled patch, valid "
-                  "in both images and flat in their 3 x 3 neighbourhood.  AIC/BIC: forward "
-                  "residuals of the fitted samples (Gaussian noise), see "
-                  "`clblur.calibration.fitting`.", ""]
+                  "RMSE in code values: predicting each image from the images 1 and 4 "
+                  "stops away through the model fitted without it (leave-one-exposure-out "
+                  "unless `--no-refit`); pixels outside every sampled patch, valid in both "
+                  "images and flat in their 3 x 3 neighbourhood (`clblur.calibration."
+                  "evaluate`).  *darker*: the target is the shorter exposure; *brighter*: "
+                  "the longer; *both*: pooled.  AIC/BIC: forward residuals of the sampled "
+                  "patches with values in [0.1, 0.98] of full scale, the same for every "
+                  "model (Gaussian noise; see `clblur.calibration.fitting`).", ""]
     lines += ["## Figures", "",
               "![values vs time](fig1_values_vs_time.png)", "",
               "![normalised curves](fig2_normalised_curves.png)", "",
