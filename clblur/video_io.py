@@ -2,9 +2,10 @@
 
 Conventions
 -----------
-* Frames are H x W x 3 RGB arrays.  Video files decode to uint8 (``rgb24``); image folders keep
-  the dtype of their files (uint8, uint16, float32 TIFF), and an image-folder output keeps it
-  too (PNG, or TIFF for floats).  Encoding to video converts to 8 bits.
+* Frames are H x W x 3 RGB arrays (H x W for grey image files).  Video files decode to uint8
+  (``rgb24``); image folders keep the dtype and layout of their files (uint8, uint16, float32
+  TIFF; alpha is dropped), and an image-folder output keeps them too (PNG, or TIFF for
+  floats).  Encoding to video converts to 8-bit RGB.
 * A path is an image sequence when it is a folder (or, for output, has no suffix or ends with
   a path separator); otherwise it is a video file and its suffix picks the container.
 * Audio is copied packet for packet (no re-encoding), so the output container must accept the
@@ -313,6 +314,8 @@ def _pixel_format(codec: str, width: int, height: int) -> str:
 
 
 def _to_rgb24(image: np.ndarray) -> np.ndarray:
+    if image.ndim == 2:  # grey image sequences
+        image = np.repeat(image[..., None], 3, axis=2)
     if image.dtype == np.uint8:
         return np.ascontiguousarray(image)
     if image.dtype == np.uint16:  # 16-bit image sequences into an 8-bit codec

@@ -469,6 +469,16 @@ def uniform_flow_like(image: np.ndarray, dx: float, dy: float) -> np.ndarray:
     return f
 
 
+def test_grey_sequence_to_folder_and_video(tmp_path):
+    (tmp_path / "in").mkdir()
+    for i, f in enumerate(moving_frames(2)):
+        write_image(tmp_path / "in" / f"{i}.png", np.ascontiguousarray(f[..., 1]))
+    blur_video(tmp_path / "in", tmp_path / "out", backend="numpy")
+    assert read_image(tmp_path / "out" / "1.png").shape == (H, W)
+    blur_video(tmp_path / "in", tmp_path / "v.mp4", backend="numpy")
+    assert probe(tmp_path / "v.mp4")["frames"][0].shape == (H, W, 3)
+
+
 def test_float_tiff_sequence_round_trip(tmp_path):
     (tmp_path / "in").mkdir()
     for i, f in enumerate(moving_frames(2)):
