@@ -125,6 +125,7 @@ class VideoFileSource:
             self.container.close()
             raise VideoReadError(f"{path}: the video stream declares no frame rate")
         self.fps = Fraction(rate)
+        self.declared_end: float | None = None  # set from a Matroska duration tag
         self.declared_frames = self._declared_frames()
 
     def _declared_end(self) -> float | None:
@@ -151,8 +152,6 @@ class VideoFileSource:
         start = self.video_stream.start_time
         start = float(start * self.video_stream.time_base) if start else 0.0
         return max(1, int(round((self.declared_end - start) * float(self.fps))))
-
-    declared_end: float | None = None
 
     def frames(self, on_audio: Callable | None = None) -> Iterator[Frame]:
         """Decode the video; audio packets go to ``on_audio`` as they are demuxed."""
