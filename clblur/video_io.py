@@ -15,7 +15,8 @@ Conventions
   A stream that ends early without a decoder error (a cut-off file) is detected by comparing the
   decoded frames with the frame count or the duration the file declares for the video stream
   (MP4 and MOV store a count, Matroska a duration).  Formats that declare neither (raw streams,
-  some AVI) can only report decoder errors.
+  some AVI) can only report decoder errors.  An MP4 whose edit list hides frames would decode
+  fewer frames than it declares and be reported as truncated (not seen in testing).
 """
 
 from __future__ import annotations
