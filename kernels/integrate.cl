@@ -91,19 +91,22 @@ static int8 floor_int8(float8 v)
     return t + (convert_float8(t) > v);
 }
 
-/* One lane of the field kernel: bilinear sample at window pixel base + (fx, fy) from the
- * padded intermediate, accumulated when tap j is among the lane's n taps. */
+/* One lane of the field kernel: the two horizontal neighbours of the upper and the lower row
+ * (one 8-value load each) times their bilinear weights, which already hold the tap weight
+ * (0 once the lane's N taps are done: adding fma(0, v, acc) leaves acc exactly as it is).
+ * wt/wb select (w00 x4, w01 x4) and (w10 x4, w11 x4) for the lane from the weight vectors. */
 #define FIELD_LANE(L)                                                                  \
-    if (j < n.s##L) {                                                                  \
-        float8 top = LOAD8(base.s##L), bottom = LOAD8(base.s##L + ws);                 \
-        float8 col = fma(bottom - top, (float8)(fy.s##L), top);                        \
-        float4 v = fma(col.hi - col.lo, (float4)(fx.s##L), col.lo);                   \
-        acc##L = fma((float4)(wj), v, acc##L);                                         \
+    {                                                                                  \
+        acc##L = fma(LOAD8(base.s##L), shuffle(w_top, (uint8)(L, L, L, L, L + 8, L + 8, \
+                     L + 8, L + 8)), acc##L);                                          \
+        acc##L = fma(LOAD8(base.s##L + ws), shuffle(w_bottom, (uint8)(L, L, L, L,       \
+                     L + 8, L + 8, L + 8, L + 8)), acc##L);                            \
     }
 
 #define FIELD_STORE(L)                                                                 \
     if (col0 + L < w)                                                                  \
-        store_pixel(weighted ? acc##L : acc##L / (float)n.s##L, out, out_kind,          \
+        store_pixel(weighted ? acc##L.lo + acc##L.hi                                   \
+                             : (acc##L.lo + acc##L.hi) / (float)n.s##L, out, out_kind, \
                     (size_t)row * w + col0 + L, channels, cbase, cg, resp, tables,     \
                     thresholds, buckets);
 
@@ -149,8 +152,8 @@ __kernel void integrate_field(__global const STORE_T *lin, __global const float 
     float8 sx = vload8(0, vxs) / den, sy = vload8(0, vys) / den;
     float8 a_n1 = anchor * n1;
     int8 px = (int8)(col0) + (int8)(0, 1, 2, 3, 4, 5, 6, 7);
-    float4 acc0 = 0.0f, acc1 = 0.0f, acc2 = 0.0f, acc3 = 0.0f;
-    float4 acc4 = 0.0f, acc5 = 0.0f, acc6 = 0.0f, acc7 = 0.0f;
+    float8 acc0 = 0.0f, acc1 = 0.0f, acc2 = 0.0f, acc3 = 0.0f;  /* (left, right) sums */
+    float8 acc4 = 0.0f, acc5 = 0.0f, acc6 = 0.0f, acc7 = 0.0f;
     for (int j = 0; j < nmax; ++j) {
         float8 t = (float8)((float)j) - a_n1;
         float8 ox = -(sx * t), oy = -(sy * t);
@@ -162,7 +165,11 @@ __kernel void integrate_field(__global const STORE_T *lin, __global const float 
         fx = select(fx, (float8)(0.0f), xi < 0);
         fy = select(fy, (float8)(0.0f), yi < 0);
         int8 base = clamp(yi, 0, h - 1) * ws + clamp(xi, 0, w - 1);
-        float wj = weighted ? time_w[j] : 1.0f;  /* fma(1, v, acc) == acc + v exactly */
+        float8 wj = select((float8)(0.0f), (float8)(weighted ? time_w[j] : 1.0f),
+                           (int8)(j) < n);
+        float8 upper = (1.0f - fy) * wj, lower = fy * wj;
+        float16 w_top = (float16)((1.0f - fx) * upper, fx * upper);
+        float16 w_bottom = (float16)((1.0f - fx) * lower, fx * lower);
         FIELD_LANE(0) FIELD_LANE(1) FIELD_LANE(2) FIELD_LANE(3)
         FIELD_LANE(4) FIELD_LANE(5) FIELD_LANE(6) FIELD_LANE(7)
     }
