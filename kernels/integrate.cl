@@ -122,7 +122,7 @@ __kernel void integrate_field(__global const STORE_T *lin, __global const float 
                               int w, int h, int r0, int c0, int fw, int fh,
                               __constant const float *resp, __global const float *tables,
                               __global const float *thresholds, __global const int *buckets,
-                              __global uchar *out, int out_kind, int channels, int cbase, int cg)
+                              __global uchar *restrict out, int out_kind, int channels, int cbase, int cg)
 {
     int row = get_global_id(1);
     int col0 = get_global_id(0) * LANES;
@@ -188,7 +188,7 @@ __kernel void integrate_taps(__global const STORE_T *lin, __global const int *ta
                              int w, int h, int r0, int c0, int fw, int fh,
                              __constant const float *resp, __global const float *tables,
                              __global const float *thresholds, __global const int *buckets,
-                             __global uchar *out, int out_kind, int channels, int cbase, int cg)
+                             __global uchar *restrict out, int out_kind, int channels, int cbase, int cg)
 {
     int row = get_global_id(1);
     int col0 = get_global_id(0) * LANES;
@@ -270,7 +270,7 @@ __kernel void integrate_box(__global const float *plane, int ps, int across, int
                             int transposed, int lo, int hi, float scale, int w,
                             __constant const float *resp, __global const float *tables,
                             __global const float *thresholds, __global const int *buckets,
-                            __global uchar *out, int out_kind, int channels, int cbase, int cg)
+                            __global uchar *restrict out, int out_kind, int channels, int cbase, int cg)
 {
     int x0 = get_global_id(0) * LANES;
     if (x0 >= across) return;

@@ -106,7 +106,7 @@ static int quantise_by_buckets(float e, __global const float *thresholds,
 }
 
 /* Forward-map and quantise one channel's accumulated exposure into out[index]. */
-static void store_channel(float e, __global uchar *out, int out_kind, size_t index, int k,
+static void store_channel(float e, __global uchar *restrict out, int out_kind, size_t index, int k,
                           __constant const float *resp, __global const float *tables,
                           __global const float *thresholds, __global const int *buckets)
 {
@@ -126,7 +126,7 @@ static void store_channel(float e, __global uchar *out, int out_kind, size_t ind
  * floats per channel; buckets when the host built them, else binary search); float32
  * outputs evaluate the response.  Channels are spelled out (no private array), which keeps
  * them in registers. */
-static void store_pixel(float4 acc, __global uchar *out, int out_kind, size_t pixel,
+static void store_pixel(float4 acc, __global uchar *restrict out, int out_kind, size_t pixel,
                         int channels, int cbase, int cg, __constant const float *resp,
                         __global const float *tables, __global const float *thresholds,
                         __global const int *buckets)
