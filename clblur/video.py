@@ -45,6 +45,7 @@ from clblur.video_io import (
     open_sink,
     open_source,
 )
+from clblur.video_layers import layered_half
 
 # Chosen from docs/studies/video.md (GoPro 240 fps ground truth).
 DEFAULT_RESPONSE = "srgb"
@@ -94,9 +95,11 @@ def half_paths(backward: np.ndarray | None, forward: np.ndarray | None, shutter:
 def blur_frame(frame: np.ndarray, backward: np.ndarray | None, forward: np.ndarray | None,
                response=DEFAULT_RESPONSE, *, shutter: float = DEFAULT_SHUTTER,
                samples: int | None = None, backend: str = "auto", saturation: float = 1.0,
-               device: str | None = None) -> np.ndarray:
+               device: str | None = None, layers: bool = False) -> np.ndarray:
     """Blur one frame along the bent path given by its backward and forward flows.
 
+    ``layers``: let objects that move faster than their surroundings smear over them
+    (``clblur.video_layers``); without it every pixel gathers along its own vector only.
     Returns an array with the frame's dtype and shape (see the module Conventions).
     """
     img = check_image(frame)
@@ -111,8 +114,12 @@ def blur_frame(frame: np.ndarray, backward: np.ndarray | None, forward: np.ndarr
     # The halves are exposures, not pictures: blur them with the identity response on the
     # linearised frame, so nothing is quantised before they are summed.
     opts = dict(samples=samples, backend=backend, device=device)
-    e_first = blur(lin, first, "linear", anchor="end", **opts)
-    e_second = blur(lin, second, "linear", anchor="start", **opts)
+    if layers:
+        e_first = layered_half(lin, first, "end", **opts)
+        e_second = layered_half(lin, second, "start", **opts)
+    else:
+        e_first = blur(lin, first, "linear", anchor="end", **opts)
+        e_second = blur(lin, second, "linear", anchor="start", **opts)
     exposure = 0.5 * (e_first.astype(np.float64) + e_second)
     out = np.empty(exposure.shape, np.float64)
     for c, r in enumerate(responses):
@@ -159,7 +166,7 @@ def blur_video(src: str | os.PathLike, dst: str | os.PathLike, *,
                flow: str = "dis", samples: int | None = None, backend: str = "auto",
                saturation: float = 1.0, device: str | None = None, fps: float | None = None,
                codec: str | None = None, crf: int = DEFAULT_CRF,
-               save_flows_to: str | os.PathLike | None = None,
+               save_flows_to: str | os.PathLike | None = None, layers: bool = False,
                progress: bool = False) -> VideoResult:
     """Blur every frame of a video file or image folder ``src`` into ``dst``.
 
@@ -190,7 +197,8 @@ def blur_video(src: str | os.PathLike, dst: str | os.PathLike, *,
     def emit(frame: Frame, backward, forward) -> None:
         t0 = time.perf_counter()
         out = blur_frame(frame.image, backward, forward, response, shutter=shutter,
-                         samples=samples, backend=backend, saturation=saturation, device=device)
+                         samples=samples, backend=backend, saturation=saturation, device=device,
+                         layers=layers)
         t1 = time.perf_counter()
         sink.write(frame, out)
         timer["blur"] += t1 - t0
@@ -284,6 +292,10 @@ def register(subparsers) -> None:
                         "libvpx-vp9 for .webm)")
     p.add_argument("--crf", type=int, default=DEFAULT_CRF,
                    help=f"encoder quality, lower is better (default {DEFAULT_CRF})")
+    p.add_argument("--layers", action="store_true",
+                   help="let objects moving faster than their surroundings smear over them "
+                        "(two-layer exposure; slower); default: gather along each pixel's "
+                        "own vector")
     p.add_argument("--save-flows", default=None, metavar="DIR",
                    help="also write the flows used, in the --flow DIR layout")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -297,7 +309,7 @@ def cmd_video(args) -> int:
                         flow=args.flow, samples=args.samples, backend=args.backend,
                         saturation=args.saturation, device=args.device, fps=args.fps,
                         codec=args.codec, crf=args.crf, save_flows_to=args.save_flows,
-                        progress=not args.quiet)
+                        layers=args.layers, progress=not args.quiet)
     audio = {"copied": ", audio copied", "dropped": ", audio dropped (image sequence output)",
              "none": ""}[result.audio]
     print(f"wrote {result.frames} frame(s) at {float(result.fps):g} fps to {result.output}"
