@@ -7,8 +7,8 @@ What it does (every file under --workdir, deleted at the end unless --keep):
    needs little memory).  Flow: a smooth analytic field (swirl + shear),
    ``|v| <= --max-motion`` pixels, stored on disk and memory-mapped window by window.
 2. Blurs the BigTIFF into another BigTIFF with ``clblur.tiling.blur_file`` in a *child process*
-   and reports its wall time and peak resident memory (``ru_maxrss`` of that process, which
-   counts every mapped page it touched as well as the heap).
+   and reports its wall time, CPU time and peak resident memory (``VmHWM`` of that process,
+   which counts mapped file pages as well as the heap; Linux only).
 3. Blurs a smaller image of the same content (--small-width x --small-height) in memory with
    ``clblur.blur`` (child process, same backend) for the in-memory throughput, and checks that
    the tiled file path gives the bitwise identical result on it.
@@ -123,7 +123,11 @@ else:
     info = {"seconds": time.perf_counter() - t, "backend": resolve_backend(args["backend"])}
     info["cpu_seconds"] = cpu() - c
     tifffile.imwrite(args["dst"], out, photometric="rgb")
-info["peak_rss_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+# VmHWM: peak RSS of this process's own address space.  ru_maxrss is no good here: Linux
+# carries it over execve from the forked copy of the parent, so the child would report the
+# bench's own (input-generating) peak.
+hwm = [ln for ln in open("/proc/self/status") if ln.startswith("VmHWM:")]
+info["peak_rss_bytes"] = int(hwm[0].split()[1]) * 1024
 info["load_after"] = os.getloadavg()[0]
 print("RESULT " + json.dumps(info))
 """
@@ -258,9 +262,11 @@ def write_results(path: Path, rows: list[dict], args, argv) -> None:
         "",
         f"Content: procedural RGB uint8; motion: per-pixel float16 flow on disk (smooth swirl + "
         f"shear, |v| <= {args.max_motion:g} px, anchor center, default samples "
-        "ceil(|v|)+1).  Peak RSS is `ru_maxrss` of the child process that blurred, including "
-        "mapped file pages; times exclude generating the inputs, a warm-up blur that builds the "
-        "kernels, and, for the in-memory row, reading and writing the files.",
+        "ceil(|v|)+1).  Peak RSS is `VmHWM` (/proc/self/status) of the child process that "
+        "blurred, mapped file pages included (not `ru_maxrss`, which Linux carries over exec "
+        "from the forked parent, so a child would report the bench's own peak); times "
+        "exclude generating the inputs, a warm-up blur that builds the kernels, and, for the "
+        "in-memory row, reading and writing the files.",
         "",
         "Wall time depends on what else the shared CPUs run (1-minute load average after "
         "each run in the last column); CPU time (user + system, all threads) is the steadier "
