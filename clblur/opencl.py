@@ -35,8 +35,12 @@ from clblur.plan import BlurPlan
 
 ENV_DEVICE = "CLBLUR_DEVICE"
 LANES = 8  # consecutive pixels of a row per work-item, run as vector lanes (integrate.cl)
-GROUP_SIZE = 16  # work-items per work-group along x; fixed, so drivers that specialise code
-# per work-group size (PoCL) build each kernel once rather than once per image size
+# Work-items per work-group along x, fixed so that drivers which specialise code per
+# work-group size (PoCL) build each kernel once, not once per image size.  Image kernels use
+# wide groups (fewer scheduling rounds); the box kernel has one work-item per 8 lines, so it
+# uses small groups to keep both cores busy.
+GROUP_SIZE = 64
+BOX_GROUP_SIZE = 8
 KERNEL_FILES = ("response.cl", "integrate.cl")
 _OUT_KINDS = {np.dtype(np.uint8): 0, np.dtype(np.uint16): 1, np.dtype(np.float32): 2,
               np.dtype(np.float64): 2}  # float64 output: computed in float32, widened on host
@@ -271,9 +275,9 @@ def blur(plan: BlurPlan, device: str | None = None) -> np.ndarray:
         return _run(rt, plan)
 
 
-def _grid(*sizes: int) -> tuple[int, ...]:
+def _grid(*sizes: int, group: int = GROUP_SIZE) -> tuple[int, ...]:
     """Global size: the first dimension rounded up to whole work-groups (kernels bound-check)."""
-    first = -(-sizes[0] // GROUP_SIZE) * GROUP_SIZE
+    first = -(-sizes[0] // group) * group
     return (first, *sizes[1:])
 
 
@@ -355,8 +359,9 @@ def _integrator(rt: _Runtime, plan: BlurPlan, src: _Input):
                      np.int32(src.kind), np.int32(channels), np.int32(cbase), np.int32(cg),
                      rt.upload("lut", lut), np.int32(lut.shape[1]), plane, *shape_args,
                      np.int32(w))
-            kern(rt.queue, _grid(-(-across // LANES)), (GROUP_SIZE,), plane, *shape_args,
-                 np.int32(lo), np.int32(hi), scale, np.int32(w), *store_args)
+            kern(rt.queue, _grid(-(-across // LANES), group=BOX_GROUP_SIZE), (BOX_GROUP_SIZE,),
+                 plane, *shape_args, np.int32(lo), np.int32(hi), scale, np.int32(w),
+                 *store_args)
         return run_box
 
     half = prep.half_storage_ok(plan, src.luts)
@@ -367,7 +372,8 @@ def _integrator(rt: _Runtime, plan: BlurPlan, src: _Input):
     def to_linear(cbase, cg):
         lut = (src.luts[cbase:cbase + cg].astype(np.float32) if src.luts is not None
                else np.zeros((1, 1), np.float32))
-        linearise(rt.queue, _grid(w + 1, h + 1), (GROUP_SIZE, 1), src.buffer, np.int32(src.kind),
+        linearise(rt.queue, _grid(w + 1, h + 1), (GROUP_SIZE, 1), src.buffer,
+                  np.int32(src.kind),
                   np.int32(channels), np.int32(cbase), np.int32(cg), rt.upload("lut", lut),
                   np.int32(lut.shape[1]), lin_buf, np.int32(w), np.int32(h))
 
@@ -398,7 +404,8 @@ def _integrator(rt: _Runtime, plan: BlurPlan, src: _Input):
 
     def run_field(cbase, cg, store_args):
         to_linear(cbase, cg)
-        kern(rt.queue, items, (GROUP_SIZE, 1), lin_buf, flow_buf, counts_buf, np.int32(host_counts),
+        kern(rt.queue, items, (GROUP_SIZE, 1), lin_buf, flow_buf, counts_buf,
+             np.int32(host_counts),
              np.int32(plan.samples or 0), time_w_buf, np.int32(weighted),
              np.float32(plan.anchor), *geometry, *store_args)
     return run_field
