@@ -70,16 +70,17 @@ __kernel void linearise(__global const uchar *image, int in_kind, int channels, 
 }
 
 #ifdef HAVE_FP64
-/* clblur.motion.sample_counts: exact ceil(|v|) + 1 from float64 squares of the float32
- * vector, corrected with exact integer-square comparisons (contraction is off). */
-static int sample_count(float vx, float vy)
+/* clblur.motion.sample_counts for LANES vectors: exact ceil(|v|) + 1 from float64 squares of
+ * the float32 vector, corrected with exact integer-square comparisons (contraction is off;
+ * true vector compares are -1, hence the subtractions). */
+static int8 sample_counts8(float8 vx, float8 vy)
 {
-    double x = (double)vx, y = (double)vy;
-    double l2 = x * x + y * y;
-    double m = ceil(sqrt(l2));
-    if (m * m < l2) m += 1.0;
-    if (m > 0.0 && (m - 1.0) * (m - 1.0) >= l2) m -= 1.0;
-    return (int)m + 1;
+    double8 x = convert_double8(vx), y = convert_double8(vy);
+    double8 l2 = x * x + y * y;
+    double8 m = ceil(sqrt(l2));
+    m = select(m, m + 1.0, m * m < l2);
+    m = select(m, m - 1.0, m > 0.0 && (m - 1.0) * (m - 1.0) >= l2);
+    return convert_int8(m) + 1;
 }
 #endif
 
@@ -113,16 +114,18 @@ static int8 floor_int8(float8 v)
 /* Per-pixel motion field.  Sample j of pixel p lies at p + o, o = -(v / (N-1)) (j - a (N-1))
  * (the reference's p - v (j - a (N-1)) / (N-1), exact whenever the step v / (N-1) is an
  * integer).  o is split into integer and fraction before it meets p, so the fraction keeps
- * the precision of |o| rather than that of the pixel coordinate.  N is `fixed_n` when > 0,
- * else counts[i] when `host_counts`, else computed here.  LANES pixels per work-item run
- * as vector lanes; the tap loop runs to the largest N among them. */
+ * the precision of |o| rather than that of the pixel coordinate.  N is counts[i] when
+ * `host_counts` (devices without fp64), else `fixed_n` when > 0, else computed here.
+ * LANES pixels per work-item run as vector lanes; the tap loop runs to the largest N among
+ * them. */
 __kernel void integrate_field(__global const STORE_T *lin, __global const float *flow,
                               __global const int *counts, int host_counts, int fixed_n,
                               __global const float *time_w, int weighted, float anchor,
                               int w, int h, int r0, int c0, int fw, int fh,
                               __constant const float *resp, __global const float *tables,
                               __global const float *thresholds, __global const int *buckets,
-                              __global uchar *restrict out, int out_kind, int channels, int cbase, int cg)
+                              __global uchar *restrict out, int out_kind, int channels, int cbase,
+                              int cg)
 {
     int row = get_global_id(1);
     int col0 = get_global_id(0) * LANES;
@@ -130,26 +133,22 @@ __kernel void integrate_field(__global const STORE_T *lin, __global const float 
     int ws = w + 1;
     float vxs[LANES], vys[LANES];
     int ns[LANES];
-    int nmax = 0;
     for (int l = 0; l < LANES; ++l) {
         int i = row * w + min(col0 + l, w - 1);
         vxs[l] = flow[2 * i];
         vys[l] = flow[2 * i + 1];
-        int n = fixed_n;
-        if (n <= 0) {
-#ifdef HAVE_FP64
-            n = host_counts ? counts[i] : sample_count(vxs[l], vys[l]);
-#else
-            n = counts[i];
-#endif
-        }
-        ns[l] = n;
-        nmax = max(nmax, n);
+        ns[l] = host_counts ? counts[i] : fixed_n;
     }
+    float8 vx = vload8(0, vxs), vy = vload8(0, vys);
     int8 n = vload8(0, ns);
+#ifdef HAVE_FP64
+    if (fixed_n <= 0 && !host_counts)
+        n = sample_counts8(vx, vy);
+#endif
+    int nmax = max(max(max(n.s0, n.s1), max(n.s2, n.s3)), max(max(n.s4, n.s5), max(n.s6, n.s7)));
     float8 n1 = convert_float8(n - 1);
     float8 den = fmax(n1, 1.0f);
-    float8 sx = vload8(0, vxs) / den, sy = vload8(0, vys) / den;
+    float8 sx = vx / den, sy = vy / den;
     float8 a_n1 = anchor * n1;
     int8 px = (int8)(col0) + (int8)(0, 1, 2, 3, 4, 5, 6, 7);
     float8 acc0 = 0.0f, acc1 = 0.0f, acc2 = 0.0f, acc3 = 0.0f;  /* (left, right) sums */
@@ -188,7 +187,8 @@ __kernel void integrate_taps(__global const STORE_T *lin, __global const int *ta
                              int w, int h, int r0, int c0, int fw, int fh,
                              __constant const float *resp, __global const float *tables,
                              __global const float *thresholds, __global const int *buckets,
-                             __global uchar *restrict out, int out_kind, int channels, int cbase, int cg)
+                             __global uchar *restrict out, int out_kind, int channels, int cbase,
+                             int cg)
 {
     int row = get_global_id(1);
     int col0 = get_global_id(0) * LANES;
@@ -270,7 +270,8 @@ __kernel void integrate_box(__global const float *plane, int ps, int across, int
                             int transposed, int lo, int hi, float scale, int w,
                             __constant const float *resp, __global const float *tables,
                             __global const float *thresholds, __global const int *buckets,
-                            __global uchar *restrict out, int out_kind, int channels, int cbase, int cg)
+                            __global uchar *restrict out, int out_kind, int channels, int cbase,
+                            int cg)
 {
     int x0 = get_global_id(0) * LANES;
     if (x0 >= across) return;
