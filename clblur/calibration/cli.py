@@ -9,12 +9,14 @@ lowest mean held-out RMSE is written (one curve per channel unless ``--shared``)
 
 from __future__ import annotations
 
+import argparse
 import shlex
 import sys
 
 import numpy as np
 from tqdm import tqdm
 
+from clblur.calibration.evaluate import EVAL_LOW, FLAT_TOLERANCE
 from clblur.calibration.models import MODELS
 
 
@@ -48,10 +50,25 @@ def register(subparsers) -> None:
     p.add_argument("--no-refit", action="store_true",
                    help="evaluate the full fit instead of refitting without each target "
                         "exposure (faster, slightly optimistic)")
+    p.add_argument("--eval-low", type=float, default=EVAL_LOW, metavar="V",
+                   help="scored values must exceed V of full scale in both images "
+                        f"(default {EVAL_LOW})")
+    p.add_argument("--flat-tolerance", type=_tolerance, default=FLAT_TOLERANCE, metavar="V",
+                   help="scored pixels' 3x3 neighbourhood spans at most V of full scale in "
+                        f"both images; 'none' scores every pixel (default {FLAT_TOLERANCE})")
     p.add_argument("--eval-pixels", type=int, default=None, metavar="N",
                    help="score a random subset of N held-out pixels (default: all)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
+
+
+def _tolerance(text: str) -> float | None:
+    if text.lower() == "none":
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number or 'none', got {text!r}") from None
 
 
 def _models(args) -> list[str]:
@@ -85,6 +102,7 @@ def run(args) -> int:
                          refine_times=args.refine_times, progress=not args.quiet, **opts)
         evaluations[name] = evaluate(series, fits[name], gaps=args.gaps,
                                      refit=not args.no_refit, max_pixels=args.eval_pixels,
+                                     low=args.eval_low, flat_tolerance=args.flat_tolerance,
                                      seed=args.seed, progress=not args.quiet)
     best = min(names, key=lambda n: float(np.nanmean(list(evaluations[n]["rmse"].values()))))
     gaps = list(evaluations[best]["rmse"])
