@@ -234,6 +234,32 @@ def main(argv=None) -> int:
     return 0
 
 
+def targets(by_case: dict[str, dict[str, float]]) -> list[tuple[str, str, bool]]:
+    """The brief's performance targets, checked against this run."""
+    out = []
+    field = by_case.get("field", {})
+    ours = field.get("clblur OpenCL", 0.0)
+    out.append(("field >= 25 MP/s", f"{ours:.1f} MP/s", ours >= 25))
+    ref = next((v for k, v in field.items() if k.startswith("numpy")), None)
+    if ref:
+        out.append(("field >= 50x numpy reference", f"{ours / ref:.0f}x", ours / ref >= 50))
+    peer = field.get("OpenCV LUT + remap per sample + fwd LUT")
+    if peer:
+        out.append(("field faster than OpenCV remap peer", f"{ours / peer:.1f}x", ours > peer))
+    for case in ("diagonal", "box"):
+        c = by_case.get(case, {})
+        if "OpenCV LUT + filter2D + fwd LUT" in c:
+            r = c["clblur OpenCL"] / c["OpenCV LUT + filter2D + fwd LUT"]
+            out.append((f"{case}: at least as fast as LUT + filter2D + fwd LUT", f"{r:.2f}x",
+                        r >= 1))
+    boxes = [v["clblur OpenCL"] for k, v in by_case.items() if k.startswith("box-")]
+    if boxes:
+        spread = max(boxes) / min(boxes)
+        out.append(("box cost flat in length (9 .. 513 px): fastest / slowest",
+                    f"{spread:.2f}", spread <= 1.25))
+    return out
+
+
 def write_report(args, rows, info, dev, source, mean_n, load_before, load_after) -> None:
     by_case: dict[str, dict[str, float]] = {}
     for case, method, rate, _ in rows:
@@ -256,6 +282,9 @@ def write_report(args, rows, info, dev, source, mean_n, load_before, load_after)
         ours = by_case[case].get("clblur OpenCL")
         ratio = f"{ours / rate:.1f}x" if ours and method != "clblur OpenCL" else ""
         lines.append(f"| {case} | {method} | {rate:.2f} | {ratio} | {note} |")
+    lines += ["", "## Targets", "", "| target | measured | met |", "|---|---|---|"]
+    for what, measured, met in targets(by_case):
+        lines.append(f"| {what} | {measured} | {'yes' if met else '**no**'} |")
     lines += ["", "Agreement notes compare the peer's uint8 output with clblur's "
               "(the forward LUT quantises exposure to 65536 levels, so small differences are "
               "the peer's).", ""]
