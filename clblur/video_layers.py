@@ -9,8 +9,10 @@ Conventions
 -----------
 * Layers are told apart by speed: a pixel is *moving* when its vector is longer than the
   slowest vector within ``R`` pixels by more than ``min_px`` (``R`` = the longest vector,
-  rounded up).  A camera pan moves everything alike, so it has no moving layer, and the result
-  is the plain gather.
+  rounded up) *and* within ``min_px`` of the longest moving vector within ``R`` (a rigid
+  object's pixels all carry the fastest motion around them; a smooth speed gradient, as
+  perspective gives during a pan, has no edge to smear across).  A camera pan moves everything
+  alike, so it has no moving layer, and the result is the plain gather.
 * Every pixel gets the longest moving vector within ``R`` pixels, ``D`` (zero where no moving
   pixel is that close).  With ``M`` the moving mask and ``L`` the linearised frame, all in the
   linear domain::
@@ -105,6 +107,12 @@ def layered_half(lin: np.ndarray, v: np.ndarray, anchor: str, *, samples: int | 
     longest = float(np.hypot(v[..., 0], v[..., 1]).max())
     radius = int(math.ceil(longest))
     mask = moving_mask(v, radius, min_px) if radius > 0 else None
+    if mask is not None and mask.any():
+        # Keep only pixels that carry the fastest motion around them: a rigid object's own
+        # pixels do, while a smooth speed gradient (perspective during a pan) has no edge to
+        # smear across and its pixels all lag the fastest vector near them.
+        lag = np.hypot(*(dilate_vectors(v, mask, radius) - v).transpose(2, 0, 1))
+        mask &= lag <= min_px
     if mask is None or not mask.any():
         return blur(lin, v, "linear", **opts)
     dilated = dilate_vectors(v, mask, radius)
