@@ -10,10 +10,13 @@ Conventions
   cached by build options, device buffers are reused between calls.  No OpenCL object is
   ever handed out, so nothing here needs to be pickled.
 * Pipeline per group of up to four channels: linearise once per pixel (tables for integer
-  inputs) into an RGBA intermediate (half for uint8 outputs when the error bound allows, else
-  float), then integrate with the forward response and quantisation fused into the store.
-  Strategies: per-pixel field (bilinear), space-invariant integer taps (uniform motion and
-  PSFs), running-sum box (axis-aligned boxes).  See ``clblur.opencl_prep``.
+  inputs, float64 on the host for float inputs) into an RGBA intermediate (half floats for
+  uint8 outputs when the propagated error bound allows, else float), then integrate with the
+  forward response and quantisation fused into the store.  Integer outputs are quantised by
+  comparing the exposure with host-computed float64 code boundaries (no response evaluation
+  on the device).  Strategies (``clblur.opencl_prep``): per-pixel field (bilinear, 8 pixels
+  per work-item as vector lanes), space-invariant integer taps (uniform motion and PSFs),
+  running sums for boxes (exact 64-bit fixed point, cost independent of the length).
 * Tolerances against the numpy reference are stated in ``docs/tolerances.md``.
 """
 
