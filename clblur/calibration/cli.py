@@ -122,8 +122,8 @@ def run(args) -> int:
     if args.report:
         from clblur.calibration.report import write_report
 
-        command = "clblur " + " ".join(shlex.quote(a) for a in sys.argv[2:]) \
-            if len(sys.argv) > 2 else ""
+        argv = sys.argv[sys.argv.index("calibrate") + 1:] if "calibrate" in sys.argv else []
+        command = "clblur calibrate " + " ".join(shlex.quote(a) for a in argv) if argv else ""
         path = write_report(args.report, series, fits, evaluations, best, command)
         print(f"wrote {path}")
     return 0

@@ -180,8 +180,9 @@ def write_report(folder: str | Path, series: ExposureSeries, fits: dict[str, Res
     t = series.exposures
     lines = [
         "# Calibration report", "",
-        f"Series: {len(series.images)} images, {series.shape[1]} x {series.shape[0]} x "
-        f"{series.channels} {series.dtype}, exposures {t.min():g} s ... {t.max():g} s.",
+        f"Series: {len(series.images)} images, {series.shape[1]} x {series.shape[0]} "
+        f"(W x H) x {series.channels} {series.dtype}, exposures {t.min():g} s ... "
+        f"{t.max():g} s.",
         f"Best model (lowest mean held-out RMSE over the gaps): **{best}**.", "",
     ]
     if command:
