@@ -56,9 +56,9 @@ class PoclCachePerWorker(WorkerPlugin):
 
 
 @contextmanager
-def client_for(scheduler: str) -> Iterator[object]:
+def client_for(scheduler: str, timeout: str = "20s") -> Iterator[object]:
     """A ``distributed.Client`` for ``scheduler`` (see ``parse_scheduler``), closed on exit
-    (with its LocalCluster, if it made one)."""
+    (with its LocalCluster, if it made one); ``timeout`` to reach an existing scheduler."""
     from distributed import Client, LocalCluster
 
     where, n = parse_scheduler(scheduler)
@@ -74,7 +74,7 @@ def client_for(scheduler: str) -> Iterator[object]:
             cluster.close()
         return
     try:
-        client = Client(where, timeout="20s")
+        client = Client(where, timeout=timeout)
     except OSError as e:
         raise ValueError(f"cannot reach the Dask scheduler at {where}: {e}") from None
     try:

@@ -213,3 +213,25 @@ def test_workers_create_one_opencl_context_each(opencl, folder):
     for n, img in images.items():
         np.testing.assert_array_equal(read_image(tmp_path / f"cl_{n}"),
                                       clblur.blur(img, (4.0, -1.0), backend="opencl"))
+
+
+def test_existing_scheduler_address(folder, capsys):
+    distributed = pytest.importorskip("distributed")
+    tmp_path, images = folder
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                  dashboard_address=":0") as cluster:
+        rc = run_cli(str(tmp_path / "in"), str(tmp_path / "out"), "--motion", "0,5",
+                     "--backend", "numpy", "--scheduler", cluster.scheduler_address,
+                     "--quiet")
+    assert rc == 1 and "3 blurred, 0 already finished, 1 failed" in capsys.readouterr().out
+    np.testing.assert_array_equal(read_image(tmp_path / "out" / "im2.png"),
+                                  clblur.blur(images["im2.png"], (0, 5), backend="numpy"))
+
+
+def test_unreachable_scheduler_is_a_usage_error():
+    pytest.importorskip("distributed")
+    from clblur.distributed import client_for
+
+    with pytest.raises(ValueError, match="cannot reach"), \
+            client_for("tcp://127.0.0.1:9", timeout="1s"):
+        pass
