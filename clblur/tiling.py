@@ -378,6 +378,14 @@ def open_image(path: str | os.PathLike):
     import tifffile
 
     try:
+        with tifffile.TiffFile(path) as tif:
+            axes = tif.series[0].axes
+    except Exception as e:  # tifffile raises many types for corrupt files
+        raise ValueError(f"cannot read image {path}: {e}") from None
+    if axes not in ("YX", "YXS"):  # e.g. planar RGB (SYX), stacks, pyramids' extra axes
+        raise ValueError(f"{path}: unsupported TIFF layout {axes!r}; expected rows x columns "
+                         "(x samples), i.e. YX or YXS")
+    try:
         m = tifffile.memmap(path, mode="r")
         raster = MappedRaster(path, m.dtype, m.shape, m.offset)
         del m

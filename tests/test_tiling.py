@@ -202,3 +202,14 @@ def test_memory_budget_sizes(text, expected):
 def test_bad_memory_budget(bad):
     with pytest.raises((ValueError, TypeError), match="memory budget"):
         tiling.parse_size(bad)
+
+
+def test_unsupported_or_corrupt_tiff_is_rejected(rng, tmp_path):
+    tifffile.imwrite(tmp_path / "planar.tif", _image(rng, (3, 20, 30)), photometric="rgb",
+                     planarconfig="separate")
+    with pytest.raises(ValueError, match="unsupported TIFF layout"):
+        blur_file(tmp_path / "planar.tif", tmp_path / "out.tif", (1, 0), backend="numpy")
+    (tmp_path / "junk.tif").write_bytes(b"II*\x00garbage")
+    with pytest.raises(ValueError, match="cannot read image"):
+        blur_file(tmp_path / "junk.tif", tmp_path / "out.tif", (1, 0), backend="numpy")
+    assert not (tmp_path / "out.tif").exists()
