@@ -1,0 +1,134 @@
+"""Host-side preparation for the OpenCL kernels (pure numpy; runs without a device).
+
+Each table the kernels read is checked against the reference definition it replaces:
+rasterised taps against bilinear sampling, code-boundary thresholds and their bucket index
+against ``rint(I(E) * Imax)``, the half-storage decision against its stated bound.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from clblur import opencl_prep as prep
+from clblur import reference
+from clblur.pixels import imax, linearisation_table
+from clblur.plan import make_plan
+from clblur.responses import Gamma, Table, response
+
+RESPONSES = ["linear", "exp", "exp:3", "gamma:2.2", "srgb",
+             Table.from_response(Gamma(1.8), n=64)]
+
+
+def apply_taps(lin: np.ndarray, taps: prep.Taps) -> np.ndarray:
+    """sum_t w_t L(clamp(p + d_t)) in float64: what integrate_taps computes."""
+    h, w = lin.shape[:2]
+    yy, xx = np.mgrid[0:h, 0:w]
+    acc = np.zeros_like(lin)
+    for dx, dy, wt in zip(taps.dx, taps.dy, taps.w, strict=True):
+        acc += wt * lin[np.clip(yy + dy, 0, h - 1), np.clip(xx + dx, 0, w - 1)]
+    return acc
+
+
+@pytest.mark.parametrize("motion", [(4.6, -2.3), (-7.25, 3.5), (0.3, 0.0), (12.0, 5.0),
+                                    (-40.0, 60.0)])
+@pytest.mark.parametrize("anchor", ["start", "center", "end"])
+def test_rasterised_uniform_motion_equals_bilinear_sampling(rng, motion, anchor):
+    lin = rng.random((23, 31, 2))
+    plan = make_plan(lin, motion, "linear", anchor=anchor)
+    taps = prep.space_invariant_taps(plan)
+    np.testing.assert_allclose(apply_taps(lin, taps), reference.integrate(lin, plan),
+                               rtol=0, atol=1e-12)
+    assert np.isclose(taps.w.sum(), 1.0)
+
+
+def test_psf_taps_read_f_of_p_minus_s(rng):
+    lin = rng.random((19, 21, 1))
+    kernel = rng.random((5, 3))
+    plan = make_plan(lin, kernel, "linear")
+    np.testing.assert_allclose(apply_taps(lin, prep.space_invariant_taps(plan)),
+                               reference.integrate(lin, plan), rtol=0, atol=1e-12)
+
+
+def test_box_detection():
+    def taps_of(motion, **kw):
+        return prep.space_invariant_taps(make_plan(np.zeros((4, 4)), motion, **kw))
+
+    assert taps_of((24.0, 0.0)).box() == (0, -12, 12)  # N = 25, centred, integer steps
+    assert taps_of((0.0, -8.0), anchor="start").box() == (1, 0, 8)
+    assert taps_of((8.0, 0.0), anchor="end").box() == (0, 0, 8)
+    assert taps_of((3.0, 0.0)).box() is None  # half-integer offsets: bilinear, not a box
+    assert taps_of((6.0, 6.0)).box() is None
+    assert taps_of((6.0, 0.0), weights=[1, 2, 3, 4, 5, 6, 7]).box() is None
+    assert taps_of(np.ones((1, 5))).box() == (0, -2, 2)
+    assert taps_of(np.ones((4, 1))).box() == (1, -1, 2)
+
+
+@pytest.mark.parametrize("spec", RESPONSES, ids=str)
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_thresholds_and_buckets_quantise_like_rint(rng, spec, dtype):
+    resp = response(spec)
+    full = imax(dtype)
+    top = float(linearisation_table(resp, dtype, 2.0).max())
+    e = np.concatenate([rng.uniform(0, top, 20000), rng.uniform(0, top / 500, 5000),
+                        [0.0, top]]).astype(np.float32)
+    exact = np.clip(resp.forward(e.astype(np.float64)), 0, 1) * full
+    want = np.rint(exact)
+    # boundaries are float32: 2^-24 relative, up to 0.004 codes of uint16 (1.5e-5 of uint8)
+    margin = 1e-3 if dtype == np.uint8 else 1e-2
+    away = np.abs(exact - np.floor(exact) - 0.5) > margin
+    t = prep.quantisation_thresholds([resp], dtype)
+    assert t.shape == (1, 256 if dtype == np.uint8 else 65536)
+    assert np.all(np.diff(t[0]) >= 0)
+    by_search = np.searchsorted(t[0], e, side="left")  # count of boundaries below e
+    assert np.array_equal(by_search[away], want[away])
+    if dtype == np.uint8:
+        b = prep.quantisation_buckets(t)
+        shift, base, nb, kmax = (int(v) for v in b[:4])
+        assert nb > 0 and kmax <= prep.BUCKET_MAX_STEPS
+        idx = np.clip((e.view(np.uint32) >> shift).astype(np.int64) - base, 0, nb - 1)
+        q = b[4:][idx].astype(np.int64)
+        for _ in range(kmax):
+            q += t[0][q] < e
+        assert np.array_equal(q, by_search)
+
+
+def test_thresholds_hold_table_ends():
+    """A table flat below its first value and above its last: codes outside are constant."""
+    flat = Table([0.0, 1.0, 2.0], [0.2, 0.5, 0.7])
+    t = prep.quantisation_thresholds([flat], np.uint8)[0]
+    assert np.isneginf(t[:int(0.2 * 255 - 0.5)]).all()  # levels below 0.2: always exceeded
+    assert np.isposinf(t[int(0.7 * 255 + 0.5):]).all()  # above 0.7: never reached
+
+
+def test_half_storage_only_where_the_bound_holds():
+    exp_table = linearisation_table(response("exp"), np.uint8, 1.0)
+    assert prep.half_error_lsb(response("exp"), exp_table) < 0.1
+    # a curve reaching 0.99 within 1e-5 of exposure: half rounding moves codes
+    steep = Table([0.0, 1e-5, 1.0], [0.0, 0.99, 1.0])
+    steep_table = linearisation_table(steep, np.uint8, 1.0)
+    assert prep.half_error_lsb(steep, steep_table) > prep.HALF_MAX_LSB
+    huge = linearisation_table(response("linear"), np.uint8, 1e5)  # beyond half's range
+    assert prep.half_error_lsb(response("linear"), huge) == np.inf
+    img = np.zeros((3, 3, 1), np.uint8)
+    assert prep.half_storage_ok(make_plan(img, (1.0, 0.0), "exp"), exp_table[None])
+    assert not prep.half_storage_ok(make_plan(img.astype(np.uint16), (1.0, 0.0), "exp"),
+                                    exp_table[None])
+
+
+def test_fixed_point_scale_leaves_headroom():
+    for top, count in ((6.93, 25), (1.0, 513), (1e4, 4096), (1e-6, 3)):
+        scale = prep.fixed_point_scale(top, count)
+        assert top * scale * (count + 1) < 2.0**62
+        assert top * scale * (count + 2) >= 2.0**58  # and keeps precision
+
+
+def test_four_channel_padding_and_response_params():
+    group = [response("exp:2"), response("gamma:2.2"), Table([0, 1], [0, 1])]
+    padded = prep.four_channels(group)
+    assert len(padded) == 4 and padded[3] is group[0]
+    params, tables = prep.response_params(group)
+    rows = params.reshape(4, prep.RESP_STRIDE)
+    assert rows[0].tolist() == [1, 2.0, 0, 0]
+    assert rows[1][0] == 2 and np.isclose(rows[1][1], 1 / 2.2)
+    assert rows[2].tolist() == [4, 0.0, 0, 2] and tables.tolist() == [0, 1, 0, 1]
