@@ -18,6 +18,7 @@ from tqdm import tqdm
 
 from clblur.calibration.evaluate import EVAL_LOW, FLAT_TOLERANCE
 from clblur.calibration.models import MODELS
+from clblur.calibration.sampling import VALID_LOW
 
 
 def register(subparsers) -> None:
@@ -43,6 +44,9 @@ def register(subparsers) -> None:
                    help="calibration patches per channel (default 1000)")
     p.add_argument("--patch", type=int, default=3, help="patch size, odd (default 3)")
     p.add_argument("--seed", type=int, default=0, help="sampling seed (default 0)")
+    p.add_argument("--fit-low", type=float, default=None, metavar="V",
+                   help="fit values above V of full scale (default: per family, 0.02 for "
+                        "the exp families, 0.1 for the free curves)")
     p.add_argument("--emor-dir", metavar="DIR",
                    help="folder with invemor.txt (default: $CLBLUR_DATA/crf)")
     p.add_argument("--gaps", type=float, nargs="+", default=[1, 4], metavar="STOPS",
@@ -93,12 +97,13 @@ def run(args) -> int:
 
     refuse_overwrite(args.output, args.source, args.times)
     series = load_series(args.source, args.times)
-    sampling = sample_series(series, args.samples, patch=args.patch, seed=args.seed)
+    low = VALID_LOW if args.fit_low is None else min(args.fit_low, VALID_LOW)
+    sampling = sample_series(series, args.samples, patch=args.patch, low=low, seed=args.seed)
     fits, evaluations = {}, {}
     names = _models(args)
     for name in tqdm(names, desc="models", disable=args.quiet):
         opts = {"emor_dir": args.emor_dir} if name == "emor" else {}
-        fits[name] = fit(series, name, shared=args.shared, sampling=sampling,
+        fits[name] = fit(series, name, shared=args.shared, sampling=sampling, low=args.fit_low,
                          refine_times=args.refine_times, progress=not args.quiet, **opts)
         evaluations[name] = evaluate(series, fits[name], gaps=args.gaps,
                                      refit=not args.no_refit, max_pixels=args.eval_pixels,

@@ -163,6 +163,49 @@ def comparison_table(evaluations: dict[str, dict], gaps) -> str:
     return "\n".join(lines)
 
 
+def series_table(series: ExposureSeries, tolerance: float = 0.03) -> str:
+    """Per image: median per channel, clipped share, and *impossible* pixels, whose value
+    exceeds the next longer exposure's by more than ``tolerance`` of full scale (corrupt
+    values, moving objects)."""
+    order = np.argsort(series.relative_exposures())
+    full = series.full_scale
+    lines = ["| image | exposure (s) | median per channel | clipped | impossible |",
+             "|---|---|---|---|---|"]
+    for pos, i in enumerate(order):
+        im = series.images[i].astype(np.float64)
+        med = " / ".join(f"{m:g}" for m in np.median(im.reshape(-1, series.channels), axis=0))
+        clipped = float(np.mean(im >= full))
+        if pos + 1 < order.size:
+            longer = series.images[order[pos + 1]].astype(np.float64)
+            bad = f"{float(np.mean(im > longer + tolerance * full)) * 100:.1f} %"
+        else:
+            bad = "-"
+        lines.append(f"| {series.names[i]} | {series.exposures[i]:g} | {med} | "
+                     f"{clipped * 100:.1f} % | {bad} |")
+    return "\n".join(lines)
+
+
+def curve_table(series: ExposureSeries, fits: dict[str, ResponseFit]) -> str:
+    """Contrast of each fitted curve: stops from 30 to 230 DN (uint8 scale) and the DN gained
+    per stop at 30 and at 150 DN."""
+    scale = series.full_scale / 255.0
+    lo, hi, mid = 30 * scale, 230 * scale, 150 * scale
+    names = _channel_names(series.channels)
+    lines = ["| model | channel | stops 30 -> 230 DN | DN per stop at 30 | DN per stop at 150 |",
+             "|---|---|---|---|---|"]
+    for name, f in fits.items():
+        for c, resp in enumerate(f.responses):
+            def inv(code, r=resp):
+                return float(r.inverse(np.array(code / series.full_scale)))
+
+            with np.errstate(divide="ignore", invalid="ignore"):
+                span = np.log2(inv(hi) / inv(lo))
+                at_lo = scale / np.log2(inv(lo + scale) / inv(lo))
+                at_mid = scale / np.log2(inv(mid + scale) / inv(mid))
+            lines.append(f"| {name} | {names[c]} | {span:.2f} | {at_lo:.1f} | {at_mid:.1f} |")
+    return "\n".join(lines)
+
+
 def write_report(folder: str | Path, series: ExposureSeries, fits: dict[str, ResponseFit],
                  evaluations: dict[str, dict], best: str, command: str = "") -> Path:
     """Write ``report.md``, ``evaluation.json`` and the figures into ``folder`` (created)."""
@@ -198,7 +241,9 @@ def write_report(folder: str | Path, series: ExposureSeries, fits: dict[str, Res
                   "the longer; *both*: pooled.  AIC/BIC: forward residuals of the sampled "
                   "patches with values in [0.1, 0.98] of full scale, the same for every "
                   "model (Gaussian noise; see `clblur.calibration.fitting`).", ""]
-    lines += ["## Figures", "",
+    lines += ["## The series", "", series_table(series), "",
+              "## Contrast of the fitted curves", "", curve_table(series, fits), "",
+              "## Figures", "",
               "![values vs time](fig1_values_vs_time.png)", "",
               "![normalised curves](fig2_normalised_curves.png)", "",
               "![residuals](residuals.png)", ""]
