@@ -330,20 +330,20 @@ def blur_tiled(src, dst, motion, response="exp", *, anchor: str = "center",
     bar = _progress(len(blocks), progress)
     try:
         for r0, r1, c0, c1 in blocks:
-            flow_core = None
+            m = tm.fixed
+            hy, hx = halo
             if tm.flow is not None:
-                flow_core = np.asarray(tm.flow[r0:r1, c0:c1], dtype=np.float32)
-                hy, hx = flow_halo(flow_core, a)
-            else:
-                hy, hx = halo
+                # one read with the worst-case halo, then shrink to this tile's own halo
+                gr0, gc0 = max(r0 - hy, 0), max(c0 - hx, 0)
+                big = np.asarray(tm.flow[gr0:min(r1 + hy, h), gc0:min(c1 + hx, w)],
+                                 dtype=np.float32)
+                hy, hx = flow_halo(big[r0 - gr0:r1 - gr0, c0 - gc0:c1 - gc0], a)
             used = (max(used[0], hy), max(used[1], hx))
             wr0, wr1 = max(r0 - hy, 0), min(r1 + hy, h)
             wc0, wc1 = max(c0 - hx, 0), min(c1 + hx, w)
             window = np.asarray(src[wr0:wr1, wc0:wc1])
             if tm.flow is not None:
-                m = np.asarray(tm.flow[wr0:wr1, wc0:wc1], dtype=np.float32)
-            else:
-                m = tm.fixed
+                m = big[wr0 - gr0:wr1 - gr0, wc0 - gc0:wc1 - gc0]
             plan = make_plan(window, m, response, anchor=anchor, samples=samples,
                              weights=weights, saturation=saturation,
                              region=(wr0, wc0, h, w))
