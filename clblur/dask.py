@@ -34,8 +34,10 @@ def blur(array, motion, response="exp", *, anchor: str = "center", samples: int 
          device: str | None = None, max_displacement: tuple[float, float] | None = None):
     """Lazy photo-consistent blur of an H x W or H x W x C Dask array (see ``clblur.blur``).
 
-    ``motion``: ``(dx, dy)``, a 2-D PSF, or an H x W x 2 flow (numpy or Dask array).
-    Returns a Dask array with the input's shape, dtype and chunks.
+    ``motion``: ``(dx, dy)``, a 2-D PSF, or an H x W x 2 flow (numpy, zarr or Dask array, or
+    a ``.npy`` path read chunk by chunk).  Returns a Dask array with the input's shape and
+    dtype, and its chunks except that channels form one chunk and chunks narrower than the
+    halo are merged.
     """
     if not isinstance(array, da.Array):
         raise TypeError(f"array must be a dask array, got {type(array).__name__}")
