@@ -262,6 +262,11 @@ static long16 fixed_hi(__global const float *plane, size_t at, float scale)
                     transposed ? (size_t)(x0 + L) * w + k : (size_t)k * w + x0 + L,         \
                     channels, cbase, cg, resp, tables, thresholds, buckets);
 
+#define BOX_CODES(L, Q)                                                                   \
+    if (x0 + L < across)                                                                   \
+        store_codes(Q, out, transposed ? (size_t)(x0 + L) * w + k : (size_t)k * w + x0 + L, \
+                    channels, cbase, cg);
+
 /* Box of taps d = lo..hi along plane index k with equal weights, as running sums: the cost
  * per pixel does not grow with the box length.  LANES neighbouring lines run as vector lanes.
  * Taps clamp to the window (which lies inside the image: the same as clamping to the image
@@ -276,6 +281,7 @@ __kernel void integrate_box(__global const float *plane, int ps, int across, int
     int x0 = get_global_id(0) * LANES;
     if (x0 >= across) return;
     float norm = 1.0f / ((float)(hi - lo + 1) * scale);
+    bool fast_u8 = out_kind == OUT_U8 && buckets[2] > 0;
     long16 sum_lo = (long16)(0), sum_hi = (long16)(0);
     for (int d = lo; d <= hi; ++d) {
         size_t at = (size_t)clamp(d, 0, len - 1) * ps + x0;
@@ -284,10 +290,19 @@ __kernel void integrate_box(__global const float *plane, int ps, int across, int
     }
     for (int k = 0; k < len; ++k) {
         float16 m_lo = convert_float16(sum_lo) * norm, m_hi = convert_float16(sum_hi) * norm;
-        BOX_STORE(0, m_lo.s0123) BOX_STORE(1, m_lo.s4567)
-        BOX_STORE(2, m_lo.s89ab) BOX_STORE(3, m_lo.scdef)
-        BOX_STORE(4, m_hi.s0123) BOX_STORE(5, m_hi.s4567)
-        BOX_STORE(6, m_hi.s89ab) BOX_STORE(7, m_hi.scdef)
+        if (fast_u8) {
+            int16 q_lo = quantise16_by_buckets(m_lo, thresholds, buckets);
+            int16 q_hi = quantise16_by_buckets(m_hi, thresholds, buckets);
+            BOX_CODES(0, q_lo.s0123) BOX_CODES(1, q_lo.s4567)
+            BOX_CODES(2, q_lo.s89ab) BOX_CODES(3, q_lo.scdef)
+            BOX_CODES(4, q_hi.s0123) BOX_CODES(5, q_hi.s4567)
+            BOX_CODES(6, q_hi.s89ab) BOX_CODES(7, q_hi.scdef)
+        } else {
+            BOX_STORE(0, m_lo.s0123) BOX_STORE(1, m_lo.s4567)
+            BOX_STORE(2, m_lo.s89ab) BOX_STORE(3, m_lo.scdef)
+            BOX_STORE(4, m_hi.s0123) BOX_STORE(5, m_hi.s4567)
+            BOX_STORE(6, m_hi.s89ab) BOX_STORE(7, m_hi.scdef)
+        }
         size_t enter = (size_t)clamp(k + hi + 1, 0, len - 1) * ps + x0;
         size_t leave = (size_t)clamp(k + lo, 0, len - 1) * ps + x0;
         sum_lo += fixed_lo(plane, enter, scale) - fixed_lo(plane, leave, scale);

@@ -105,6 +105,46 @@ static int quantise_by_buckets(float e, __global const float *thresholds,
     return q;
 }
 
+/* quantise_by_buckets for four pixels' channel groups at once (e: pixel-major, 4 channels
+ * each).  The host pads the tables to four channels, so every lane has its own. */
+static int16 quantise16_by_buckets(float16 e, __global const float *thresholds,
+                                   __global const int *buckets)
+{
+    int nb = buckets[2];
+    const int16 channel = (int16)(0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3);
+    e = select((float16)(0.0f), e, e > 0.0f);
+    int16 b = clamp((as_int16(e) >> buckets[0]) - buckets[1], 0, nb - 1) + channel * nb;
+    __global const int *counts = buckets + 4;
+    int16 q = (int16)(counts[b.s0], counts[b.s1], counts[b.s2], counts[b.s3],
+                      counts[b.s4], counts[b.s5], counts[b.s6], counts[b.s7],
+                      counts[b.s8], counts[b.s9], counts[b.sa], counts[b.sb],
+                      counts[b.sc], counts[b.sd], counts[b.se], counts[b.sf]);
+    int16 at = q + (channel << 8);
+    for (int s = 0; s < buckets[3]; ++s) {
+        float16 t = (float16)(thresholds[at.s0], thresholds[at.s1], thresholds[at.s2],
+                              thresholds[at.s3], thresholds[at.s4], thresholds[at.s5],
+                              thresholds[at.s6], thresholds[at.s7], thresholds[at.s8],
+                              thresholds[at.s9], thresholds[at.sa], thresholds[at.sb],
+                              thresholds[at.sc], thresholds[at.sd], thresholds[at.se],
+                              thresholds[at.sf]);
+        int16 up = -(t < e);
+        q += up;
+        at += up;
+    }
+    return q;
+}
+
+/* Store the quantised codes of one pixel's channel group. */
+static void store_codes(int4 q, __global uchar *restrict out, size_t pixel, int channels,
+                        int cbase, int cg)
+{
+    size_t base = pixel * (size_t)channels + (size_t)cbase;
+    out[base] = (uchar)q.x;
+    if (cg > 1) out[base + 1] = (uchar)q.y;
+    if (cg > 2) out[base + 2] = (uchar)q.z;
+    if (cg > 3) out[base + 3] = (uchar)q.w;
+}
+
 /* Forward-map and quantise one channel's accumulated exposure into out[index]. */
 static void store_channel(float e, __global uchar *restrict out, int out_kind, size_t index, int k,
                           __constant const float *resp, __global const float *tables,
