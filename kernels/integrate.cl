@@ -92,6 +92,33 @@ static int8 floor_int8(float8 v)
     return t + (convert_float8(t) > v);
 }
 
+/* Store LANES consecutive pixels of a row (the first `valid` of them), starting at `pixel`;
+ * uint8 outputs are quantised 4 pixels x 4 channels at a time. */
+static void store_row8(float4 a0, float4 a1, float4 a2, float4 a3, float4 a4, float4 a5,
+                       float4 a6, float4 a7, __global uchar *restrict out, int out_kind,
+                       size_t pixel, int valid, int channels, int cbase, int cg,
+                       __constant const float *resp, __global const float *tables,
+                       __global const float *thresholds, __global const int *buckets)
+{
+    if (out_kind == OUT_U8 && buckets[2] > 0 && valid >= LANES) {
+        int16 lo = quantise16_by_buckets((float16)(a0, a1, a2, a3), thresholds, buckets);
+        int16 hi = quantise16_by_buckets((float16)(a4, a5, a6, a7), thresholds, buckets);
+        store_codes(lo.s0123, out, pixel, channels, cbase, cg);
+        store_codes(lo.s4567, out, pixel + 1, channels, cbase, cg);
+        store_codes(lo.s89ab, out, pixel + 2, channels, cbase, cg);
+        store_codes(lo.scdef, out, pixel + 3, channels, cbase, cg);
+        store_codes(hi.s0123, out, pixel + 4, channels, cbase, cg);
+        store_codes(hi.s4567, out, pixel + 5, channels, cbase, cg);
+        store_codes(hi.s89ab, out, pixel + 6, channels, cbase, cg);
+        store_codes(hi.scdef, out, pixel + 7, channels, cbase, cg);
+        return;
+    }
+    float4 a[LANES] = {a0, a1, a2, a3, a4, a5, a6, a7};
+    for (int l = 0; l < LANES && l < valid; ++l)
+        store_pixel(a[l], out, out_kind, pixel + l, channels, cbase, cg, resp, tables,
+                    thresholds, buckets);
+}
+
 /* One lane of the field kernel: the two horizontal neighbours of the upper and the lower row
  * (one 8-value load each) times their bilinear weights, which already hold the tap weight
  * (0 once the lane's N taps are done: adding fma(0, v, acc) leaves acc exactly as it is).
@@ -104,12 +131,7 @@ static int8 floor_int8(float8 v)
                      L + 8, L + 8, L + 8, L + 8)), acc##L);                            \
     }
 
-#define FIELD_STORE(L)                                                                 \
-    if (col0 + L < w)                                                                  \
-        store_pixel(weighted ? acc##L.lo + acc##L.hi                                   \
-                             : (acc##L.lo + acc##L.hi) / (float)n.s##L, out, out_kind, \
-                    (size_t)row * w + col0 + L, channels, cbase, cg, resp, tables,     \
-                    thresholds, buckets);
+#define FIELD_MEAN(L) (weighted ? acc##L.lo + acc##L.hi : (acc##L.lo + acc##L.hi) / (float)n.s##L)
 
 /* Per-pixel motion field.  Sample j of pixel p lies at p + o, o = -(v / (N-1)) (j - a (N-1))
  * (the reference's p - v (j - a (N-1)) / (N-1), exact whenever the step v / (N-1) is an
@@ -172,8 +194,9 @@ __kernel void integrate_field(__global const STORE_T *lin, __global const float 
         FIELD_LANE(0) FIELD_LANE(1) FIELD_LANE(2) FIELD_LANE(3)
         FIELD_LANE(4) FIELD_LANE(5) FIELD_LANE(6) FIELD_LANE(7)
     }
-    FIELD_STORE(0) FIELD_STORE(1) FIELD_STORE(2) FIELD_STORE(3)
-    FIELD_STORE(4) FIELD_STORE(5) FIELD_STORE(6) FIELD_STORE(7)
+    store_row8(FIELD_MEAN(0), FIELD_MEAN(1), FIELD_MEAN(2), FIELD_MEAN(3), FIELD_MEAN(4),
+               FIELD_MEAN(5), FIELD_MEAN(6), FIELD_MEAN(7), out, out_kind, (size_t)row * w + col0,
+               w - col0, channels, cbase, cg, resp, tables, thresholds, buckets);
 }
 
 /* Space-invariant integer taps: g(p) = sum_t w_t L(clamp(p + d_t)), accumulated in tap order
@@ -217,9 +240,9 @@ __kernel void integrate_taps(__global const STORE_T *lin, __global const int *ta
             }
         }
     }
-    for (int l = 0; l < LANES && col0 + l < w; ++l)
-        store_pixel(acc[l], out, out_kind, (size_t)row * w + col0 + l, channels, cbase, cg,
-                    resp, tables, thresholds, buckets);
+    store_row8(acc[0], acc[1], acc[2], acc[3], acc[4], acc[5], acc[6], acc[7], out, out_kind,
+               (size_t)row * w + col0, w - col0, channels, cbase, cg, resp, tables, thresholds,
+               buckets);
 }
 
 /* Linearise one channel group into a float4 "plane" for the box kernel: plane row k,
