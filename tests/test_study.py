@@ -80,7 +80,7 @@ def test_null_data_give_no_finding_on_95_percent_of_seeds():
     seeds = range(20)
     false = []
     for s in seeds:
-        sc = scenario({}, np.random.default_rng(5000 + s), shape=(32, 48))
+        sc = scenario({}, np.random.default_rng(5000 + s), shape=(24, 40))
         r = study_groups(sc.kind, sc.groups).report
         if any(f["significant"] for f in r["findings"]):
             false.append(s)

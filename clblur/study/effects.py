@@ -115,13 +115,19 @@ def channel_gains(p: dict[str, float], channels: int) -> list[float]:
     return [math.exp(v - mean) for v in logs]
 
 
-def explain(effect: str, estimate: dict, significant: bool, gain_nll: float) -> str:
+def explain(effect: str, estimate: dict, significant: bool, gain_nll: float,
+            too_small: bool = False) -> str:
     """A sentence for the report: cause, size, and whether the data support it."""
     e = EFFECTS[effect]
     size = ", ".join(f"{k}={_fmt(v)}" for k, v in estimate.items())
-    verdict = ("significant: adding it improves the held-out likelihood by "
-               f"{gain_nll:.3g} nats per pixel" if significant else
-               "not significant: the held-out data do not support it")
+    if significant:
+        verdict = ("significant: adding it improves the held-out fit by "
+                   f"{gain_nll:.3g} nats per pixel value")
+    elif too_small:
+        verdict = (f"statistically detectable but negligible (held-out gain {gain_nll:.2g} "
+                   "nats per pixel value, below the least gain that counts)")
+    else:
+        verdict = "not significant: the held-out data do not support it"
     return f"{effect}: {e.what}. Fitted {size}; {verdict}."
 
 

@@ -118,7 +118,8 @@ def figures(sel: Selection, groups: list[Group], out: Path, max_groups: int = 2)
         fig.colorbar(im, ax=ax, shrink=0.8)
         fig.suptitle(f"{g.name}: observed - predicted, held-out")
         save(fig, f"residuals_{gi}.png")
-        worst = np.nanargmax(np.nanmax(np.abs(rb), axis=1))
+        worst = int(np.argmax(np.where(g.valid, np.abs(g.target - sel.baseline_pred[gi]),
+                                       -1.0).max(axis=1)))
         on_row = np.flatnonzero(g.rows == g.rows[worst])
         on_row = on_row[np.argsort(g.cols[on_row])]
         fig, ax = plt.subplots(figsize=(8, 3.4))

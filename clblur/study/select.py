@@ -17,7 +17,9 @@ Conventions
   ``saturation``) are left out: they carry no evidence either way.  Extra parameters fitted to
   noise lose held-out likelihood on average, so under the null the test is conservative.
 * Significance: ``p < alpha / m`` (Bonferroni over the ``m`` effects tested in a round), so
-  null data give no finding at all with probability >= 1 - alpha.
+  null data give no finding at all with probability >= 1 - alpha; a finding also needs a
+  held-out gain of at least ``MIN_GAIN`` nats per pixel value (an effect size, which only
+  makes the decision stricter).
 * Forward selection: of the significant effects, the one with the largest held-out gain
   joins the model, the rest are re-tested against the enlarged model, until none is
   significant.  Systematic effects are tested with the noise model free in both fits (a
@@ -35,6 +37,11 @@ from scipy import optimize, stats
 
 from clblur.study.effects import EFFECTS, PARAMS, explain, readable_estimate
 from clblur.study.model import Group, null_params, pixel_nll, predict, time_ok
+
+# Least held-out gain (nats per pixel value) that counts as a finding: with hundreds of
+# thousands of values, deviations far below any visible effect (a gain of 1.0001) are
+# "significant"; this asks for a difference worth modelling as well.
+MIN_GAIN = 0.002
 
 
 @dataclass
@@ -138,7 +145,8 @@ def fit(groups: list[Group], free: list[str], start: dict, nvalid: int) -> dict:
     hi = np.array([PARAMS[n][2] for n in names])
     starts = [dict(start)]
     if "gamma" in free and start["gamma"] == 1.0 and start["rho"] == 1.0:
-        starts.append({**start, "gamma": 2.2, "rho": 0.05})  # the power-law corner
+        # also start from the power-law corner: linear and display gamma
+        starts += [{**start, "gamma": 1.0, "rho": 0.05}, {**start, "gamma": 2.2, "rho": 0.05}]
     best, best_val = None, math.inf
     for s0 in starts:
         def objective(z, s0=s0):
@@ -169,7 +177,8 @@ def t_test(d: np.ndarray) -> tuple[float, float]:
     return t, float(stats.t.sf(t, d.size - 1))
 
 
-def select(groups: list[Group], alpha: float = 0.05, progress=None) -> Selection:
+def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
+           progress=None) -> Selection:
     """Run the whole diagnosis (see the module docstring)."""
     nblocks = assign_blocks(groups)
     channels = groups[0].channels
@@ -217,9 +226,14 @@ def select(groups: list[Group], alpha: float = 0.05, progress=None) -> Selection
         nuisance = frozenset({"noise"}) if "noise" in candidates else frozenset()
         tested = [test(current | nuisance, e, [cur_params[0], cur_params[1]])
                   for e in candidates if e != "noise"]
-        winners = [r for r in tested if r[1] < level]
+        winners = [r for r in tested if r[1] < level and r[2] >= min_gain]
         if not winners and "noise" in candidates:
-            winners = [r for r in [test(current, "noise", cur_params)] if r[1] < level]
+            winners = [r for r in [test(current, "noise", cur_params)]
+                       if r[1] < level and r[2] >= min_gain]
+        for e, pv, gain, _ in tested:
+            if pv < level and gain < min_gain:
+                f = findings[e]
+                f.explanation = explain(e, f.estimate, False, gain, too_small=True)
         if not winners:
             break
         # strongest = largest held-out likelihood gain among the significant effects
@@ -238,6 +252,7 @@ def select(groups: list[Group], alpha: float = 0.05, progress=None) -> Selection
     for f in ranked:
         if f.significant:
             f.estimate = readable_estimate(f.effect, full, channels)
+            f.explanation = explain(f.effect, f.estimate, True, f.nll_gain)
     b_rmse, b_nll, b_pred = _heldout(groups, base_p)
     x_rmse, x_nll, x_pred = _heldout(groups, cur_params)
     return Selection(order, ranked, full, b_rmse, x_rmse, b_nll, x_nll, b_pred, x_pred, skip)
