@@ -10,9 +10,10 @@
  * - Clamp-to-edge is a clamp to the window: the window lies inside the image, so clamping
  *   to the image and then to the window (the reference's guard) is the same; a tile with a
  *   sufficient halo therefore computes exactly what the untiled image does.
- * - Work-items handle LANES consecutive pixels of a row; per-pixel results never depend on
- *   the grouping (inactive lanes are skipped, not multiplied by zero), so tiles reproduce the
- *   untiled output bit for bit.
+ * - Work-items handle LANES consecutive pixels of a row (the box kernel: LANES neighbouring
+ *   lines).  Per-pixel results never depend on the grouping: a lane whose taps are done adds
+ *   fma(0, v, acc), which leaves acc unchanged bit for bit (v is finite, acc never -0), and
+ *   box sums are exact integers, so tiles reproduce the untiled output bit for bit.
  * - Floating-point contraction is off: every a*b+c is rounded as written (or is an explicit
  *   fma), so results do not depend on how the compiler vectorises.
  */
