@@ -103,8 +103,13 @@ def fit(series: ExposureSeries, model: str, *, shared: bool = False, n_samples: 
     for every model, so their held-out pixels match).  ``low``/``high``: the valid range of
     fitted values; ``low`` defaults to the family's ``default_low``.
     ``refine_times``: re-estimate the exposures (uncertain shutter times).  Further keyword
-    options go to the family (``order`` for polynomial, ``smoothness``/``levels`` for
-    nonparametric, ``components``/``emor_dir`` for emor).
+    options go to the family (``order`` for polynomial, ``smoothness``/``levels``/
+    ``time_sigma`` for nonparametric, ``components``/``emor_dir`` for emor).
+
+    ``params`` of the result: ``shared``; ``per_channel`` (one dict of family parameters per
+    fitted curve, e.g. ``black_level``, ``gamma``, ``coefficients``); for ``exp`` also ``k``
+    and ``k_by_f_number`` (lists, one per curve, on the axis described in the module doc);
+    with ``refine_times`` also ``relative_exposures`` (per curve, longest = 1).
     """
     if not isinstance(series, ExposureSeries):
         raise TypeError(f"series must be an ExposureSeries (see load_series), got "

@@ -16,7 +16,7 @@ Conventions
   inverse direction as their authors specify, then made monotone.
 * ``refine_times`` (uncertain shutter times) re-estimates one exposure per image, tied to the
   nominal value by a Gaussian prior (``TIME_SIGMA`` in log units) with the mean and the
-  overall trend of ``ln tau`` held at their nominal values (see ``_time_prior_rows``).
+  overall trend of ``ln tau`` held at their nominal values (see ``time_deviation_basis``).
 """
 
 from __future__ import annotations
@@ -93,12 +93,6 @@ def _n_time_params(tau: np.ndarray, refine_times: bool) -> int:
 def _refined_tau(tau: np.ndarray, basis: np.ndarray, z: np.ndarray) -> np.ndarray:
     t = tau * np.exp(basis @ z)
     return t / t.max()
-
-
-def _not_supported(family: str, refine_times: bool) -> None:
-    if refine_times:
-        raise ValueError(f"refine_times is not supported by the {family} model; use exp, "
-                         "exp-offset, gamma-offset or polynomial")
 
 
 class ForwardFamily:
