@@ -131,6 +131,7 @@ class _Runtime:
     context: object
     queue: object
     fp64: bool
+    unified: bool  # device memory is host memory (CPU devices)
     pid: int = field(default_factory=os.getpid)
     lock: threading.Lock = field(default_factory=threading.Lock)
     programs: dict = field(default_factory=dict)
@@ -175,6 +176,15 @@ class _Runtime:
         _cl().enqueue_copy(self.queue, buf, array, is_blocking=True)
         return buf
 
+    def share(self, role: str, array: np.ndarray):
+        """A read-only view of a large input: the host array itself on devices that share
+        host memory (CPUs; no copy), else an upload into the reused ``role`` buffer."""
+        if not self.unified:
+            return self.upload(role, array)
+        cl = _cl()
+        return cl.Buffer(self.context, cl.mem_flags.READ_ONLY | cl.mem_flags.USE_HOST_PTR,
+                         hostbuf=np.ascontiguousarray(array))  # keeps the array alive
+
 
 _runtimes: dict[str, _Runtime] = {}
 _usable: dict[str, tuple[bool, str]] = {}
@@ -196,7 +206,8 @@ def _runtime(device: str | None) -> _Runtime:
             raise OpenCLUnavailable(f"cannot create a context on {_label(platform, dev)}: "
                                     f"{e}") from None
         rt = _Runtime(label=_label(platform, dev), index=f"{pi}:{di}", device=dev, context=ctx,
-                      queue=queue, fp64=bool(dev.double_fp_config))
+                      queue=queue, fp64=bool(dev.double_fp_config),
+                      unified=dev.type == cl.device_type.CPU and bool(dev.host_unified_memory))
         _runtimes[sel] = rt
         return rt
 
@@ -299,10 +310,10 @@ def _upload_input(rt: _Runtime, plan: BlurPlan, img: np.ndarray) -> _Input:
     if img.dtype.kind == "u":
         luts = np.stack([linearisation_table(r, img.dtype, plan.saturation)
                          for r in plan.responses])
-        return _Input(rt.upload("image", img), _IN_KINDS[img.dtype], luts,
+        return _Input(rt.share("image", img), _IN_KINDS[img.dtype], luts,
                       float(np.max(np.abs(luts))))
     linear = prep.linearise_float_image(img, plan.responses, plan.saturation)
-    return _Input(rt.upload("image", linear), _IN_FLOAT, None, float(np.max(np.abs(linear))))
+    return _Input(rt.share("image", linear), _IN_FLOAT, None, float(np.max(np.abs(linear))))
 
 
 def _run(rt: _Runtime, plan: BlurPlan) -> np.ndarray:
@@ -396,7 +407,7 @@ def _integrator(rt: _Runtime, plan: BlurPlan, src: _Input):
 
     assert isinstance(plan.motion, Field)
     flow = plan.motion.flow
-    flow_buf = rt.upload("flow", flow)
+    flow_buf = rt.share("flow", flow)
     host_counts = plan.samples is None and not rt.fp64
     counts = sample_counts(flow[..., 0], flow[..., 1]) if host_counts else np.zeros(1, np.int32)
     counts_buf = rt.upload("counts", counts)
