@@ -162,3 +162,28 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
     code = main(["calibrate", str(tmp_path / "s"), "--times", str(tmp_path / "t.txt"),
                  "-o", str(tmp_path / "t.txt")])
     assert code == 2 and "refusing to overwrite" in capsys.readouterr().err
+
+
+def test_calibrate_api_ranks_models(tmp_path):
+    from clblur.calibration import calibrate
+
+    images, times = ramp_stack(6, shape=(40, 60))
+    result = calibrate(ExposureSeries.create(images, times), ["exp", "gamma-offset"],
+                       n_samples=64, refit=False)
+    assert result.best == "gamma-offset"  # the stack is a pure power law
+    rows = {r["model"]: r for r in result.table()}
+    assert rows["gamma-offset"]["rmse"][1] < rows["exp"]["rmse"][1]
+    assert result.responses == result.fits["gamma-offset"].responses
+    with pytest.raises(ValueError, match="unknown response model"):
+        calibrate(result.series, ["exp", "cubic"])
+
+
+def test_calibrated_curves_blur_identically_on_both_backends(opencl, tmp_path):
+    import clblur
+
+    images, times = ramp_stack(6, shape=(40, 60))
+    result = fit(ExposureSeries.create(images, times), "nonparametric", n_samples=64)
+    image = images[2]
+    ref = clblur.blur(image, (7.0, 0.0), response=result.responses, backend="numpy")
+    out = clblur.blur(image, (7.0, 0.0), response=result.responses, backend="opencl")
+    assert np.abs(ref.astype(int) - out.astype(int)).max() <= 1

@@ -13,12 +13,8 @@ import argparse
 import shlex
 import sys
 
-import numpy as np
-from tqdm import tqdm
-
 from clblur.calibration.evaluate import EVAL_LOW, FLAT_TOLERANCE
 from clblur.calibration.models import MODELS
-from clblur.calibration.sampling import VALID_LOW
 
 
 def register(subparsers) -> None:
@@ -75,50 +71,27 @@ def _tolerance(text: str) -> float | None:
         raise argparse.ArgumentTypeError(f"expected a number or 'none', got {text!r}") from None
 
 
-def _models(args) -> list[str]:
-    if args.model:
-        return list(dict.fromkeys(args.model))
-    from clblur.calibration.models import EmorBasis
-
-    names = list(MODELS)
-    try:
-        EmorBasis.load(args.emor_dir)
-    except ValueError as e:
-        print(f"clblur calibrate: skipping emor ({e})", file=sys.stderr)
-        names.remove("emor")
-    return names
-
-
 def run(args) -> int:
-    from clblur.calibration import evaluate, fit, load_series
-    from clblur.calibration.sampling import sample_series
+    from clblur.calibration.compare import calibrate
     from clblur.io import refuse_overwrite
     from clblur.responses import save_channel_set
 
     refuse_overwrite(args.output, args.source, args.times)
-    series = load_series(args.source, args.times)
-    low = VALID_LOW if args.fit_low is None else min(args.fit_low, VALID_LOW)
-    sampling = sample_series(series, args.samples, patch=args.patch, low=low, seed=args.seed)
-    fits, evaluations = {}, {}
-    names = _models(args)
-    for name in tqdm(names, desc="models", disable=args.quiet):
-        opts = {"emor_dir": args.emor_dir} if name == "emor" else {}
-        fits[name] = fit(series, name, shared=args.shared, sampling=sampling, low=args.fit_low,
-                         refine_times=args.refine_times, progress=not args.quiet, **opts)
-        evaluations[name] = evaluate(series, fits[name], gaps=args.gaps,
-                                     refit=not args.no_refit, max_pixels=args.eval_pixels,
-                                     low=args.eval_low, flat_tolerance=args.flat_tolerance,
-                                     seed=args.seed, progress=not args.quiet)
-    best = min(names, key=lambda n: float(np.nanmean(list(evaluations[n]["rmse"].values()))))
+    result = calibrate(args.source, args.model, times=args.times, shared=args.shared,
+                       refine_times=args.refine_times, n_samples=args.samples,
+                       patch=args.patch, seed=args.seed, fit_low=args.fit_low,
+                       emor_dir=args.emor_dir, gaps=args.gaps, refit=not args.no_refit,
+                       eval_low=args.eval_low, flat_tolerance=args.flat_tolerance,
+                       max_pixels=args.eval_pixels, progress=not args.quiet)
+    best, evaluations = result.best, result.evaluations
     gaps = list(evaluations[best]["rmse"])
     print("held-out RMSE (code values), target darker / brighter / both; AIC")
     print("model         " + "".join(f"{str(g) + '-stop':>22}" for g in gaps) + "         AIC")
-    for n in names:
-        e = evaluations[n]
+    for n, e in evaluations.items():
         cells = "".join(f"{e['rmse_darker'][g]:8.2f}{e['rmse_brighter'][g]:7.2f}"
                         f"{e['rmse'][g]:7.2f}" for g in gaps)
         print(f"{n:<14}{cells}  {e['aic']:10.0f}" + ("   <- best" if n == best else ""))
-    chosen = fits[best]
+    chosen = result.fits[best]
     if args.shared or len(chosen.responses) == 1:
         chosen.responses[0].save(args.output)
     else:
@@ -129,7 +102,7 @@ def run(args) -> int:
 
         argv = sys.argv[sys.argv.index("calibrate") + 1:] if "calibrate" in sys.argv else []
         command = "clblur calibrate " + " ".join(shlex.quote(a) for a in argv) if argv else ""
-        path = write_report(args.report, series, fits, evaluations, best, command)
+        path = write_report(args.report, result.series, result.fits, evaluations, best,
+                            command)
         print(f"wrote {path}")
     return 0
-

@@ -1,0 +1,79 @@
+"""``calibrate``: fit several response families to one series and rank them (the API behind
+``clblur calibrate``)."""
+
+from __future__ import annotations
+
+import os
+import sys
+from dataclasses import dataclass
+
+import numpy as np
+from tqdm import tqdm
+
+from clblur.calibration.evaluate import EVAL_LOW, FLAT_TOLERANCE, evaluate
+from clblur.calibration.fitting import ResponseFit, fit
+from clblur.calibration.models import MODELS, EmorBasis
+from clblur.calibration.sampling import VALID_LOW, sample_series
+from clblur.calibration.series import ExposureSeries, load_series
+
+
+@dataclass
+class Calibration:
+    """Every fitted model, its held-out evaluation, and the best one's name."""
+
+    series: ExposureSeries
+    fits: dict[str, ResponseFit]
+    evaluations: dict[str, dict]
+    best: str
+
+    @property
+    def responses(self):
+        """The best model's responses, one per channel."""
+        return self.fits[self.best].responses
+
+    def table(self) -> list[dict]:
+        """One row per model: held-out RMSE per gap and direction, AIC, BIC."""
+        return [{"model": n, **{k: e[k] for k in ("rmse", "rmse_darker", "rmse_brighter",
+                                                   "rmse_per_channel", "aic", "bic",
+                                                   "n_params", "rmse_fit")}}
+                for n, e in self.evaluations.items()]
+
+
+def available_models(emor_dir=None, warn: bool = True) -> list[str]:
+    """All models, without ``emor`` when its basis files cannot be found."""
+    try:
+        EmorBasis.load(emor_dir)
+        return list(MODELS)
+    except ValueError as e:
+        if warn:
+            print(f"clblur calibrate: skipping emor ({e})", file=sys.stderr)
+        return [m for m in MODELS if m != "emor"]
+
+
+def calibrate(source: ExposureSeries | str | os.PathLike, models=None, *, times=None,
+              shared: bool = False, refine_times: bool = False, n_samples: int = 1000,
+              patch: int = 3, seed: int = 0, fit_low: float | None = None,
+              emor_dir=None, gaps=(1, 4), refit: bool = True, eval_low: float = EVAL_LOW,
+              flat_tolerance: float | None = FLAT_TOLERANCE, max_pixels: int | None = None,
+              progress: bool = False) -> Calibration:
+    """Fit ``models`` (default: all available) on the same patches, evaluate each by held-out
+    prediction (``clblur.calibration.evaluate``) and pick the lowest mean RMSE over ``gaps``
+    (both directions pooled)."""
+    series = source if isinstance(source, ExposureSeries) else load_series(source, times)
+    names = list(dict.fromkeys(models)) if models else available_models(emor_dir)
+    unknown = [m for m in names if m not in MODELS]
+    if unknown:
+        raise ValueError(f"unknown response model(s) {unknown}; choose from {', '.join(MODELS)}")
+    low = VALID_LOW if fit_low is None else min(fit_low, VALID_LOW)
+    sampling = sample_series(series, n_samples, patch=patch, low=low, seed=seed)
+    fits, evaluations = {}, {}
+    for name in tqdm(names, desc="models", disable=not progress):
+        opts = {"emor_dir": emor_dir} if name == "emor" else {}
+        fits[name] = fit(series, name, shared=shared, sampling=sampling, low=fit_low,
+                         refine_times=refine_times, progress=progress, **opts)
+        evaluations[name] = evaluate(series, fits[name], gaps=gaps, refit=refit,
+                                     max_pixels=max_pixels, low=eval_low,
+                                     flat_tolerance=flat_tolerance, seed=seed,
+                                     progress=progress)
+    best = min(names, key=lambda n: float(np.nanmean(list(evaluations[n]["rmse"].values()))))
+    return Calibration(series, fits, evaluations, best)
