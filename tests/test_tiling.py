@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import tifffile
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import clblur
 from clblur import tiling
@@ -213,3 +215,20 @@ def test_unsupported_or_corrupt_tiff_is_rejected(rng, tmp_path):
     with pytest.raises(ValueError, match="cannot read image"):
         blur_file(tmp_path / "junk.tif", tmp_path / "out.tif", (1, 0), backend="numpy")
     assert not (tmp_path / "out.tif").exists()
+
+
+@settings(max_examples=30, deadline=None)
+@given(h=st.integers(1, 24), w=st.integers(1, 24), th=st.integers(1, 10),
+       tw=st.integers(1, 10), anchor=st.sampled_from(["start", "center", "end"]),
+       dx=st.floats(-15, 15), dy=st.floats(-15, 15), per_pixel=st.booleans(),
+       seed=st.integers(0, 2**16))
+def test_tiled_equals_untiled_property(h, w, th, tw, anchor, dx, dy, per_pixel, seed):
+    rng = np.random.default_rng(seed)
+    img = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    motion = (dx, dy)
+    if per_pixel:  # random vectors up to (dx, dy) in size: neighbours point anywhere
+        motion = (rng.uniform(-1, 1, (h, w, 2)) * [dx, dy]).astype(np.float32)
+    out = np.zeros_like(img)
+    blur_tiled(img, out, motion, anchor=anchor, backend="numpy", tile=(th, tw))
+    np.testing.assert_array_equal(out, clblur.blur(img, motion, anchor=anchor,
+                                                   backend="numpy"))
