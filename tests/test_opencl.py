@@ -379,6 +379,21 @@ def test_buffers_are_reused_between_calls_of_one_size(opencl, rng):
     assert {k: id(v) for k, v in rt.buffers.items()} == before
 
 
+@pytest.mark.opencl
+def test_concurrent_calls_from_threads_match_sequential_ones(opencl, rng):
+    """Dask's threaded workers share one context; calls must not trample shared buffers."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    plans = [make_plan(random_image(rng, dtype, 3), motion, "exp")
+             for dtype in (np.uint8, np.uint16, np.float32)
+             for motion in (smooth_flow(rng), (5.5, 2.0), (8.0, 0.0))]
+    sequential = [opencl.blur(p) for p in plans]
+    with ThreadPoolExecutor(4) as pool:
+        concurrent = list(pool.map(opencl.blur, plans * 2))
+    for got, want in zip(concurrent, sequential * 2, strict=True):
+        assert np.array_equal(got, want)
+
+
 # --- measured error table for docs/tolerances.md: python tests/test_opencl.py ------------------
 
 def measure_errors() -> None:
