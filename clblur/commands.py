@@ -49,12 +49,13 @@ def add_motion_options(p: argparse.ArgumentParser, required: bool) -> None:
 
 
 def motion_from_args(args) -> object:
-    from clblur.io import read_flow, read_psf
+    """The motion a blur command asked for; a flow stays a path so big ones can be mapped."""
+    from clblur.io import read_psf
 
     if args.motion is not None:
         return parse_vector(args.motion)
     if args.flow is not None:
-        return read_flow(args.flow)
+        return args.flow
     return read_psf(args.psf)
 
 

@@ -12,9 +12,18 @@ import numpy as np
 FLO_MAGIC = 202021.25  # Middlebury .flo tag
 
 
-def _tmp_beside(path: Path) -> Path:
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def tmp_beside(path: Path) -> Path:
+    """A new empty temporary file next to ``path`` (same folder, so the rename is atomic),
+    with the permissions a plainly created file would get (mkstemp makes it 0600)."""
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part" + path.suffix,
                                dir=path.parent)
+    os.fchmod(fd, 0o666 & ~_umask())
     os.close(fd)
     return Path(tmp)
 
@@ -24,7 +33,7 @@ def atomic_write(path: str | os.PathLike, writer: Callable[[Path], None]) -> Non
     path = Path(path)
     if not path.parent.exists():
         raise ValueError(f"output folder does not exist: {path.parent}")
-    tmp = _tmp_beside(path)
+    tmp = tmp_beside(path)
     try:
         writer(tmp)
         os.replace(tmp, path)

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clblur.io import _tmp_beside, read_image, write_image
+from clblur.io import read_image, tmp_beside, write_image
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp")
 # Default encoder per output container; libx264 at CRF 17 is visually lossless for most content.
@@ -244,7 +244,7 @@ class VideoFileSink:
         if not self.path.parent.exists():
             raise ValueError(f"output folder does not exist: {self.path.parent}")
         codec = codec or VIDEO_CODECS[suffix]
-        self.tmp = _tmp_beside(self.path)
+        self.tmp = tmp_beside(self.path)
         self.container = av.open(str(self.tmp), "w", format=suffix.lstrip(".").replace(
             "mkv", "matroska"))
         self.stream = self.audio = None
