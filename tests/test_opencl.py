@@ -230,7 +230,7 @@ def test_device_and_host_sample_counts_agree(opencl, rng, monkeypatch):
     flow = near_integer_flow(rng)
     plan = make_plan(random_image(rng, np.float32, 3), flow, "exp")
     on_device = opencl.blur(plan)
-    rt = opencl._runtime(None)
+    rt = opencl.runtime(None)
     if not rt.fp64:
         pytest.skip("device has no fp64: counts always come from the host")
     monkeypatch.setattr(rt, "fp64", False)  # routes counts through the host buffer
@@ -319,9 +319,9 @@ def run_python(code: str, **env) -> subprocess.CompletedProcess:
 
 
 def test_import_creates_no_context():
-    res = run_python("import sys, clblur, clblur.opencl\n"
+    res = run_python("import sys, clblur, clblur.opencl, clblur.opencl_device\n"
                      "assert 'pyopencl' not in sys.modules, 'pyopencl imported'\n"
-                     "assert not clblur.opencl._runtimes\n"
+                     "assert not clblur.opencl_device._runtimes\n"
                      "print('ok')")
     assert res.returncode == 0 and res.stdout.strip() == "ok", res.stderr
 
@@ -373,7 +373,7 @@ def test_buffers_are_reused_between_calls_of_one_size(opencl, rng):
     img = random_image(rng, np.uint8, 3)
     plan = make_plan(img, smooth_flow(rng), "exp")
     opencl.blur(plan)
-    rt = opencl._runtime(None)
+    rt = opencl.runtime(None)
     before = {k: id(v) for k, v in rt.buffers.items()}
     opencl.blur(plan)
     assert {k: id(v) for k, v in rt.buffers.items()} == before

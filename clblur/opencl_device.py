@@ -1,0 +1,258 @@
+"""OpenCL devices for the backend: selection, per-process contexts, programs, buffers.
+
+Conventions
+-----------
+* Selection: the ``device`` argument, else ``$CLBLUR_DEVICE``, else the first GPU, else the
+  first device.  A selector is ``"P:D"`` (platform and device indices, as ``clblur info``
+  lists them) or a case-insensitive substring of ``"<platform name> <device name>"``.
+* Nothing is created at import (pyopencl itself is imported on first use).  Each process
+  builds one context and queue per selector on first use (a forked worker notices the new
+  pid and builds its own); programs are cached by build options, device buffers are reused
+  between calls.  No OpenCL object leaves this module's state, so nothing needs pickling.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import threading
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+ENV_DEVICE = "CLBLUR_DEVICE"
+KERNEL_FILES = ("response.cl", "integrate.cl")
+_PROBE_SOURCE = "__kernel void probe(__global float *x) { x[get_global_id(0)] += 1.5f; }"
+
+
+class OpenCLUnavailable(RuntimeError):
+    """No OpenCL platform, or the device cannot create a context."""
+
+
+class DeviceNotFound(OpenCLUnavailable, ValueError):
+    """The selector names no device (bad input: the CLI reports it as one line)."""
+
+
+def pyopencl_module():
+    """pyopencl, imported on first use: `import clblur` must stay free of OpenCL."""
+    import pyopencl
+
+    return pyopencl
+
+
+def _selector(device: str | None) -> str:
+    sel = device if device is not None else os.environ.get(ENV_DEVICE, "")
+    if not isinstance(sel, str):
+        raise TypeError(f"OpenCL device selector must be a string, got {sel!r}")
+    return sel.strip()
+
+
+def _enumerate() -> list[tuple[int, int, object, object]]:
+    cl = pyopencl_module()
+    try:
+        platforms = cl.get_platforms()
+    except cl.Error as e:
+        raise OpenCLUnavailable(f"no OpenCL platform found ({e})") from None
+    found = []
+    for pi, platform in enumerate(platforms):
+        try:
+            devs = platform.get_devices()
+        except cl.Error:
+            continue
+        found += [(pi, di, platform, d) for di, d in enumerate(devs)]
+    return found
+
+
+def _label(platform, device) -> str:
+    return f"{platform.name.strip()} {device.name.strip()}"
+
+
+def _pick(selector: str):
+    found = _enumerate()
+    if not found:
+        raise OpenCLUnavailable("no OpenCL device found")
+    if not selector:
+        cl = pyopencl_module()
+        gpus = [f for f in found if f[3].type & cl.device_type.GPU]
+        return (gpus or found)[0]
+    m = re.fullmatch(r"(\d+):(\d+)", selector)
+    for pi, di, platform, device in found:
+        if (m and (pi, di) == (int(m[1]), int(m[2]))) or \
+                (not m and selector.lower() in _label(platform, device).lower()):
+            return pi, di, platform, device
+    names = "; ".join(f"{pi}:{di} {_label(p, d)}" for pi, di, p, d in found)
+    raise DeviceNotFound(f"no OpenCL device matches {selector!r} (available: {names})")
+
+
+def _kernel_source() -> str:
+    try:
+        root = resources.files("clblur.kernels")
+        return "\n".join(root.joinpath(name).read_text() for name in KERNEL_FILES)
+    except (ModuleNotFoundError, FileNotFoundError):
+        # Source tree: kernels/ sits next to the package and is only a package once installed.
+        root = Path(__file__).resolve().parent.parent / "kernels"
+        return "\n".join((root / name).read_text() for name in KERNEL_FILES)
+
+
+@dataclass
+class Runtime:
+    """One device's context, queue, programs and reusable buffers (per process)."""
+
+    label: str
+    index: str
+    device: object
+    context: object
+    queue: object
+    fp64: bool
+    unified: bool  # device memory is host memory (CPU devices)
+    pid: int = field(default_factory=os.getpid)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    programs: dict = field(default_factory=dict)
+    kernels: dict = field(default_factory=dict)
+    buffers: dict = field(default_factory=dict)
+
+    def build_options(self, half: bool) -> tuple[str, ...]:
+        cl = pyopencl_module()
+        opts = []
+        if self.device.single_fp_config & cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT:
+            opts.append("-cl-fp32-correctly-rounded-divide-sqrt")  # v / (N-1) exact if integer
+        if half:
+            opts.append("-DSTORE_HALF")
+        if self.fp64:
+            opts.append("-DHAVE_FP64")
+        return tuple(opts)
+
+    def kernel(self, half: bool, name: str):
+        opts = self.build_options(half)
+        if opts not in self.programs:
+            cl = pyopencl_module()
+            self.programs[opts] = cl.Program(self.context, _kernel_source()).build(
+                options=list(opts))
+        key = (opts, name)
+        if key not in self.kernels:
+            self.kernels[key] = getattr(self.programs[opts], name)
+        return self.kernels[key]
+
+    def buffer(self, role: str, nbytes: int):
+        """A device buffer of at least ``nbytes`` for ``role``, reused across calls."""
+        nbytes = max(int(nbytes), 16)
+        old = self.buffers.get(role)
+        if old is None or old.size < nbytes:
+            cl = pyopencl_module()
+            old = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, nbytes)
+            self.buffers[role] = old
+        return old
+
+    def upload(self, role: str, array: np.ndarray):
+        array = np.ascontiguousarray(array)
+        buf = self.buffer(role, array.nbytes)
+        pyopencl_module().enqueue_copy(self.queue, buf, array, is_blocking=True)
+        return buf
+
+    def share(self, role: str, array: np.ndarray):
+        """A read-only view of a large input: the host array itself on devices that share
+        host memory (CPUs; no copy), else an upload into the reused ``role`` buffer."""
+        if not self.unified:
+            return self.upload(role, array)
+        cl = pyopencl_module()
+        return cl.Buffer(self.context, cl.mem_flags.READ_ONLY | cl.mem_flags.USE_HOST_PTR,
+                         hostbuf=np.ascontiguousarray(array))  # keeps the array alive
+
+
+_runtimes: dict[str, Runtime] = {}
+_usable: dict[str, tuple[bool, str]] = {}
+_registry_lock = threading.Lock()
+
+
+def runtime(device: str | None = None) -> Runtime:
+    """The selected device's runtime for this process, created on first use."""
+    sel = _selector(device)
+    with _registry_lock:
+        rt = _runtimes.get(sel)
+        if rt is not None and rt.pid == os.getpid():
+            return rt
+        cl = pyopencl_module()
+        pi, di, platform, dev = _pick(sel)
+        try:
+            ctx = cl.Context([dev])
+            queue = cl.CommandQueue(ctx)
+        except cl.Error as e:
+            raise OpenCLUnavailable(f"cannot create a context on {_label(platform, dev)}: "
+                                    f"{e}") from None
+        rt = Runtime(label=_label(platform, dev), index=f"{pi}:{di}", device=dev, context=ctx,
+                      queue=queue, fp64=bool(dev.double_fp_config),
+                      unified=dev.type == cl.device_type.CPU and bool(dev.host_unified_memory))
+        _runtimes[sel] = rt
+        return rt
+
+
+def current_device(device: str | None = None) -> str:
+    """``"P:D <platform> <device>"`` of the device the selector picks (creates its context)."""
+    rt = runtime(device)
+    return f"{rt.index} {rt.label}"
+
+
+def _probe(context, queue) -> None:
+    """Build and run a tiny kernel; raise if the result is wrong."""
+    cl = pyopencl_module()
+    prog = cl.Program(context, _PROBE_SOURCE).build()
+    host = np.arange(8, dtype=np.float32)
+    buf = cl.Buffer(context, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=host)
+    prog.probe(queue, (8,), None, buf)
+    got = np.empty_like(host)
+    cl.enqueue_copy(queue, got, buf, is_blocking=True)
+    if not np.array_equal(got, host + 1.5):
+        raise OpenCLUnavailable("probe kernel returned wrong values")
+
+
+def usable(device: str | None = None) -> tuple[bool, str]:
+    """Whether the selected device builds and runs a tiny kernel; (ok, device or reason).
+
+    The answer is cached per selector for the life of the process."""
+    sel = _selector(device)
+    if sel in _usable:
+        return _usable[sel]
+    try:
+        rt = runtime(sel)
+        with rt.lock:
+            _probe(rt.context, rt.queue)
+        answer = (True, f"{rt.index} {rt.label}")
+    except ImportError as e:
+        answer = (False, f"pyopencl is not importable ({e})")
+    except OpenCLUnavailable as e:
+        answer = (False, str(e))
+    except Exception as e:  # noqa: BLE001 - any driver failure means "not usable"
+        answer = (False, f"{type(e).__name__}: {e}")
+    _usable[sel] = answer
+    return answer
+
+
+def _device_type(bits: int) -> str:
+    cl = pyopencl_module()
+    names = [name for name in ("GPU", "CPU", "ACCELERATOR", "CUSTOM")
+             if bits & getattr(cl.device_type, name)]
+    return " | ".join(names) or str(bits)
+
+
+def devices() -> list[dict]:
+    """Every OpenCL device with its properties and whether it builds and runs a kernel."""
+    cl = pyopencl_module()
+    rows = []
+    try:
+        found = _enumerate()
+    except OpenCLUnavailable:
+        return rows
+    for pi, di, platform, dev in found:
+        row = {"index": f"{pi}:{di}", "platform": platform.name.strip(),
+               "device": dev.name.strip(), "type": _device_type(dev.type),
+               "version": dev.version.strip(), "fp64": bool(dev.double_fp_config)}
+        try:
+            ctx = cl.Context([dev])
+            _probe(ctx, cl.CommandQueue(ctx))
+            row.update(works=True, error="")
+        except Exception as e:  # noqa: BLE001 - report, do not raise
+            row.update(works=False, error=f"{type(e).__name__}: {e}")
+        rows.append(row)
+    return rows
