@@ -28,6 +28,7 @@ from clblur.opencl_device import (  # noqa: F401 - re-exported: the backend's in
     DeviceNotFound,
     OpenCLUnavailable,
     Runtime,
+    _runtimes,  # the per-selector runtimes of this process (inspected by tests)
     current_device,
     devices,
     pyopencl_module,
