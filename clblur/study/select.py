@@ -144,9 +144,12 @@ def fit(groups: list[Group], free: list[str], start: dict, nvalid: int) -> dict:
     lo = np.array([PARAMS[n][1] for n in names])
     hi = np.array([PARAMS[n][2] for n in names])
     starts = [dict(start)]
+    if "na" in free and (start["na"] > 0 or start["nb"] > 0):
+        # a noise model inflated by a wrong mean flattens the likelihood; restart without it
+        starts.append({**start, "na": 0.0, "nb": 0.0})
     if "gamma" in free and start["gamma"] == 1.0 and start["rho"] == 1.0:
         # also start from the power-law corner: linear and display gamma
-        starts += [{**start, "gamma": 1.0, "rho": 0.05}, {**start, "gamma": 2.2, "rho": 0.05}]
+        starts += [{**s, "gamma": g, "rho": 0.05} for s in list(starts) for g in (1.0, 2.2)]
     best, best_val = None, math.inf
     for s0 in starts:
         def objective(z, s0=s0):
