@@ -29,7 +29,7 @@ IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
 _EXIF_IFD, _EXPOSURE_TIME, _F_NUMBER = 0x8769, 0x829A, 0x829D
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # holds arrays: compare series by identity
 class ExposureSeries:
     """A validated stack; construct it with ``load_series`` or ``ExposureSeries.create``."""
 
