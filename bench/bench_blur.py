@@ -277,7 +277,7 @@ def write_report(args, rows, info, dev, source, mean_n, load_before, load_after)
         by_case.setdefault(case, {})[method] = rate
     lines = [
         "# Blur benchmark", "",
-        f"Command: `python bench/bench_blur.py {' '.join(sys.argv[1:])}`".rstrip(), "",
+        "Command: `" + " ".join(["python bench/bench_blur.py", *sys.argv[1:]]) + "`", "",
         f"- Machine: {info['machine']}; CPU: {info['cpu']}",
         f"- OpenCL device: {dev}",
         f"- Python {info['python']}, numpy {info['numpy']}, OpenCV {info['opencv']}, "
@@ -290,13 +290,15 @@ def write_report(args, rows, info, dev, source, mean_n, load_before, load_after)
         f"{args.crop} x {args.crop} centre crop and scaled", "",
         "MP/CPU-s divides by the CPU time of the process (all threads) instead of wall time: "
         "it moves less with other load on the machine.  On this 2-core machine wall-clock MP/s "
-        "is at most twice it.", "",
-        "| case | method | MP/s | clblur speed-up | MP/CPU-s | note |",
-        "|---|---|---:|---:|---:|---|"]
+        "is at most twice it.  Cores = CPU time / wall time: how much of the machine the "
+        "method actually got.", "",
+        "| case | method | MP/s | clblur speed-up | MP/CPU-s | cores | note |",
+        "|---|---|---:|---:|---:|---:|---|"]
     for case, method, rate, per_cpu, note in rows:
         ours = by_case[case].get("clblur OpenCL")
         ratio = f"{ours / rate:.1f}x" if ours and method != "clblur OpenCL" else ""
-        lines.append(f"| {case} | {method} | {rate:.2f} | {ratio} | {per_cpu:.2f} | {note} |")
+        lines.append(f"| {case} | {method} | {rate:.2f} | {ratio} | {per_cpu:.2f} | "
+                     f"{rate / per_cpu:.2f} | {note} |")
     lines += ["", "## Targets", "", "| target | measured | met |", "|---|---|---|"]
     for what, measured, met in targets(by_case):
         lines.append(f"| {what} | {measured} | {'yes' if met else '**no**'} |")
