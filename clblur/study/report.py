@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -111,8 +112,10 @@ def figures(sel: Selection, groups: list[Group], out: Path, max_groups: int = 2)
         lim = float(np.nanpercentile(np.abs(rb), 99)) or 1.0
         fig, ax = plt.subplots(1, 2, figsize=(9, 3.6))
         for a, r, t in ((ax[0], rb, "paper (baseline)"), (ax[1], rx, "extended")):
-            im = a.imshow(grid_image(g, np.nanmean(r, axis=1)), cmap="RdBu_r", vmin=-lim,
-                          vmax=lim)
+            with np.errstate(invalid="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # all channels censored
+                mean = np.nanmean(r, axis=1)
+            im = a.imshow(grid_image(g, mean), cmap="RdBu_r", vmin=-lim, vmax=lim)
             a.set_title(f"{t}: residual (codes)")
             a.axis("off")
         fig.colorbar(im, ax=ax, shrink=0.8)
