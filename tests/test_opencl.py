@@ -237,6 +237,22 @@ def test_device_and_host_sample_counts_agree(opencl, rng, monkeypatch):
     assert np.array_equal(opencl.blur(plan), on_device)
 
 
+@pytest.mark.opencl
+@pytest.mark.data
+def test_real_frame_with_long_motion(opencl, shared_data):
+    """A real photograph (GoPro frame crop) with a smooth 10-25 px flow, every dtype."""
+    from clblur.io import read_image
+
+    frames = sorted((shared_data / "gopro240" / "frames").glob("*.png"))
+    if not frames:
+        pytest.skip("gopro240 frames not in the shared data")
+    crop = read_image(frames[0])[200:328, 400:592]
+    rng = np.random.default_rng(7)
+    flow = smooth_flow(rng, crop.shape[:2], scale=18.0)
+    for img in (crop, crop.astype(np.uint16) * 257, (crop / 255.0).astype(np.float32)):
+        assert_matches_reference(opencl, make_plan(img, flow, "exp", anchor="start"))
+
+
 # --- tiles -----------------------------------------------------------------------------------
 
 def tiled(backend, image, motion, halo, tile=(16, 20), **kw):
