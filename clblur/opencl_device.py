@@ -114,6 +114,7 @@ class Runtime:
     buffers: dict = field(default_factory=dict)
 
     def build_options(self, half: bool) -> tuple[str, ...]:
+        """Options for the kernels/*.cl program; ``half``: half-float intermediate."""
         cl = pyopencl_module()
         opts = []
         if self.device.single_fp_config & cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT:
@@ -125,6 +126,7 @@ class Runtime:
         return tuple(opts)
 
     def kernel(self, half: bool, name: str):
+        """Kernel ``name`` of the program built for ``half`` (built once, then cached)."""
         opts = self.build_options(half)
         if opts not in self.programs:
             cl = pyopencl_module()
@@ -146,6 +148,7 @@ class Runtime:
         return old
 
     def upload(self, role: str, array: np.ndarray):
+        """Copy ``array`` into the reused ``role`` buffer (blocking) and return the buffer."""
         array = np.ascontiguousarray(array)
         buf = self.buffer(role, array.nbytes)
         pyopencl_module().enqueue_copy(self.queue, buf, array, is_blocking=True)
