@@ -38,6 +38,11 @@ def test_time_weights_and_anchor_reach_the_kernels(rng):
     want = clblur.blur(scene, (8.0, 0.0), "linear", weights=w, anchor="start",
                        backend="numpy")
     np.testing.assert_allclose(got, want, atol=1e-12)
+    # a per-pixel flow field goes through the same kernels
+    flow = np.zeros((16, 40, 2), np.float32)
+    flow[..., 0] = 8.0
+    field = cam.capture(scene, motion=flow, weights=w, anchor="start", dtype=np.float64)
+    np.testing.assert_allclose(field, want, atol=1e-9)
 
 
 def test_vignetting_is_cos4_fixed_to_the_sensor():

@@ -170,3 +170,20 @@ def test_levin_pair_runs_on_measured_data(shared_data):
     r = study_groups("blur-pair", [g]).report
     assert np.isfinite(r["baseline"]["heldout_rmse"])
     assert r["extended"]["heldout_rmse"] <= r["baseline"]["heldout_rmse"] + 1e-9
+
+
+def test_shared_data_manifests(shared_data, tmp_path):
+    from clblur.manifest import load_manifest
+    from clblur.study import shared
+
+    assert len(load_manifest(shared.memorial(tmp_path, shared_data)).images) == 16
+    assert len(load_manifest(shared.levin(tmp_path, shared_data)).pairs) == 32
+    code_mean, gamma = shared.gopro(tmp_path, shared_data)
+    stacks = load_manifest(code_mean).stacks
+    assert len(stacks) == 4 and all(len(s.frames) == shared.GOPRO_STACK for s in stacks)
+    # the code-mean long exposure is the rounded mean of its frames' codes
+    from clblur.io import read_image
+
+    frames = np.stack([read_image(f) for f in stacks[0].frames]).astype(np.float64)
+    np.testing.assert_array_equal(read_image(stacks[0].long), np.rint(frames.mean(axis=0)))
+    assert load_manifest(gamma).kind == "frame-stack"

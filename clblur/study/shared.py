@@ -57,11 +57,13 @@ def gopro(out: Path, data: Path) -> list[Path]:
     for how in ("code_mean", "gamma22_mean"):
         stacks = []
         for s in range(0, len(files) - GOPRO_STACK + 1, GOPRO_STEP):
-            chunk = np.stack(frames[s:s + GOPRO_STACK]).astype(np.float64) / 255.0
-            v = chunk.mean(axis=0) if how == "code_mean" else \
-                (chunk ** 2.2).mean(axis=0) ** (1 / 2.2)
+            codes = np.stack(frames[s:s + GOPRO_STACK]).astype(np.float64)
+            if how == "code_mean":  # in code units, so exact halves round half to even
+                mean = codes.mean(axis=0)
+            else:
+                mean = 255.0 * ((codes / 255.0) ** 2.2).mean(axis=0) ** (1 / 2.2)
             long = out / f"gopro_{how}_{s:02d}.png"
-            write_image(long, np.rint(v * 255.0).astype(np.uint8))
+            write_image(long, np.rint(mean).astype(np.uint8))
             stacks.append({"frames": [str(f) for f in files[s:s + GOPRO_STACK]],
                            "long": long.name})
         path = out / f"gopro240_{how}.json"
