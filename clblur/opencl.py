@@ -98,8 +98,8 @@ def _run(rt: Runtime, plan: BlurPlan) -> np.ndarray:
         params, tables = prep.response_params(group)
         thresholds = (prep.quantisation_thresholds(prep.four_channels(group), img.dtype)
                       if img.dtype.kind == "u" else np.zeros(1, np.float32))
-        buckets = (prep.quantisation_buckets(thresholds) if img.dtype == np.uint8
-                   else np.zeros(4, np.int32))
+        buckets = (prep.quantisation_buckets(thresholds) if img.dtype.kind == "u"
+                   else np.zeros(prep.QHEAD + 1, np.int32))
         store_args = (rt.upload("resp", params), rt.upload("tables", tables),
                       rt.upload("thresholds", thresholds), rt.upload("buckets", buckets),
                       out_buf, np.int32(out_kind),

@@ -141,65 +141,75 @@ def response_params(responses: tuple[Response, ...] | list[Response]
     return params, flat
 
 
-def quantisation_thresholds(responses, dtype: np.dtype) -> np.ndarray:
-    """float32 (channels, 2^bits) exposures where each response crosses the code boundaries.
+THRESHOLD_PAD = 64  # +inf entries after each row: no probe of the search leaves its row
+BUCKET_SHIFT = {8: 16, 16: 12}  # keeps 7 (uint8) or 11 (uint16) mantissa bits per bucket
+BUCKET_MAX_STEPS = 6
+BUCKET_MAX_COUNT = 1 << 20
+QHEAD = 5  # header length of the bucket table (kernels/response.cl)
 
-    Entry k is ``I^-1((k + 1/2) / Imax)`` in float64: an exposure above it quantises to a code
-    above k.  A table response is flat outside its samples: levels above its last value are
-    never reached (+inf), levels below its first value are exceeded everywhere (-inf).
+
+def quantisation_thresholds(responses, dtype: np.dtype) -> np.ndarray:
+    """float32 (channels, 2^bits + THRESHOLD_PAD): where each response crosses the code
+    boundaries.
+
+    Entry k < Imax is ``I^-1((k + 1/2) / Imax)`` in float64: an exposure above it quantises to
+    a code above k.  A table response is flat outside its samples: levels above its last value
+    are never reached (+inf), levels below its first value are exceeded everywhere (-inf).
     Boundaries whose exact tie rounds up (half to even: odd k) are lowered by one float32 step,
-    so an exposure equal to the float32 boundary rounds as ``numpy.rint`` does.  The padding
-    entry is +inf.
+    so an exposure equal to the float32 boundary rounds as ``numpy.rint`` does.  The entries
+    from Imax on are +inf.
     """
     full = int(imax(dtype))
+    bits = 8 if full == 255 else 16
     levels = (np.arange(full, dtype=np.float64) + 0.5) / full
-    rows = []
-    for r in responses:
+    rows = np.full((len(responses), (1 << bits) + THRESHOLD_PAD), np.inf, dtype=np.float32)
+    for row, r in zip(rows, responses, strict=True):
         t = np.asarray(r.inverse(levels), dtype=np.float64)
         if isinstance(r, Table):
             t = np.where(levels > r.value[-1], np.inf, np.where(levels < r.value[0], -np.inf, t))
         t32 = t.astype(np.float32)
         odd = (np.arange(full) % 2 == 1) & np.isfinite(t32)
         t32[odd] = np.nextafter(t32[odd], np.float32(-np.inf))
-        t32 = np.maximum.accumulate(t32)  # keep them sorted where two boundaries coincide
-        rows.append(np.append(t32, np.float32(np.inf)))
-    return np.stack(rows)
-
-
-BUCKET_SHIFT = 16  # keeps 7 mantissa bits: buckets 1/128 of an octave wide
-BUCKET_MAX_STEPS = 6
+        row[:full] = np.maximum.accumulate(t32)  # sorted where two boundaries coincide
+    return rows
 
 
 def quantisation_buckets(thresholds: np.ndarray) -> np.ndarray:
-    """Bucket table for kernels/response.cl ``quantise_by_buckets`` (int32).
+    """Bucket table for kernels/response.cl ``quantise`` (int32).
 
-    Layout: ``[shift, base, nb, kmax]`` then ``nb`` counts per channel.  Bucket b covers the
-    float32 values whose bit patterns shifted right by ``shift`` equal ``base + b`` (bucket 0
-    also everything below, the last everything above); its count is the number of thresholds
-    below its start, and ``kmax`` bounds the thresholds inside any bucket.  Returns the
-    header alone with ``nb = 0`` when some bucket holds more than BUCKET_MAX_STEPS thresholds
-    (the kernel then binary-searches).
+    Layout: ``[shift, base, nb, steps, stride]`` then ``nb`` counts per channel.  Bucket b
+    covers the float32 values whose bit patterns shifted right by ``shift`` equal
+    ``base + b`` (bucket 0 also everything below, the last everything above); its count is
+    the number of thresholds below its start, and at most ``2^steps - 1`` thresholds lie
+    inside any bucket.  When that would need more than BUCKET_MAX_STEPS halvings (or too
+    many buckets), the table is one bucket with ``steps = bits``: a plain binary search.
     """
-    t = thresholds[:, :-1]  # drop the +inf padding
+    channels, stride = thresholds.shape
+    bits = 8 if stride - THRESHOLD_PAD == 256 else 16
+    plain = np.concatenate([[31, 0, 1, bits, stride], np.zeros(channels)]).astype(np.int32)
+    t = thresholds[:, :(1 << bits) - 1]
     finite = t[np.isfinite(t) & (t > 0)]
     if finite.size == 0:
-        return np.zeros(4, np.int32)
+        return plain
+    shift = BUCKET_SHIFT[bits]
     lo = np.float32(finite.min() / 2)
     hi = np.float32(min(float(finite.max()) * 2, 3e38))
-    base = int(lo.view(np.uint32)) >> BUCKET_SHIFT
-    nb = (int(hi.view(np.uint32)) >> BUCKET_SHIFT) - base + 1
-    starts = ((np.arange(nb, dtype=np.uint32) + base) << BUCKET_SHIFT).view(np.float32).copy()
+    base = int(lo.view(np.uint32)) >> shift
+    nb = (int(hi.view(np.uint32)) >> shift) - base + 1
+    if nb > BUCKET_MAX_COUNT:
+        return plain
+    starts = ((np.arange(nb, dtype=np.uint32) + base) << shift).view(np.float32).copy()
     starts[0] = 0.0
     ends = np.append(starts[1:], np.float32(np.inf))
-    counts, kmax = [], 0
-    for row in thresholds:
+    counts, most = [], 0
+    for row in t:
         q0 = np.searchsorted(row, starts, side="left")
-        q1 = np.searchsorted(row, ends, side="left")
-        kmax = max(kmax, int(np.max(q1 - q0)))
+        most = max(most, int(np.max(np.searchsorted(row, ends, side="left") - q0)))
         counts.append(q0)
-    if kmax > BUCKET_MAX_STEPS:
-        return np.zeros(4, np.int32)
-    return np.concatenate([[BUCKET_SHIFT, base, nb, kmax], *counts]).astype(np.int32)
+    steps = max(1, int(most).bit_length())  # 2^steps - 1 >= most
+    if steps > BUCKET_MAX_STEPS:
+        return plain
+    return np.concatenate([[shift, base, nb, steps, stride], *counts]).astype(np.int32)
 
 
 def linearise_float_image(image: np.ndarray, responses, saturation: float) -> np.ndarray:

@@ -94,24 +94,24 @@ static int8 floor_int8(float8 v)
 }
 
 /* Store LANES consecutive pixels of a row (the first `valid` of them), starting at `pixel`;
- * uint8 outputs are quantised 4 pixels x 4 channels at a time. */
+ * integer outputs are quantised 4 pixels x 4 channels at a time. */
 static void store_row8(float4 a0, float4 a1, float4 a2, float4 a3, float4 a4, float4 a5,
                        float4 a6, float4 a7, __global uchar *restrict out, int out_kind,
                        size_t pixel, int valid, int channels, int cbase, int cg,
                        __constant const float *resp, __global const float *tables,
                        __global const float *thresholds, __global const int *buckets)
 {
-    if (out_kind == OUT_U8 && buckets[2] > 0 && valid >= LANES) {
-        int16 lo = quantise16_by_buckets((float16)(a0, a1, a2, a3), thresholds, buckets);
-        int16 hi = quantise16_by_buckets((float16)(a4, a5, a6, a7), thresholds, buckets);
-        store_codes(lo.s0123, out, pixel, channels, cbase, cg);
-        store_codes(lo.s4567, out, pixel + 1, channels, cbase, cg);
-        store_codes(lo.s89ab, out, pixel + 2, channels, cbase, cg);
-        store_codes(lo.scdef, out, pixel + 3, channels, cbase, cg);
-        store_codes(hi.s0123, out, pixel + 4, channels, cbase, cg);
-        store_codes(hi.s4567, out, pixel + 5, channels, cbase, cg);
-        store_codes(hi.s89ab, out, pixel + 6, channels, cbase, cg);
-        store_codes(hi.scdef, out, pixel + 7, channels, cbase, cg);
+    if (out_kind != OUT_F32 && valid >= LANES) {
+        int16 lo = quantise16((float16)(a0, a1, a2, a3), thresholds, buckets);
+        int16 hi = quantise16((float16)(a4, a5, a6, a7), thresholds, buckets);
+        store_codes(lo.s0123, out, out_kind, pixel, channels, cbase, cg);
+        store_codes(lo.s4567, out, out_kind, pixel + 1, channels, cbase, cg);
+        store_codes(lo.s89ab, out, out_kind, pixel + 2, channels, cbase, cg);
+        store_codes(lo.scdef, out, out_kind, pixel + 3, channels, cbase, cg);
+        store_codes(hi.s0123, out, out_kind, pixel + 4, channels, cbase, cg);
+        store_codes(hi.s4567, out, out_kind, pixel + 5, channels, cbase, cg);
+        store_codes(hi.s89ab, out, out_kind, pixel + 6, channels, cbase, cg);
+        store_codes(hi.scdef, out, out_kind, pixel + 7, channels, cbase, cg);
         return;
     }
     float4 a[LANES] = {a0, a1, a2, a3, a4, a5, a6, a7};
@@ -288,7 +288,8 @@ static long16 fixed_hi(__global const float *plane, size_t at, float scale)
 
 #define BOX_CODES(L, Q)                                                                   \
     if (x0 + L < across)                                                                   \
-        store_codes(Q, out, transposed ? (size_t)(x0 + L) * w + k : (size_t)k * w + x0 + L, \
+        store_codes(Q, out, out_kind,                                                      \
+                    transposed ? (size_t)(x0 + L) * w + k : (size_t)k * w + x0 + L,         \
                     channels, cbase, cg);
 
 /* Box of taps d = lo..hi along plane index k with equal weights, as running sums: the cost
@@ -305,7 +306,7 @@ __kernel void integrate_box(__global const float *plane, int ps, int across, int
     int x0 = get_global_id(0) * LANES;
     if (x0 >= across) return;
     float norm = 1.0f / ((float)(hi - lo + 1) * scale);
-    bool fast_u8 = out_kind == OUT_U8 && buckets[2] > 0;
+    bool codes = out_kind != OUT_F32;
     long16 sum_lo = (long16)(0), sum_hi = (long16)(0);
     for (int d = lo; d <= hi; ++d) {
         size_t at = (size_t)clamp(d, 0, len - 1) * ps + x0;
@@ -314,9 +315,9 @@ __kernel void integrate_box(__global const float *plane, int ps, int across, int
     }
     for (int k = 0; k < len; ++k) {
         float16 m_lo = convert_float16(sum_lo) * norm, m_hi = convert_float16(sum_hi) * norm;
-        if (fast_u8) {
-            int16 q_lo = quantise16_by_buckets(m_lo, thresholds, buckets);
-            int16 q_hi = quantise16_by_buckets(m_hi, thresholds, buckets);
+        if (codes) {
+            int16 q_lo = quantise16(m_lo, thresholds, buckets);
+            int16 q_hi = quantise16(m_hi, thresholds, buckets);
             BOX_CODES(0, q_lo.s0123) BOX_CODES(1, q_lo.s4567)
             BOX_CODES(2, q_lo.s89ab) BOX_CODES(3, q_lo.scdef)
             BOX_CODES(4, q_hi.s0123) BOX_CODES(5, q_hi.s4567)

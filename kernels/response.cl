@@ -59,141 +59,98 @@ static float forward_response(float x, __constant const float *resp, __global co
     }
 }
 
-/* Integer output code of exposure e: the number of thresholds below it.  thresholds[k] is
- * the exposure where the response crosses (k + 1/2) / Imax, so the count equals
- * rint(clamp(I(e), 0, 1) * Imax) except for e within float rounding of a threshold.  The
- * table has 2^bits entries (padded with +inf), bits = 8 or 16, searched in `bits` steps. */
-static int quantise_by_thresholds(float e, __global const float *thresholds, int bits)
-{
-    int q = 0;
-    if (bits == 16) {
-        q += thresholds[q + 32767] < e ? 32768 : 0;
-        q += thresholds[q + 16383] < e ? 16384 : 0;
-        q += thresholds[q + 8191] < e ? 8192 : 0;
-        q += thresholds[q + 4095] < e ? 4096 : 0;
-        q += thresholds[q + 2047] < e ? 2048 : 0;
-        q += thresholds[q + 1023] < e ? 1024 : 0;
-        q += thresholds[q + 511] < e ? 512 : 0;
-        q += thresholds[q + 255] < e ? 256 : 0;
-    }
-    /* unrolled: a loop here costs three times as much on PoCL */
-    q += thresholds[q + 127] < e ? 128 : 0;
-    q += thresholds[q + 63] < e ? 64 : 0;
-    q += thresholds[q + 31] < e ? 32 : 0;
-    q += thresholds[q + 15] < e ? 16 : 0;
-    q += thresholds[q + 7] < e ? 8 : 0;
-    q += thresholds[q + 3] < e ? 4 : 0;
-    q += thresholds[q + 1] < e ? 2 : 0;
-    q += thresholds[q] < e ? 1 : 0;
-    return q;
-}
+/* Integer output codes.  thresholds[k] (k < Imax) is the exposure where the response crosses
+ * (k + 1/2) / Imax, computed in float64 on the host and rounded to float32 (odd ones lowered
+ * one step, so that exact ties round to even); later entries are +inf.  The code of an
+ * exposure is the number of thresholds below it: rint(clamp(I(e), 0, 1) * Imax), except for
+ * e within float rounding of a threshold.  A bucket table narrows the search: the bit
+ * pattern of a float e >= 0 is monotone in e, so (bits >> shift) - base picks a narrow
+ * logarithmic bucket; its entry counts the thresholds below the bucket's start, and at most
+ * 2^steps - 1 more lie inside, found in `steps` halvings (one bucket and steps = log2 of
+ * the table length is a plain binary search).  Header buckets[0..4]: shift, base, bucket
+ * count nb, steps, threshold row stride; channel k's counts start at QHEAD + k nb, its
+ * thresholds at k stride.  Rows are padded with +inf so no probe leaves its row. */
+#define QHEAD 5
 
-/* The same count found from a bucket table (built on the host, see
- * clblur.opencl_prep.quantisation_buckets): the float bit pattern of e >= 0 is monotone in
- * e, so (bits >> shift) - base picks a narrow logarithmic bucket; buckets[4 + bucket] is
- * the count of thresholds below the bucket's start, and at most kmax more thresholds lie
- * inside any bucket.  Header: buckets[0..3] = shift, base, bucket count nb, kmax; channel
- * k's table follows at 4 + k * nb. */
-static int quantise_by_buckets(float e, __global const float *thresholds,
-                               __global const int *buckets, int channel)
+static int quantise(float e, __global const float *thresholds, __global const int *buckets,
+                    int k)
 {
     e = e > 0.0f ? e : 0.0f;  /* also maps -0.0, whose bit pattern is not monotone */
-    int b = clamp((int)(as_uint(e) >> buckets[0]) - buckets[1], 0, buckets[2] - 1);
-    int q = buckets[4 + channel * buckets[2] + b];
-    for (int s = 0; s < buckets[3]; ++s)
-        q += thresholds[q] < e ? 1 : 0;
+    int nb = buckets[2];
+    int b = clamp((int)(as_uint(e) >> buckets[0]) - buckets[1], 0, nb - 1);
+    __global const float *t = thresholds + k * buckets[4];
+    int q = buckets[QHEAD + k * nb + b];
+    for (int step = 1 << (buckets[3] - 1); step > 0; step >>= 1)
+        q += t[q + step - 1] < e ? step : 0;
     return q;
 }
 
-/* quantise_by_buckets for four pixels' channel groups at once (e: pixel-major, 4 channels
- * each).  The host pads the tables to four channels, so every lane has its own. */
-static int16 quantise16_by_buckets(float16 e, __global const float *thresholds,
-                                   __global const int *buckets)
+/* quantise() for four pixels' channel groups at once (e: pixel-major, 4 channels each).
+ * The host pads the tables to four channels, so every lane has its own. */
+static int16 quantise16(float16 e, __global const float *thresholds,
+                        __global const int *buckets)
 {
     int nb = buckets[2];
     const int16 channel = (int16)(0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3);
     e = select((float16)(0.0f), e, e > 0.0f);
     int16 b = clamp((as_int16(e) >> buckets[0]) - buckets[1], 0, nb - 1) + channel * nb;
-    __global const int *counts = buckets + 4;
+    __global const int *counts = buckets + QHEAD;
     int16 q = (int16)(counts[b.s0], counts[b.s1], counts[b.s2], counts[b.s3],
                       counts[b.s4], counts[b.s5], counts[b.s6], counts[b.s7],
                       counts[b.s8], counts[b.s9], counts[b.sa], counts[b.sb],
                       counts[b.sc], counts[b.sd], counts[b.se], counts[b.sf]);
-    int16 at = q + (channel << 8);
-    for (int s = 0; s < buckets[3]; ++s) {
+    int16 row = channel * buckets[4];
+    for (int step = 1 << (buckets[3] - 1); step > 0; step >>= 1) {
+        int16 at = row + q + (step - 1);
         float16 t = (float16)(thresholds[at.s0], thresholds[at.s1], thresholds[at.s2],
                               thresholds[at.s3], thresholds[at.s4], thresholds[at.s5],
                               thresholds[at.s6], thresholds[at.s7], thresholds[at.s8],
                               thresholds[at.s9], thresholds[at.sa], thresholds[at.sb],
                               thresholds[at.sc], thresholds[at.sd], thresholds[at.se],
                               thresholds[at.sf]);
-        int16 up = -(t < e);
-        q += up;
-        at += up;
+        q += select((int16)(0), (int16)(step), t < e);
     }
     return q;
 }
 
-/* Store the quantised codes of one pixel's channel group. */
-static void store_codes(int4 q, __global uchar *restrict out, size_t pixel, int channels,
-                        int cbase, int cg)
+/* Store the integer codes of one pixel's channel group (uint8 or uint16 output). */
+static void store_codes(int4 q, __global uchar *restrict out, int out_kind, size_t pixel,
+                        int channels, int cbase, int cg)
 {
     size_t base = pixel * (size_t)channels + (size_t)cbase;
-    out[base] = (uchar)q.x;
-    if (cg > 1) out[base + 1] = (uchar)q.y;
-    if (cg > 2) out[base + 2] = (uchar)q.z;
-    if (cg > 3) out[base + 3] = (uchar)q.w;
+    if (out_kind == OUT_U8) {
+        out[base] = (uchar)q.x;
+        if (cg > 1) out[base + 1] = (uchar)q.y;
+        if (cg > 2) out[base + 2] = (uchar)q.z;
+        if (cg > 3) out[base + 3] = (uchar)q.w;
+    } else {
+        __global ushort *o = (__global ushort *)out;
+        o[base] = (ushort)q.x;
+        if (cg > 1) o[base + 1] = (ushort)q.y;
+        if (cg > 2) o[base + 2] = (ushort)q.z;
+        if (cg > 3) o[base + 3] = (ushort)q.w;
+    }
 }
 
-/* Forward-map and quantise one channel's accumulated exposure into out[index]. */
-static void store_channel(float e, __global uchar *restrict out, int out_kind, size_t index, int k,
-                          __constant const float *resp, __global const float *tables,
-                          __global const float *thresholds, __global const int *buckets)
-{
-    if (out_kind == OUT_U8)
-        out[index] = (uchar)(buckets[2] > 0
-                             ? quantise_by_buckets(e, thresholds + (k << 8), buckets, k)
-                             : quantise_by_thresholds(e, thresholds + (k << 8), 8));
-    else if (out_kind == OUT_U16)
-        ((__global ushort *)out)[index] =
-            (ushort)quantise_by_thresholds(e, thresholds + (k << 16), 16);
-    else
-        ((__global float *)out)[index] = forward_response(e, resp + k * RESP_STRIDE, tables);
-}
-
-/* Forward-map and quantise the accumulated exposures of one pixel's channel group.
- * Integer outputs compare the exposure with per-channel threshold tables (2^8 or 2^16
- * floats per channel; buckets when the host built them, else binary search); float32
- * outputs evaluate the response.  Channels are spelled out (no private array), which keeps
- * them in registers. */
+/* Forward-map and quantise the accumulated exposures of one pixel's channel group: integer
+ * outputs by the threshold search (four channels at once), float32 outputs by evaluating
+ * the response (channels spelled out, no private array, so they stay in registers). */
 static void store_pixel(float4 acc, __global uchar *restrict out, int out_kind, size_t pixel,
                         int channels, int cbase, int cg, __constant const float *resp,
                         __global const float *tables, __global const float *thresholds,
                         __global const int *buckets)
 {
-    size_t base = pixel * (size_t)channels + (size_t)cbase;
-    if (out_kind == OUT_U8 && buckets[2] > 0) {
-        /* quantise_by_buckets for the four channels at once (the host pads the threshold
-         * and bucket tables to four channels, so no lane reads out of range) */
-        int nb = buckets[2];
-        float4 e = select((float4)(0.0f), acc, acc > 0.0f);
-        int4 b = clamp((as_int4(e) >> buckets[0]) - buckets[1], 0, nb - 1);
-        __global const int *counts = buckets + 4;
-        int4 q = (int4)(counts[b.x], counts[nb + b.y], counts[2 * nb + b.z],
-                        counts[3 * nb + b.w]);
-        for (int s = 0; s < buckets[3]; ++s) {
-            float4 t = (float4)(thresholds[q.x], thresholds[256 + q.y], thresholds[512 + q.z],
-                                thresholds[768 + q.w]);
-            q -= t < e;  /* a true vector comparison is -1 */
-        }
-        out[base] = (uchar)q.x;
-        if (cg > 1) out[base + 1] = (uchar)q.y;
-        if (cg > 2) out[base + 2] = (uchar)q.z;
-        if (cg > 3) out[base + 3] = (uchar)q.w;
+    if (out_kind != OUT_F32) {
+        int4 q = (int4)(quantise(acc.x, thresholds, buckets, 0),
+                        quantise(acc.y, thresholds, buckets, 1),
+                        quantise(acc.z, thresholds, buckets, 2),
+                        quantise(acc.w, thresholds, buckets, 3));
+        store_codes(q, out, out_kind, pixel, channels, cbase, cg);
         return;
     }
-    store_channel(acc.x, out, out_kind, base, 0, resp, tables, thresholds, buckets);
-    if (cg > 1) store_channel(acc.y, out, out_kind, base + 1, 1, resp, tables, thresholds, buckets);
-    if (cg > 2) store_channel(acc.z, out, out_kind, base + 2, 2, resp, tables, thresholds, buckets);
-    if (cg > 3) store_channel(acc.w, out, out_kind, base + 3, 3, resp, tables, thresholds, buckets);
+    __global float *o = (__global float *)out + pixel * (size_t)channels + (size_t)cbase;
+    o[0] = forward_response(acc.x, resp, tables);
+    if (cg > 1) o[1] = forward_response(acc.y, resp + RESP_STRIDE, tables);
+    if (cg > 2) o[2] = forward_response(acc.z, resp + 2 * RESP_STRIDE, tables);
+    if (cg > 3) o[3] = forward_response(acc.w, resp + 3 * RESP_STRIDE, tables);
 }

@@ -78,19 +78,31 @@ def test_thresholds_and_buckets_quantise_like_rint(rng, spec, dtype):
     margin = 1e-3 if dtype == np.uint8 else 1e-2
     away = np.abs(exact - np.floor(exact) - 0.5) > margin
     t = prep.quantisation_thresholds([resp], dtype)
-    assert t.shape == (1, 256 if dtype == np.uint8 else 65536)
-    assert np.all(np.diff(t[0]) >= 0)
+    bits = 8 if dtype == np.uint8 else 16
+    assert t.shape == (1, (1 << bits) + prep.THRESHOLD_PAD)
+    assert np.all(t[0, 1:] >= t[0, :-1]) and np.isposinf(t[0, int(full):]).all()
     by_search = np.searchsorted(t[0], e, side="left")  # count of boundaries below e
     assert np.array_equal(by_search[away], want[away])
-    if dtype == np.uint8:
-        b = prep.quantisation_buckets(t)
-        shift, base, nb, kmax = (int(v) for v in b[:4])
-        assert nb > 0 and kmax <= prep.BUCKET_MAX_STEPS
-        idx = np.clip((e.view(np.uint32) >> shift).astype(np.int64) - base, 0, nb - 1)
-        q = b[4:][idx].astype(np.int64)
-        for _ in range(kmax):
-            q += t[0][q] < e
-        assert np.array_equal(q, by_search)
+    # the kernel's search: bucket start, then `steps` halvings (kernels/response.cl)
+    b = prep.quantisation_buckets(t)
+    shift, base, nb, steps, stride = (int(v) for v in b[:prep.QHEAD])
+    assert stride == t.shape[1] and 1 <= steps <= max(prep.BUCKET_MAX_STEPS, bits)
+    assert nb > 1  # these responses are well-behaved enough to get real buckets
+    idx = np.clip((e.view(np.uint32) >> shift).astype(np.int64) - base, 0, nb - 1)
+    q = b[prep.QHEAD:][idx].astype(np.int64)
+    step = 1 << (steps - 1)
+    while step:
+        q += np.where(t[0][q + step - 1] < e, step, 0)
+        step >>= 1
+    assert np.array_equal(q, by_search)
+
+
+def test_plain_binary_search_when_buckets_do_not_pay():
+    """No positive finite boundary: one bucket, a full binary search."""
+    t = np.full((2, 256 + prep.THRESHOLD_PAD), np.inf, np.float32)
+    t[:, :100] = -np.inf
+    b = prep.quantisation_buckets(t)
+    assert b[:prep.QHEAD].tolist() == [31, 0, 1, 8, t.shape[1]]
 
 
 def test_thresholds_hold_table_ends():
