@@ -280,10 +280,10 @@ def targets(by_case: dict[str, dict[str, float]], per_cpu: dict[str, dict[str, f
 
 def write_report(args, rows, info, dev, source, mean_n, load_before, load_after) -> None:
     by_case: dict[str, dict[str, float]] = {}
-    per_cpu: dict[str, dict[str, float]] = {}
+    cpu_by_case: dict[str, dict[str, float]] = {}
     for case, method, rate, cpu_rate, _ in rows:
         by_case.setdefault(case, {})[method] = rate
-        per_cpu.setdefault(case, {})[method] = cpu_rate
+        cpu_by_case.setdefault(case, {})[method] = cpu_rate
     lines = [
         "# Blur benchmark", "",
         "Command: `" + " ".join(["python bench/bench_blur.py", *sys.argv[1:]]) + "`", "",
@@ -310,7 +310,7 @@ def write_report(args, rows, info, dev, source, mean_n, load_before, load_after)
         lines.append(f"| {case} | {method} | {rate:.2f} | {ratio} | {per_cpu:.2f} | "
                      f"{rate / per_cpu:.2f} | {note} |")
     lines += ["", "## Targets", "", "| target | measured | met |", "|---|---|---|"]
-    for what, measured, met in targets(by_case, per_cpu):
+    for what, measured, met in targets(by_case, cpu_by_case):
         lines.append(f"| {what} | {measured} | {'yes' if met else '**no**'} |")
     lines += ["", "Agreement notes compare the peer's uint8 output with clblur's "
               "(the forward LUT quantises exposure to 65536 levels, so small differences are "
