@@ -90,7 +90,9 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
     if suffix in (".tif", ".tiff"):
         import tifffile
 
-        atomic_write(path, lambda tmp: tifffile.imwrite(tmp, image))
+        rgb = image.ndim == 3 and image.shape[2] in (3, 4)
+        atomic_write(path, lambda tmp: tifffile.imwrite(
+            tmp, image, photometric="rgb" if rgb else "minisblack"))
         return
     import cv2
 
