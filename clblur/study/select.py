@@ -144,7 +144,7 @@ def fit(groups: list[Group], free: list[str], start: dict, nvalid: int) -> dict:
     lo = np.array([PARAMS[n][1] for n in names])
     hi = np.array([PARAMS[n][2] for n in names])
     starts = [dict(start)]
-    if "na" in free and (start["na"] > 0 or start["nb"] > 0):
+    if "na" in free and (start["na"] > 1e-6 or start["nb"] > 1e-8):
         # a noise model inflated by a wrong mean flattens the likelihood; restart without it
         starts.append({**start, "na": 0.0, "nb": 0.0})
     if "gamma" in free and start["gamma"] == 1.0 and start["rho"] == 1.0:
@@ -161,7 +161,7 @@ def fit(groups: list[Group], free: list[str], start: dict, nvalid: int) -> dict:
 
         z0 = np.clip((np.array([s0[n] for n in names]) - lo) / (hi - lo), 0.0, 1.0)
         res = optimize.minimize(objective, z0, method="L-BFGS-B", bounds=[(0, 1)] * len(z0),
-                                options={"maxiter": 300, "ftol": 1e-8, "gtol": 1e-6})
+                                options={"maxiter": 300, "ftol": 1e-7, "gtol": 1e-5})
         if res.fun < best_val:
             best_val = res.fun
             best = dict(s0)
