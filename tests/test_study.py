@@ -149,6 +149,10 @@ def test_bad_input_is_named(tmp_path, rng):
     m = _manifest(tmp_path, rng)
     with pytest.raises(ValueError, match="input"):
         study(m, report=tmp_path / "s.png")
+    with pytest.raises(ValueError, match="folder does not exist"):
+        study(m, report=tmp_path / "missing" / "r.json")
+    with pytest.raises(ValueError, match="max_pixels"):
+        study(m, max_pixels=10)
     with pytest.raises(ValueError, match="8-bit"):
         pair_group(np.zeros((8, 8), np.uint16), np.zeros((8, 8), np.uint16), (1.0, 0.0))
     with pytest.raises(ValueError, match="shape"):

@@ -81,6 +81,8 @@ def study(manifest: str | os.PathLike | Manifest, *, report: str | os.PathLike |
         q for p in m.pairs for q in (p.static, p.blurred, p.flow, p.psf)] + [
         q for s in m.stacks for q in (*s.frames, s.long)]
     if report is not None:  # refuse before the work, not after
+        if not Path(report).parent.is_dir():
+            raise ValueError(f"output folder does not exist: {Path(report).parent}")
         refuse_overwrite(report, *inputs)
         refuse_overwrite(Path(report).with_suffix(".md"), *inputs)
     groups = groups_from_manifest(m, max_pixels, progress)
