@@ -79,8 +79,10 @@ def inverse_table(p: dict[str, float]) -> np.ndarray:
     """``T[code]``: exposure of each source code under black level, shape and saturation."""
     v = np.arange(CODES, dtype=np.float64) / 255.0
     beta = p["black"]
-    # as clblur.pixels: full scale is I^-1(1) where finite, else the top code bin's margin
-    top = TOP if p["rho"] >= 1.0 else 1.0
+    # Full scale as clblur.pixels (I^-1(1) where finite, else the top code bin's margin
+    # for Eq. 3), blended continuously in rho: a jump at rho = 1 would let a response
+    # *shape* a hair away from Eq. 3 act as a saturation factor of 2.
+    top = 1.0 - p["rho"] * (1.0 - TOP)
     w = np.clip((v - beta) / (1.0 - beta), 0.0, top)
     t = _inverse(w, p["gamma"], p["rho"])
     t[-1] = p["sat"] * _inverse(np.array([top]), p["gamma"], p["rho"])[0]
