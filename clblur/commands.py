@@ -7,6 +7,7 @@ import platform
 
 import numpy as np
 
+from clblur.blur import BACKENDS
 from clblur.motion import ANCHORS
 
 
@@ -33,7 +34,13 @@ def add_blur_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--saturation", type=float, default=1.0, metavar="S",
                    help="exposure of clipped pixels, in units of the least saturating "
                         "exposure (>= 1, default 1)")
-    p.add_argument("--backend", choices=["auto", "numpy", "opencl"], default="auto")
+    add_backend_options(p)
+
+
+def add_backend_options(p: argparse.ArgumentParser) -> None:
+    """--backend and --device, for every command that runs the blur kernels."""
+    p.add_argument("--backend", choices=list(BACKENDS), default="auto",
+                   help="auto: OpenCL when a device works, else numpy (default: auto)")
     p.add_argument("--device", default=None,
                    help="OpenCL device: 'P:D' indices or a name substring (default: "
                         "$CLBLUR_DEVICE, else the first usable device)")

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from clblur.blur import blur
+from clblur.commands import add_backend_options
 from clblur.io import atomic_write, write_image
 
 STEP_LOW, STEP_HIGH = 30, 225  # uint8 levels of the step edge
@@ -161,6 +162,5 @@ def register(sub) -> None:
                                    "conventionally and photo-consistently.")
     p.add_argument("--out", default="clblur-demo", metavar="DIR",
                    help="output folder (default: ./clblur-demo)")
-    p.add_argument("--backend", choices=["auto", "numpy", "opencl"], default="auto")
-    p.add_argument("--device", default=None, help="OpenCL device selector")
+    add_backend_options(p)
     p.set_defaults(func=cmd_demo)

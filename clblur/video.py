@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from clblur.blur import blur
+from clblur.commands import add_backend_options
 from clblur.flow import FlowEstimator, FlowFolder, save_flows
 from clblur.io import refuse_overwrite
 from clblur.pixels import linearise, normalise, quantise, validate_saturation
@@ -282,9 +283,7 @@ def register(subparsers) -> None:
     p.add_argument("--saturation", type=float, default=1.0, metavar="S",
                    help="exposure of clipped pixels in units of the least saturating one "
                         "(>= 1, default 1)")
-    p.add_argument("--backend", choices=["auto", "numpy", "opencl"], default="auto",
-                   help="default auto: OpenCL when usable, else numpy")
-    p.add_argument("--device", default=None, help="OpenCL device selector")
+    add_backend_options(p)
     p.add_argument("--fps", type=float, default=None,
                    help="frame rate of an image-sequence input (default 30)")
     p.add_argument("--codec", default=None,
