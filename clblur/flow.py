@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from clblur.io import read_flow, write_flow
+from clblur.pixels import quantise
 
 METHODS = ("dis", "farneback")
 
@@ -34,7 +35,7 @@ def grey8(image: np.ndarray) -> np.ndarray:
     if img.dtype == np.uint16:
         img = (img >> 8).astype(np.uint8)
     elif img.dtype.kind == "f":
-        img = np.rint(np.clip(img, 0.0, 1.0) * 255).astype(np.uint8)
+        img = quantise(img, np.uint8)
     elif img.dtype != np.uint8:
         raise TypeError(f"unsupported frame dtype {img.dtype}")
     if img.ndim == 3:

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from clblur.io import read_image, tmp_beside, write_image
+from clblur.pixels import quantise
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp")
 # Default encoder per output container; libx264 at CRF 17 is visually lossless for most content.
@@ -321,7 +322,7 @@ def _to_rgb24(image: np.ndarray) -> np.ndarray:
     if image.dtype == np.uint16:  # 16-bit image sequences into an 8-bit codec
         return np.rint(image / 257.0).astype(np.uint8)
     if image.dtype.kind == "f":  # normalised float frames (TIFF sequences)
-        return np.rint(np.clip(image, 0.0, 1.0) * 255.0).astype(np.uint8)
+        return quantise(image, np.uint8)
     raise TypeError(f"cannot encode {image.dtype} frames as video")
 
 
