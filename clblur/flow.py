@@ -103,7 +103,9 @@ class FlowFolder:
 
 def save_flows(folder: str | os.PathLike, index: int, backward: np.ndarray | None,
                forward: np.ndarray | None) -> None:
-    """Write a frame's flows in the folder layout (``.npy``), e.g. to reuse them later."""
+    """Write a frame's flows in the folder layout (``.npy``), e.g. to reuse them later; the
+    folder is created if missing."""
+    Path(folder).mkdir(parents=True, exist_ok=True)
     for direction, flow in (("backward", backward), ("forward", forward)):
         if flow is not None:
             write_flow(Path(folder) / f"{direction}_{index:06d}.npy", flow)

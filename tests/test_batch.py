@@ -11,6 +11,7 @@ import pytest
 
 import clblur
 from clblur import batch
+from clblur.cli import batch as batch_cli
 from clblur.io import read_image, write_flow, write_image
 
 
@@ -21,7 +22,7 @@ def _quiet(monkeypatch):
 
 def run_cli(*argv: str) -> int:
     parser = argparse.ArgumentParser()
-    batch.register(parser.add_subparsers())
+    batch_cli.register(parser.add_subparsers())
     args = parser.parse_args(["batch", *argv])
     return args.func(args)
 

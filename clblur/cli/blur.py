@@ -1,111 +1,19 @@
-"""``clblur blur`` and ``clblur info``."""
+"""``clblur blur IN OUT``: one image along a motion, flow field or PSF."""
 
 from __future__ import annotations
 
 import argparse
-import platform
 
-import numpy as np
+from clblur.cli.options import (
+    add_blur_options,
+    add_memory_option,
+    add_motion_options,
+    blur_options,
+    check_device,
+    motion_from_args,
+)
 
-from clblur.blur import BACKENDS
-from clblur.motion import ANCHORS
-
-
-def parse_vector(text: str) -> tuple[float, float]:
-    """``"DX,DY"`` -> (dx, dy)."""
-    parts = text.split(",")
-    try:
-        if len(parts) != 2:
-            raise ValueError
-        return float(parts[0]), float(parts[1])
-    except ValueError:
-        raise ValueError(f"--motion must be DX,DY in pixels (e.g. 12,-3), got {text!r}") from None
-
-
-def add_blur_options(p: argparse.ArgumentParser) -> None:
-    """Options shared by every command that blurs (blur, batch, video)."""
-    p.add_argument("--response", default="exp", metavar="SPEC",
-                   help="linear, exp, exp:K, gamma:G, srgb, or a response JSON file "
-                        "(default: exp, the paper's Eq. 3)")
-    p.add_argument("--anchor", choices=list(ANCHORS), default="center",
-                   help="shutter time the static image shows (default: center)")
-    p.add_argument("--samples", type=int, default=None, metavar="N",
-                   help="samples per pixel (default: ceil(|v|)+1 per pixel)")
-    p.add_argument("--saturation", type=float, default=1.0, metavar="S",
-                   help="exposure of clipped pixels, in units of the least saturating "
-                        "exposure (>= 1, default 1)")
-    add_backend_options(p)
-
-
-def add_backend_options(p: argparse.ArgumentParser) -> None:
-    """--backend and --device, for every command that runs the blur kernels."""
-    p.add_argument("--backend", choices=list(BACKENDS), default="auto",
-                   help="auto: OpenCL when a device works, else numpy (default: auto)")
-    p.add_argument("--device", default=None,
-                   help="OpenCL device: 'P:D' indices or a name substring (default: "
-                        "$CLBLUR_DEVICE, else the first usable device)")
-
-
-def add_motion_options(p: argparse.ArgumentParser, required: bool) -> None:
-    g = p.add_mutually_exclusive_group(required=required)
-    g.add_argument("--motion", metavar="DX,DY",
-                   help="one displacement in pixels, x right, y down (negative values: "
-                        "--motion=-5,2)")
-    g.add_argument("--flow", metavar="FILE", help="per-pixel motion: .npy (H x W x 2) or .flo")
-    g.add_argument("--psf", metavar="FILE", help="blur kernel image or .npy (normalised)")
-
-
-def motion_from_args(args) -> object:
-    """The motion a blur command asked for; a flow stays a path so big ones can be mapped."""
-    from clblur.io import read_psf
-
-    if args.motion is not None:
-        return parse_vector(args.motion)
-    if args.flow is not None:
-        return args.flow
-    return read_psf(args.psf)
-
-
-def blur_options(args) -> dict:
-    return dict(response=args.response, anchor=args.anchor, samples=args.samples,
-                backend=args.backend, saturation=args.saturation, device=args.device)
-
-
-def cmd_blur(args) -> int:
-    from clblur.io import refuse_overwrite
-    from clblur.tiling import blur_file
-
-    refuse_overwrite(args.output, args.input, args.flow, args.psf)
-    blur_file(args.input, args.output, motion_from_args(args), **blur_options(args),
-              memory_budget=args.memory_budget, progress=True)
-    print(f"wrote {args.output}")
-    return 0
-
-
-def cmd_info(args) -> int:
-    import clblur
-
-    print(f"clblur {clblur.__version__}  python {platform.python_version()}  "
-          f"numpy {np.__version__}")
-    try:
-        import pyopencl
-
-        print(f"pyopencl {pyopencl.VERSION_TEXT}")
-    except ImportError as e:
-        print(f"pyopencl: not importable ({e})")
-        return 0
-    from clblur import opencl
-
-    found = opencl.devices()
-    if not found:
-        print("OpenCL devices: none found")
-    for d in found:
-        state = "builds and runs kernels" if d["works"] else f"UNUSABLE: {d['error']}"
-        print(f"[{d['index']}] {d['platform']} / {d['device']} ({d['type']}, {d['version']}, "
-              f"fp64={'yes' if d['fp64'] else 'no'}): {state}")
-    ok, why = opencl.usable(None)
-    print(f"default device: {opencl.current_device() if ok else 'none (' + why + ')'}")
-    return 0
+__all__ = ["register", "run"]
 
 
 def register(sub) -> None:
@@ -116,8 +24,18 @@ def register(sub) -> None:
     p.add_argument("output")
     add_motion_options(p, required=True)
     add_blur_options(p)
-    p.add_argument("--memory-budget", default=None, metavar="SIZE",
-                   help="bound memory use, e.g. 2G or 500M (tiles big images)")
-    p.set_defaults(func=cmd_blur)
-    p = sub.add_parser("info", help="versions and OpenCL devices")
-    p.set_defaults(func=cmd_info)
+    add_memory_option(p, "bound memory use")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from clblur.io import IMAGE_FORMATS, check_output
+    from clblur.tiling import blur_file, parse_size
+
+    check_output(args.output, args.input, args.flow, args.psf, suffixes=tuple(IMAGE_FORMATS))
+    parse_size(args.memory_budget)
+    check_device(args)
+    blur_file(args.input, args.output, motion_from_args(args), **blur_options(args),
+              memory_budget=args.memory_budget, progress=True)
+    print(f"wrote {args.output}")
+    return 0
