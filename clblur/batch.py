@@ -412,7 +412,7 @@ def run_batch(jobs: list[Job], scheduler: str | None = None, progress: bool = Tr
 
     todo = [j for j in jobs if force or not is_finished(j)]
     skipped = len(jobs) - len(todo)
-    bar = tqdm(total=len(todo), unit="img", disable=not progress, desc="batch",
+    bar = tqdm(total=len(todo), unit="img", disable=None if progress else True, desc="batch",
                file=sys.stderr)
     results: list[Result] = []
     try:

@@ -56,6 +56,8 @@ __all__ = ["DEFAULT_MEMORY_BUDGET", "TiledRun", "blur_file", "blur_tiled", "choo
 
 DEFAULT_MEMORY_BUDGET = 512 * 2**20
 FLOW_BYTES_PER_PX = 8  # float32 (dx, dy)
+# longest motion run with the default ceil(|v|) + 1 samples (longer ones need samples=N)
+MAX_DEFAULT_LENGTH = 2**16
 
 
 def window_bytes_per_px(channels: int, itemsize: int, per_pixel_flow: bool) -> int:
@@ -263,6 +265,10 @@ def blur_tiled(src, dst, motion, response="exp", *, anchor: str = "center",
         halo = global_flow_halo(tm.flow, a, max(budget // (8 * band_bytes), 1))
     else:
         halo = fixed_halo(tm.fixed, a)
+    if samples is None and max(halo) - 2 > MAX_DEFAULT_LENGTH * max(a, 1.0 - a):
+        # the default ceil(|v|) + 1 samples per pixel would run for hours
+        raise InputError(f"motion longer than {MAX_DEFAULT_LENGTH} px needs that many samples "
+                         "per pixel by default; give a sample count (--samples N)")
     halo = (min(halo[0], h), min(halo[1], w))  # a window never extends past the image
     if tile is None:
         tile = choose_tile((h, w), halo, per_px, budget)
@@ -306,7 +312,9 @@ def blur_tiled(src, dst, motion, response="exp", *, anchor: str = "center",
 def _progress(total: int, enabled: bool):
     from tqdm import tqdm
 
-    return tqdm(total=total, unit="tile", disable=not enabled, desc="blur", leave=False)
+    # disable=None: no bar when stderr is not a terminal (logs, pipes, captured errors)
+    return tqdm(total=total, unit="tile", disable=None if enabled else True, desc="blur",
+                leave=False)
 
 
 # --------------------------------------------------------------------------- files
