@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from clblur.blur import blur
+from clblur.errors import InputError
 from clblur.flow import FlowEstimator, FlowFolder, save_flows
 from clblur.io import refuse_overwrite
 from clblur.pixels import linearise, normalise, quantise, validate_saturation
@@ -144,8 +145,9 @@ class _Flows:
         self.folder = FlowFolder(flow) if Path(flow).is_dir() else None
         self.estimate = None if self.folder else FlowEstimator(flow)
         self.save_dir = save_dir
-        if save_dir is not None and not Path(save_dir).is_dir():
-            raise ValueError(f"--save-flows folder does not exist: {save_dir}")
+        if save_dir is not None and Path(save_dir).exists() and not Path(save_dir).is_dir():
+            raise InputError(f"--save-flows {save_dir} exists and is not a folder")
+        # a missing folder is created by save_flows when the first flow is written
 
     def between(self, a: Frame, b: Frame) -> tuple[np.ndarray | None, np.ndarray | None]:
         """(forward flow of ``a``, backward flow of ``b``) for neighbours ``a``, ``b``."""

@@ -6,7 +6,13 @@ import argparse
 import sys
 from pathlib import Path
 
-from clblur.cli.options import add_blur_options, add_memory_option, check_device, parse_vector
+from clblur.cli.options import (
+    add_blur_options,
+    add_memory_option,
+    check_device,
+    check_response,
+    parse_vector,
+)
 from clblur.errors import InputError
 
 __all__ = ["register", "run"]
@@ -43,7 +49,6 @@ def register(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     from clblur.batch import IMAGE_SUFFIXES, Job, plan_jobs, remove_partials, run_batch, summary
     from clblur.distributed import parse_scheduler
-    from clblur.responses import per_channel
     from clblur.tiling import parse_size
 
     out_dir = Path(args.out_dir)
@@ -56,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
                    memory_budget=args.memory_budget)
     # fail now, not once per image
     parse_size(args.memory_budget)
-    per_channel(args.response, 1)
+    check_response(args.response)
     if args.scheduler is not None:
         parse_scheduler(args.scheduler)
     check_device(args)

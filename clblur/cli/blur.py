@@ -10,6 +10,7 @@ from clblur.cli.options import (
     add_motion_options,
     blur_options,
     check_device,
+    check_response,
     motion_from_args,
 )
 
@@ -34,6 +35,7 @@ def run(args: argparse.Namespace) -> int:
 
     check_output(args.output, args.input, args.flow, args.psf, suffixes=tuple(IMAGE_FORMATS))
     parse_size(args.memory_budget)
+    check_response(args.response)
     check_device(args)
     blur_file(args.input, args.output, motion_from_args(args), **blur_options(args),
               memory_budget=args.memory_budget, progress=True)

@@ -13,8 +13,8 @@ from clblur.errors import InputError
 from clblur.motion import ANCHORS
 
 __all__ = ["add_backend_options", "add_blur_options", "add_memory_option",
-           "add_motion_options", "blur_options", "check_device", "motion_from_args",
-           "parse_vector"]
+           "add_motion_options", "blur_options", "check_device", "check_response",
+           "motion_from_args", "parse_vector"]
 
 
 def parse_vector(text: str, option: str = "--motion") -> tuple[float, float]:
@@ -98,6 +98,17 @@ def check_device(args: argparse.Namespace) -> None:
     ok, why = opencl.usable(device)
     if not ok:
         raise InputError(f"--device {device}: {why} (`clblur info` lists the devices)")
+
+
+def check_response(spec: str, option: str = "--response") -> None:
+    """Parse a response spec before any work, naming the option in the message."""
+    from clblur.responses import per_channel
+
+    try:
+        per_channel(spec, 1)
+    except (ValueError, TypeError) as e:
+        text = " ".join(str(e).split())
+        raise InputError(text if spec in text else f"{option} {spec}: {text}") from None
 
 
 def blur_options(args: argparse.Namespace) -> dict:

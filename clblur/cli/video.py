@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 import numpy as np
 
-from clblur.cli.options import add_backend_options, check_device
+from clblur.cli.options import add_backend_options, check_device, check_response
 from clblur.errors import InputError
 from clblur.video import DEFAULT_RESPONSE, DEFAULT_SHUTTER
 from clblur.video_io import DEFAULT_CRF
@@ -64,10 +63,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.fps is not None and not (np.isfinite(args.fps) and args.fps > 0):
         raise InputError(f"--fps must be a positive number, got {args.fps}")
-    if args.save_flows is not None:  # the README shows a new folder: create it
-        folder = Path(args.save_flows)
-        if folder.exists() and not folder.is_dir():
-            raise InputError(f"--save-flows {folder} exists and is not a folder")
+    check_response(args.response)
     check_device(args)
     result = blur_video(args.input, args.output, response=args.response, shutter=args.shutter,
                         flow=args.flow, samples=args.samples, backend=args.backend,

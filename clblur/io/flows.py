@@ -56,10 +56,10 @@ def read_flow(path: str | os.PathLike) -> np.ndarray:
         with path.open("rb") as f:
             head = f.read(12)
             if len(head) < 12 or np.frombuffer(head[:4], "<f4")[0] != FLO_MAGIC:
-                raise InputError(f"{path} is not a Middlebury .flo file (bad header)")
+                raise InputError(f"flow {path} is not a Middlebury .flo file (bad header)")
             w, h = (int(v) for v in np.frombuffer(head[4:12], "<i4"))
             if w <= 0 or h <= 0 or size != 12 + 8 * w * h:  # checked before reading the data
-                raise InputError(f"{path}: truncated or malformed .flo ({w} x {h} declared, "
+                raise InputError(f"flow {path}: truncated or malformed .flo ({w} x {h} declared, "
                                  f"{size} bytes)")
             return np.frombuffer(f.read(), "<f4").reshape(h, w, 2).copy()
     m = _open_npy(path, "flow")

@@ -97,8 +97,14 @@ def open_image(path: str | os.PathLike, max_bytes: int | None = None):
     try:
         with tifffile.TiffFile(path) as tif:
             axes = tif.series[0].axes
+            page = tif.series[0].pages[0]
+            end = max((o + c for o, c in zip(page.dataoffsets, page.databytecounts,
+                                             strict=False)), default=0)
     except Exception as e:  # tifffile raises many types for corrupt files
         raise InputError(f"cannot read image {path}: {e}") from None
+    if end > path.stat().st_size:  # found now, not by a window read halfway through
+        raise InputError(f"cannot read image {path}: truncated TIFF (pixel data ends at byte "
+                         f"{end}, the file at {path.stat().st_size})")
     if axes not in ("YX", "YXS"):  # e.g. planar RGB (SYX), stacks, pyramids' extra axes
         raise InputError(f"{path}: unsupported TIFF layout {axes!r}; expected rows x columns "
                          "(x samples), i.e. YX or YXS")
@@ -107,6 +113,8 @@ def open_image(path: str | os.PathLike, max_bytes: int | None = None):
         raster = MappedRaster(path, m.dtype, m.shape, m.offset)
         del m
         return raster
+    except InputError:  # the pixel data runs past the end of the file
+        raise InputError(f"cannot read image {path}: truncated TIFF") from None
     except ValueError:  # compressed, tiled or otherwise not mappable
         pass
     except Exception as e:
