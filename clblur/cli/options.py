@@ -104,11 +104,15 @@ def check_response(spec: str, option: str = "--response") -> None:
     """Parse a response spec before any work, naming the option in the message."""
     from clblur.responses import per_channel
 
-    try:
-        per_channel(spec, 1)
-    except (ValueError, TypeError) as e:
-        text = " ".join(str(e).split())
-        raise InputError(text if spec in text else f"{option} {spec}: {text}") from None
+    first = None
+    for channels in (1, 3, 4):  # a per-channel document fits only its own channel count
+        try:
+            per_channel(spec, channels)
+            return
+        except (ValueError, TypeError) as e:
+            first = first or e
+    text = " ".join(str(first).split())
+    raise InputError(text if spec in text else f"{option} {spec}: {text}")
 
 
 def blur_options(args: argparse.Namespace) -> dict:
