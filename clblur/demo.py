@@ -16,6 +16,9 @@ from clblur.blur import blur
 from clblur.errors import InputError
 from clblur.io import atomic_write, write_image
 
+__all__ = ["BALL_MOTION", "STEP_HIGH", "STEP_LOW", "STEP_MOTION", "ball_scene", "render",
+           "step_edge", "step_edge_closed_form"]
+
 STEP_LOW, STEP_HIGH = 30, 225  # uint8 levels of the step edge
 STEP_MOTION = 48
 BALL_MOTION = 18
