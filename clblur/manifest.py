@@ -1,7 +1,9 @@
 """Measurement manifests shared by ``clblur calibrate`` and ``clblur study``.
 
-Three kinds, paths relative to the manifest file (and resolved inside its folder: a path that
-leaves it, by ``..``, an absolute path or a symlink, is refused)::
+Three kinds, paths relative to the manifest file.  Every path must resolve (symlinks followed)
+inside the manifest's folder or the measured-data folder (``clblur.data.data_dir``:
+``$CLBLUR_DATA``), so manifests written elsewhere may name the shared data; any other path
+(``..``, absolute or through a symlink) is refused::
 
     {"kind": "exposure-series",
      "images": [{"path": "e00.png", "exposure": 0.5, "f_number": 5.0}, ...]}
@@ -86,10 +88,10 @@ def _entries(doc: dict, key: str, where: str) -> list:
     return entries
 
 
-def _path(base: Path, value, where: str) -> Path:
+def _path(roots: list[Path], value, where: str) -> Path:
     if not isinstance(value, str):
         raise InputError(f"{where} must be a path string, got {value!r}")
-    return resolve_inside(base, value, where)
+    return resolve_inside(roots, value, where)
 
 
 def load_manifest(path: str | os.PathLike) -> Manifest:
@@ -103,7 +105,10 @@ def load_manifest(path: str | os.PathLike) -> Manifest:
         raise InputError(f"cannot read manifest {path}: {e}") from None
     if not isinstance(doc, dict) or doc.get("kind") not in KINDS:
         raise InputError(f"manifest {path}: 'kind' must be one of {', '.join(KINDS)}")
-    base = path.parent
+    from clblur.data import data_dir
+
+    shared = data_dir()
+    base = [path.parent] + ([shared] if shared is not None else [])  # the allowed roots
     kind = doc["kind"]
     if kind == "exposure-series":
         entries = _entries(doc, "images", f"manifest {path}")

@@ -194,15 +194,29 @@ def read_image(path: str | os.PathLike, max_bytes: int | None = None) -> np.ndar
     return img
 
 
+def _has_jpeg_end(path: Path) -> bool:
+    """Whether the file holds a JPEG end-of-image marker: usually in the last bytes, but
+    some cameras append data after it (e.g. a motion photo's video), so search on."""
+    size = path.stat().st_size
+    with path.open("rb") as f:
+        f.seek(max(size - 64, 0))
+        if b"\xff\xd9" in f.read():
+            return True
+        f.seek(0)
+        tail = b""
+        for block in iter(lambda: f.read(1 << 20), b""):
+            if b"\xff\xd9" in tail + block:
+                return True
+            tail = block[-1:]
+    return False
+
+
 def _read_opencv(path: Path) -> np.ndarray:
     import cv2
 
-    if image_format(path) == "jpeg":
-        # libjpeg decodes a truncated file to grey and only warns on stderr: check the end
-        with path.open("rb") as f:
-            f.seek(max(path.stat().st_size - 64, 0))
-            if b"\xff\xd9" not in f.read():
-                raise InputError(f"cannot read image {path}: truncated JPEG (no end marker)")
+    if image_format(path) == "jpeg" and not _has_jpeg_end(path):
+        # libjpeg decodes a truncated file to grey and only warns on stderr
+        raise InputError(f"cannot read image {path}: truncated JPEG (no end marker)")
     level = cv2.utils.logging.getLogLevel()
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)  # we report it ourselves
     try:
