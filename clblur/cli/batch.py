@@ -47,7 +47,8 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from clblur.batch import IMAGE_SUFFIXES, Job, plan_jobs, remove_partials, run_batch, summary
+    from clblur.batch import IMAGE_SUFFIXES, plan_jobs, run_batch, summary
+    from clblur.batch_state import Job, remove_partials
     from clblur.distributed import parse_scheduler
     from clblur.tiling import parse_size
 
