@@ -20,9 +20,10 @@ Conventions
   (``clblur.io.resolve_inside``).
 * Resuming (state in ``clblur.batch_state``): an image is finished when its output exists
   *and* its completion marker ``OUT_DIR/.clblur-batch/<output name>.json`` records the same
-  job key and output size.  The key is a SHA-256 over everything that changes the result: the content (and size and mtime)
-  of the input, flow, PSF and response document, every option that changes pixels, and the
-  clblur version -- so editing a response JSON redoes exactly the outputs that use it.
+  job key and output size.  The key is a SHA-256 over everything that changes the result:
+  the content (and size and mtime) of the input, flow, PSF and response document, every
+  option that changes pixels, and the clblur version -- so editing a response JSON redoes
+  exactly the outputs that use it.
 * Claims: a worker claims an image by creating ``.clblur-batch/<output name>.lock`` with
   ``O_EXCL`` and refreshes its mtime while it works, so two batches into one OUT_DIR never
   blur the same image.  A lock is stale when its process is gone (same host) or it has not
