@@ -35,10 +35,7 @@ from clblur.blur import blur
 from clblur.errors import InputError
 from clblur.flow import FlowEstimator, FlowFolder, save_flows
 from clblur.io import refuse_overwrite
-from clblur.pixels import linearise, normalise, quantise, validate_saturation
-from clblur.plan import check_image
-from clblur.responses import per_channel
-from clblur.video_io import (
+from clblur.io.video import (
     DEFAULT_CRF,
     Frame,
     ImageSequenceSource,
@@ -46,6 +43,9 @@ from clblur.video_io import (
     open_sink,
     open_source,
 )
+from clblur.pixels import linearise, normalise, quantise, validate_saturation
+from clblur.plan import check_image
+from clblur.responses import per_channel
 from clblur.video_layers import layered_half
 
 # Chosen from docs/studies/video.md (GoPro 240 fps ground truth).

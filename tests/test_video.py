@@ -13,10 +13,10 @@ from clblur import blur
 from clblur.cli import video as video_cli
 from clblur.flow import FlowEstimator, FlowFolder, save_flows
 from clblur.io import read_image, write_image
+from clblur.io.video import VideoReadError
 from clblur.pixels import quantise
 from clblur.responses import response
 from clblur.video import blur_frame, blur_video, half_paths
-from clblur.video_io import VideoReadError
 
 av = pytest.importorskip("av")
 

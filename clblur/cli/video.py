@@ -8,8 +8,8 @@ import numpy as np
 
 from clblur.cli.options import add_backend_options, check_device, check_response
 from clblur.errors import InputError
+from clblur.io.video import DEFAULT_CRF
 from clblur.video import DEFAULT_RESPONSE, DEFAULT_SHUTTER
-from clblur.video_io import DEFAULT_CRF
 
 __all__ = ["register", "run"]
 

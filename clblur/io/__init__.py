@@ -1,6 +1,6 @@
 """All file input and output: images (with header probing and decode limits), rasters read
-window by window (TIFF, ``.npy``), flows, PSFs, atomic writes and the rules on where paths may
-point.  Video containers live in ``clblur.video_io``.
+window by window (TIFF, ``.npy``), flows, PSFs, video, atomic writes and the rules on where
+paths may point.
 
 ===================  ==============================================================
 module               holds
@@ -11,6 +11,8 @@ module               holds
 ``io.flows``         ``.npy``/``.flo`` flows (``read_flow``, ``open_flow``), ``read_psf``
 ``io.atomic``        ``atomic_write`` (temp file + rename)
 ``io.paths``         ``resolve_inside``, ``check_output``, ``refuse_overwrite``
+``io.video``         video files and image sequences, frame by frame (PyAV; imported on
+                     use, not by ``clblur.io``)
 ===================  ==============================================================
 """
 

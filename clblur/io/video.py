@@ -30,7 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
-from clblur.io import read_image, resolve_inside, tmp_beside, write_image
+from clblur.io.atomic import tmp_beside
+from clblur.io.images import read_image, write_image
+from clblur.io.paths import resolve_inside
 from clblur.pixels import quantise
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp")
