@@ -241,7 +241,7 @@ def load_response(path: str | os.PathLike) -> Response:
         doc = json.loads(Path(path).read_text())
     except FileNotFoundError:
         raise ValueError(f"response file not found: {path}") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:
         raise ValueError(f"cannot read response file {path}: {e}") from None
     return from_dict(doc)
 
@@ -297,7 +297,7 @@ def _channel_set(spec) -> list[Response] | None:
             and Path(spec).is_file():
         try:
             doc = json.loads(Path(spec).read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:
             raise ValueError(f"cannot read response file {spec}: {e}") from None
     if not (isinstance(doc, dict) and doc.get("kind") == CHANNEL_SET_KIND):
         return None
