@@ -36,10 +36,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from clblur import opencl, opencl_prep, reference  # noqa: E402
+from clblur import opencl, reference  # noqa: E402
 from clblur.data import data_dir  # noqa: E402
 from clblur.io import atomic_write_text  # noqa: E402
 from clblur.motion import sample_counts  # noqa: E402
+from clblur.opencl import taps as opencl_taps  # noqa: E402
 from clblur.pixels import linearisation_table  # noqa: E402
 from clblur.plan import make_plan  # noqa: E402
 from clblur.responses import response  # noqa: E402
@@ -110,7 +111,8 @@ class ForwardLut:
         return np.take(self.table, index)
 
 
-def peer_filter2d(img: np.ndarray, taps: opencl_prep.Taps, forward: ForwardLut) -> np.ndarray:
+def peer_filter2d(img: np.ndarray, taps: opencl_taps.IntegerTaps,
+                  forward: ForwardLut) -> np.ndarray:
     kernel = np.zeros((taps.dy.max() - taps.dy.min() + 1, taps.dx.max() - taps.dx.min() + 1),
                       np.float32)
     kernel[taps.dy - taps.dy.min(), taps.dx - taps.dx.min()] = taps.w
@@ -217,7 +219,7 @@ def main(argv=None) -> int:
 
     # uniform motions
     for case, motion in (("diagonal", (15.0, 20.0)), ("box", (24.0, 0.0))):
-        taps = opencl_prep.space_invariant_taps(make_plan(img[:1, :1], motion, RESPONSE))
+        taps = opencl_taps.space_invariant_taps(make_plan(img[:1, :1], motion, RESPONSE))
         t_ours, out = ours(motion)
         add(case, "clblur OpenCL", t_ours, f"{taps.w.size} taps" +
             (", running sums" if taps.box() else ""))

@@ -1,0 +1,389 @@
+"""OpenCL backend: the pipeline of ``clblur.reference`` in float32 kernels, as stage functions.
+
+Conventions
+-----------
+* Stages, per group of up to four channels (``response_pack.channel_groups``):
+  ``upload_input`` (the image, once) -> ``linearise`` (codes through per-channel tables, or
+  float input linearised on the host in float64, into an RGBA intermediate: half floats for
+  uint8 outputs when ``half_float.half_storage_ok`` allows, else float) -> ``integrate_field``
+  / ``integrate_taps`` / ``integrate_box``, each with the *finish* stage (forward response and
+  quantisation, ``finish_args``) fused into its store.  Integer outputs are quantised by
+  comparing the exposure with float64 code boundaries (``quantisation``).
+* Strategies: per-pixel field (bilinear), space-invariant integer taps (uniform motion and
+  PSFs, ``taps``), running sums for boxes (exact 64-bit fixed point, cost independent of the
+  length).  Every kernel argument is passed by name (``program.Program.run``).
+* CPU devices (host-unified memory) read the caller's arrays in place.  Other devices (GPUs)
+  get the image in row bands: upload (through reused pinned staging, unless the caller's
+  array is already pinned, ``pinned_empty``), linearise, integrate and download of different
+  bands overlap on two queues.
+* The flow is validated on the device while it is read (non-finite components and components
+  beyond ``FLOW_LIMIT`` px are counted into a flag buffer); a non-zero count is refused with
+  the message of ``clblur.motion.check_flow``.  float16 flows are read as they are.
+* Tolerances against the numpy reference are stated in ``docs/tolerances.md``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from clblur.motion import Field, flow_error, sample_counts
+from clblur.opencl import half_float, quantisation, response_pack, taps
+from clblur.opencl.constants import IN_F32, IN_KINDS, LANES, OUT_F32, OUT_KINDS
+from clblur.opencl.device import Runtime, pyopencl_module, runtime
+from clblur.opencl.linearisation import linearisation_tables, linearise_float_image
+from clblur.opencl.program import Program
+from clblur.plan import BlurPlan
+
+__all__ = ["BANDS", "DeviceInput", "blur", "finish_args", "integrate_box", "integrate_field",
+           "integrate_taps", "linearise", "pinned_empty", "run_plan", "upload_input"]
+
+# Work-items per work-group along x, fixed so that drivers which specialise code per
+# work-group size (PoCL) build each kernel once, not once per image size.  Image kernels use
+# wide groups (fewer scheduling rounds); the box kernel has one work-item per LANES lines.
+GROUP_SIZE = 64
+BOX_GROUP_SIZE = 8
+GPU_GROUP = (16, 8)  # GPU variants: one pixel per work-item, compact 2-D patches
+BANDS = 4  # row bands whose transfers and kernels overlap (devices with their own memory)
+MIN_BAND_ROWS = 64
+
+
+def blur(plan: BlurPlan, device: str | None = None) -> np.ndarray:
+    """Run ``plan`` on the selected OpenCL device; same output layout as the reference."""
+    rt = runtime(device)
+    with rt.lock:
+        return run_plan(rt, plan)
+
+
+def pinned_empty(shape, dtype, device: str | None = None) -> np.ndarray:
+    """An uninitialised host array in pinned (page-locked, ``ALLOC_HOST_PTR``) memory.
+
+    Images and flows passed to ``clblur.blur`` in such arrays are copied to a GPU at the
+    bus's full speed without a staging copy.  The array keeps its OpenCL buffer alive.
+
+    Parameters
+    ----------
+    shape : tuple of int
+    dtype : numpy dtype
+    device : OpenCL device selector (``clblur info``); default ``$CLBLUR_DEVICE`` or the first
+        GPU.
+    """
+    cl = pyopencl_module()
+    rt = runtime(device)
+    nbytes = max(int(np.prod(shape)) * np.dtype(dtype).itemsize, 1)
+    with rt.lock:
+        buf = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE | cl.mem_flags.ALLOC_HOST_PTR,
+                        nbytes)
+        host, _ = cl.enqueue_map_buffer(rt.queue, buf, cl.map_flags.READ | cl.map_flags.WRITE,
+                                        0, tuple(shape), dtype, is_blocking=True)
+    return host
+
+
+def _is_pinned(array: np.ndarray) -> bool:
+    """Whether ``array`` views a mapped OpenCL buffer (``pinned_empty``)."""
+    base = array
+    while base is not None:
+        if type(base).__name__ == "MemoryMap":
+            return True
+        base = getattr(base, "base", None)
+    return False
+
+
+def _grid(*sizes: int, group: int = GROUP_SIZE) -> tuple[int, ...]:
+    """Global size: the first dimension rounded up to whole work-groups (kernels bound-check)."""
+    first = -(-sizes[0] // group) * group
+    return (first, *sizes[1:])
+
+
+def _round_up(n: int, m: int) -> int:
+    return -(-n // m) * m
+
+
+@dataclass
+class DeviceInput:
+    """The uploaded image: integer codes with float64 linearisation tables, or float32
+    exposures linearised on the host.  ``ready``: events a reader of rows must wait for,
+    per band (``bands``: row ranges)."""
+
+    buffer: object
+    kind: int
+    luts: np.ndarray | None  # float64 (channels, Imax + 1) for integer images
+    max_abs: float
+    bands: list[tuple[int, int]]
+    ready: list
+
+
+def _bands(rt: Runtime, h: int) -> list[tuple[int, int]]:
+    """Row ranges: one for devices that share host memory, up to BANDS otherwise."""
+    count = 1 if rt.unified else max(1, min(BANDS, h // MIN_BAND_ROWS))
+    edges = [round(h * k / count) for k in range(count + 1)]
+    return [(edges[k], edges[k + 1]) for k in range(count)]
+
+
+def _upload_rows(rt: Runtime, role: str, array: np.ndarray, bands) -> tuple[object, list]:
+    """``array`` (rows first) on the device: the array itself on unified devices, else one
+    non-blocking copy per band on alternating queues (through pinned staging unless the
+    array is pinned).  Returns (buffer, one event list per band)."""
+    array = np.ascontiguousarray(array)
+    if rt.unified:
+        return rt.share(role, array), [[] for _ in bands]
+    cl = pyopencl_module()
+    buf = rt.buffer(role, array.nbytes)
+    row_bytes = array.nbytes // max(array.shape[0], 1)
+    staged = array if _is_pinned(array) else rt.staging(role, array.nbytes)
+    events = []
+    for k, (r0, r1) in enumerate(bands):
+        part = array[r0:r1].reshape(-1).view(np.uint8)
+        if staged is not array:
+            staged[r0 * row_bytes:r1 * row_bytes] = part
+            part = staged[r0 * row_bytes:r1 * row_bytes]
+        queue = rt.all_queues()[k % len(rt.all_queues())]
+        events.append([cl.enqueue_copy(queue, buf, part, dst_offset=r0 * row_bytes,
+                                       is_blocking=False)])
+    return buf, events
+
+
+def upload_input(rt: Runtime, plan: BlurPlan, resident=None) -> DeviceInput:
+    """Stage 0: the image on the device (integer codes, or float32 exposures for float
+    images, linearised on the host in float64 as the reference does).  ``resident``: a
+    device buffer that already holds the integer image."""
+    img = plan.image
+    bands = _bands(rt, img.shape[0])
+    if img.dtype.kind == "u":
+        luts = linearisation_tables(plan.responses, img.dtype, plan.saturation)
+        if resident is not None:
+            buf, ready = resident, [[] for _ in bands]
+        else:
+            buf, ready = _upload_rows(rt, "image", img, bands)
+        return DeviceInput(buf, IN_KINDS[img.dtype], luts, float(np.max(np.abs(luts))), bands,
+                           ready)
+    linear = linearise_float_image(img, plan.responses, plan.saturation)
+    buf, ready = _upload_rows(rt, "image", linear, bands)
+    return DeviceInput(buf, IN_F32, None, float(np.max(np.abs(linear))), bands, ready)
+
+
+def finish_args(rt: Runtime, plan: BlurPlan, cbase: int, cg: int, out_buf) -> dict:
+    """The finish stage (forward response + quantisation) of one channel group, as the named
+    kernel arguments ``STORE_PARAMS`` of the integrating kernels."""
+    group = plan.responses[cbase:cbase + cg]
+    params, tables = response_pack.response_params(group)
+    if plan.dtype.kind == "u":
+        thresholds = quantisation.quantisation_thresholds(response_pack.four_channels(group),
+                                                          plan.dtype)
+        buckets = quantisation.quantisation_buckets(thresholds)
+    else:
+        thresholds, buckets = np.zeros(1, np.float32), np.zeros(8, np.int32)
+    return {"resp": rt.upload("resp", params), "tables": rt.upload("tables", tables),
+            "thresholds": rt.upload("thresholds", thresholds),
+            "buckets": rt.upload("buckets", buckets), "out": out_buf,
+            "out_kind": OUT_KINDS[plan.dtype], "channels": plan.image.shape[2], "cbase": cbase,
+            "cg": cg}
+
+
+def _lut(src: DeviceInput, cbase: int, cg: int) -> np.ndarray:
+    return (src.luts[cbase:cbase + cg].astype(np.float32) if src.luts is not None
+            else np.zeros((1, 1), np.float32))
+
+
+def linearise(rt: Runtime, prog: Program, src: DeviceInput, plan: BlurPlan, cbase: int,
+              cg: int, lin_buf) -> list:
+    """Stage 1: one channel group into the padded (h + 1) x (w + 1) RGBA intermediate, band by
+    band after each band's upload.  Returns the events of every band."""
+    h, w = plan.image.shape[:2]
+    table = _lut(src, cbase, cg)
+    lut = rt.upload("lut", table)
+    events = []
+    for k, (r0, r1) in enumerate(src.bands):
+        r1 = h + 1 if r1 == h else r1  # the last band also writes the padding row
+        queue = rt.all_queues()[k % len(rt.all_queues())]
+        events.append(prog.run(
+            "linearise", queue, _grid(w + 1, r1 - r0), (GROUP_SIZE, 1), global_offset=(0, r0),
+            wait_for=src.ready[k], image=src.buffer, in_kind=src.kind,
+            channels=plan.image.shape[2], cbase=cbase, cg=cg, lut=lut,
+            lut_len=table.shape[1], lin=lin_buf, w=w, h=h))
+    return events
+
+
+def _item_grid(gpu: bool, w: int, rows: int):
+    """(global size, local size) of the image kernels for ``rows`` rows."""
+    if gpu:
+        gx, gy = GPU_GROUP
+        return (_round_up(w, gx), _round_up(rows, gy)), GPU_GROUP
+    return _grid((w + LANES - 1) // LANES, rows), (GROUP_SIZE, 1)
+
+
+def _per_band(rt: Runtime, plan: BlurPlan, gpu: bool, src: DeviceInput, launch,
+              wait_for) -> list:
+    """Launch ``launch(queue, global, local, offset, wait_for(k))`` once per band, on
+    alternating queues; returns the events."""
+    w = plan.image.shape[1]
+    events = []
+    for k, (r0, r1) in enumerate(src.bands):
+        queue = rt.all_queues()[k % len(rt.all_queues())]
+        glob, local = _item_grid(gpu, w, r1 - r0)
+        events.append(launch(queue, glob, local, (0, r0), wait_for(k)))
+    return events
+
+
+def integrate_taps(rt: Runtime, prog: Program, gpu: bool, plan: BlurPlan, src: DeviceInput,
+                   lin_buf, tap_set: taps.IntegerTaps, finish: dict, after: list) -> list:
+    """Stage 2 + finish for space-invariant integer taps (uniform motion, PSFs)."""
+    h, w = plan.image.shape[:2]
+    args = dict(lin=lin_buf, tap_dx=rt.upload("tap_dx", tap_set.dx),
+                tap_dy=rt.upload("tap_dy", tap_set.dy),
+                tap_w=rt.upload("tap_w", tap_set.w.astype(np.float32)), ntaps=tap_set.w.size,
+                dx_min=tap_set.dx.min(), dx_max=tap_set.dx.max(), dy_min=tap_set.dy.min(),
+                dy_max=tap_set.dy.max(), w=w, h=h, **finish)
+
+    def launch(queue, glob, local, offset, wait_for):
+        return prog.run("integrate_taps", queue, glob, local, global_offset=offset,
+                        wait_for=wait_for, **args)
+    return _per_band(rt, plan, gpu, src, launch, lambda k: after)
+
+
+@dataclass
+class FieldInput:
+    """The flow on the device: buffer, half or float, counts, validation counters."""
+
+    flow: object
+    half: bool
+    counts: object
+    host_counts: bool
+    bad: object
+    ready: list
+
+
+def upload_flow(rt: Runtime, plan: BlurPlan, src: DeviceInput, resident=None) -> FieldInput:
+    """The flow (float32, or float16 as given) and, for devices without fp64, the host
+    sample counts; a zeroed pair of validation counters.  ``resident``: a
+    ``pyopencl.array.Array`` that already holds the flow."""
+    assert isinstance(plan.motion, Field)
+    flow = plan.motion.flow
+    half = flow.dtype == np.float16
+    host_counts = plan.samples is None and not rt.fp64
+    if resident is not None:
+        buf, ready = resident.base_data, [[] for _ in src.bands]
+        flow = resident.get(queue=rt.queue) if host_counts else flow
+    else:
+        buf, ready = _upload_rows(rt, "flow", flow, src.bands)
+    counts = (sample_counts(flow[..., 0], flow[..., 1]) if host_counts
+              else np.zeros(1, np.int32))
+    bad = rt.upload("bad_flow", np.zeros(2, np.int32))
+    return FieldInput(buf, half, rt.upload("counts", counts), host_counts, bad, ready)
+
+
+def integrate_field(rt: Runtime, prog: Program, gpu: bool, plan: BlurPlan, src: DeviceInput,
+                    lin_buf, field: FieldInput, finish: dict, after: list) -> list:
+    """Stage 2 + finish for a per-pixel flow field (bilinear samples)."""
+    h, w = plan.image.shape[:2]
+    time_w = (plan.weights.astype(np.float32) if plan.weights is not None
+              else np.zeros(1, np.float32))
+    args = dict(lin=lin_buf, flow=field.flow, flow_half=int(field.half), bad_flow=field.bad,
+                counts=field.counts, host_counts=int(field.host_counts),
+                fixed_n=plan.samples or 0, time_w=rt.upload("time_weights", time_w),
+                weighted=int(plan.weights is not None), anchor=plan.anchor, w=w, h=h, **finish)
+
+    def launch(queue, glob, local, offset, wait_for):
+        return prog.run("integrate_field", queue, glob, local, global_offset=offset,
+                        wait_for=wait_for, **args)
+    return _per_band(rt, plan, gpu, src, launch, lambda k: after + field.ready[k])
+
+
+def integrate_box(rt: Runtime, prog: Program, plan: BlurPlan, src: DeviceInput,
+                  box: tuple[int, int, int], finish: dict, cbase: int, cg: int,
+                  after: list) -> list:
+    """Linearise into a float4 plane (transposed for a horizontal box) and run the box as
+    exact fixed-point running sums, finish fused.  Lanes run across the box: columns for a
+    vertical box, rows for a horizontal one."""
+    h, w = plan.image.shape[:2]
+    axis, lo, hi = box
+    scale = taps.fixed_point_scale(src.max_abs, hi - lo + 1)
+    transposed = axis == 0
+    across, length = (h, w) if transposed else (w, h)
+    stride = _round_up(across, LANES)  # whole 8-pixel vectors stay in bounds
+    plane = rt.buffer("plane", stride * length * 16)
+    shape = dict(ps=stride, across=across, len=length, transposed=int(transposed), w=w)
+    table = _lut(src, cbase, cg)
+    lut = rt.upload("lut", table)
+    ready = [ev for band in src.ready for ev in band] + after
+    ev = prog.run("linearise_plane", rt.queue, _grid(stride, length), (GROUP_SIZE, 1),
+                  wait_for=ready, image=src.buffer, in_kind=src.kind,
+                  channels=plan.image.shape[2], cbase=cbase, cg=cg, lut=lut,
+                  lut_len=table.shape[1], plane=plane, **shape)
+    return [prog.run("integrate_box", rt.queue, _grid(-(-across // LANES), group=BOX_GROUP_SIZE),
+                     (BOX_GROUP_SIZE,), wait_for=[ev], plane=plane, lo=lo, hi=hi, scale=scale,
+                     **shape, **finish)]
+
+
+def _download(rt: Runtime, out: np.ndarray, out_buf, src: DeviceInput, done: list) -> None:
+    """Copy the output back: band by band on the band's queue (each after its kernel), or one
+    blocking copy on unified devices."""
+    cl = pyopencl_module()
+    if rt.unified or len(src.bands) == 1:
+        cl.enqueue_copy(rt.queue, out, out_buf, wait_for=done, is_blocking=True)
+        return
+    row_bytes = out.nbytes // out.shape[0]
+    flat = out.reshape(-1).view(np.uint8)
+    events = []
+    for k, (r0, r1) in enumerate(src.bands):
+        queue = rt.all_queues()[k % len(rt.all_queues())]
+        events.append(cl.enqueue_copy(queue, flat[r0 * row_bytes:r1 * row_bytes], out_buf,
+                                      src_offset=r0 * row_bytes, wait_for=done,
+                                      is_blocking=False))
+    cl.wait_for_events(events)
+
+
+def run_plan(rt: Runtime, plan: BlurPlan, gpu: bool | None = None, *, resident_image=None,
+             resident_flow=None, resident_out=None) -> np.ndarray | None:
+    """The whole pipeline for ``plan`` on ``rt`` (the caller holds ``rt.lock``).
+
+    ``gpu`` forces the GPU (True) or CPU (False) kernel variants; default: the device's type.
+    ``resident_image`` (a buffer holding the integer image), ``resident_flow`` (a
+    ``pyopencl.array.Array``) and ``resident_out`` (a buffer for the output codes) keep data on
+    the device; with ``resident_out`` nothing is downloaded and None is returned.
+    """
+    gpu = rt.gpu if gpu is None else gpu
+    img = plan.image
+    h, w, channels = img.shape
+    src = upload_input(rt, plan, resident_image)
+    out_kind = OUT_KINDS[img.dtype]
+    out_dtype = np.float32 if out_kind == OUT_F32 else img.dtype
+    out_buf = (resident_out if resident_out is not None
+               else rt.buffer("output", h * w * channels * np.dtype(out_dtype).itemsize))
+    tap_set = taps.space_invariant_taps(plan)
+    box = tap_set.box() if tap_set is not None else None
+    half = box is None and half_float.half_storage_ok(plan, src.luts)
+    prog = rt.program(half, gpu)
+    field = upload_flow(rt, plan, src, resident_flow) if tap_set is None else None
+    lin_buf = None if box is not None else rt.buffer("linear",
+                                                     (h + 1) * (w + 1) * 4 * (2 if half else 4))
+    done: list = []
+    for cbase, cg in response_pack.channel_groups(channels):
+        finish = finish_args(rt, plan, cbase, cg, out_buf)
+        if box is not None:
+            done = integrate_box(rt, prog, plan, src, box, finish, cbase, cg, done)
+            continue
+        linear = linearise(rt, prog, src, plan, cbase, cg, lin_buf)
+        after = linear + done  # the next group reuses the intermediate
+        if field is None:
+            done = integrate_taps(rt, prog, gpu, plan, src, lin_buf, tap_set, finish, after)
+        else:
+            done = integrate_field(rt, prog, gpu, plan, src, lin_buf, field, finish, after)
+        pyopencl_module().wait_for_events(done)  # host-side tables are re-uploaded per group
+    if field is not None:
+        _check_flow(rt, field)
+    if resident_out is not None:
+        return None
+    out = np.empty((h, w, channels), dtype=out_dtype)
+    _download(rt, out, out_buf, src, done)
+    if img.dtype == np.float64:
+        out = out.astype(np.float64)
+    return plan.finish(out)
+
+
+def _check_flow(rt: Runtime, field: FieldInput) -> None:
+    counts = np.zeros(2, np.int32)
+    pyopencl_module().enqueue_copy(rt.queue, counts, field.bad, is_blocking=True)
+    if counts.any():
+        raise ValueError(flow_error(int(counts[0]), int(counts[1])))
