@@ -102,6 +102,36 @@ static int sample_count(float vx, float vy)
 }
 #endif
 
+#ifdef HAVE_FP64
+/* sample_count for LANES vectors, exact: a float32 candidate m = ceil(sqrt(l2)) is accepted
+ * when (m - 1)^2 and m^2 (exact integers below 2^24) clear the float32 l2 by a relative
+ * margin of 1e-6, far more than its rounding error (< 2e-7 relative), so the float64 l2 of
+ * the reference lies strictly between them too; other lanes (near-integer lengths, tiny or
+ * huge vectors) take the float64 route.  Zero vectors are exact either way. */
+static int8 sample_counts8(float8 vx, float8 vy)
+{
+    float8 l2 = vx * vx + vy * vy;
+    float8 m = ceil(sqrt(l2));
+    float8 below = (m - 1.0f) * (m - 1.0f), above = m * m;
+    int8 zero = vx == 0.0f && vy == 0.0f;
+    int8 clear = l2 > 1e-20f && m < 4096.0f && above > l2 * (1.0f + 1e-6f) &&
+                 (m == 1.0f || below < l2 * (1.0f - 1e-6f));
+    int8 fast = convert_int8(m) + 1;
+    fast = select(fast, (int8)(1), zero);
+    if (all(clear | zero))
+        return fast;
+    int c[LANES], f[LANES];
+    float xs[LANES], ys[LANES];
+    vstore8(clear | zero, 0, c);
+    vstore8(fast, 0, f);
+    vstore8(vx, 0, xs);
+    vstore8(vy, 0, ys);
+    for (int l = 0; l < LANES; ++l)
+        if (!c[l]) f[l] = sample_count(xs[l], ys[l]);
+    return vload8(0, f);
+}
+#endif
+
 /* The flow parameters of a kernel that integrates a per-pixel field. */
 #define FIELD_PARAMS                                                                      \
     __global const uchar *flow, int flow_half, __global int *bad_flow,                     \
@@ -189,10 +219,14 @@ __kernel void integrate_field(__global const STORE_T *lin, FIELD_PARAMS, int w, 
         float2 v = read_flow(flow, flow_half, i, bad_flow, col0 + l < w);
         vxs[l] = v.x;
         vys[l] = v.y;
-        ns[l] = pixel_count(v, i, counts, host_counts, fixed_n);
+        ns[l] = host_counts ? counts[i] : fixed_n;
     }
     float8 vx = vload8(0, vxs), vy = vload8(0, vys);
     int8 n = vload8(0, ns);
+#ifdef HAVE_FP64
+    if (!host_counts && fixed_n <= 0)
+        n = sample_counts8(vx, vy);
+#endif
     int nmax = max(max(max(n.s0, n.s1), max(n.s2, n.s3)), max(max(n.s4, n.s5), max(n.s6, n.s7)));
     float8 n1 = convert_float8(n - 1);
     float8 den = fmax(n1, 1.0f);
