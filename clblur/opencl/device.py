@@ -148,10 +148,13 @@ class Runtime:
         return old
 
     def upload(self, role: str, array: np.ndarray):
-        """Copy ``array`` into the reused ``role`` buffer (blocking) and return the buffer."""
+        """Copy ``array`` into the reused ``role`` buffer and return the buffer.  On devices
+        with one in-order queue (CPUs) the copy is queued (pyopencl keeps ``array`` alive
+        until it is done) and later commands see it; elsewhere it completes before return,
+        so kernels on any queue may read it."""
         array = np.ascontiguousarray(array)
         buf = self.buffer(role, array.nbytes)
-        pyopencl_module().enqueue_copy(self.queue, buf, array, is_blocking=True)
+        pyopencl_module().enqueue_copy(self.queue, buf, array, is_blocking=not self.unified)
         return buf
 
     def staging(self, role: str, nbytes: int) -> np.ndarray:

@@ -20,6 +20,10 @@
  */
 #pragma OPENCL FP_CONTRACT OFF
 
+#if GROUP != 4
+#error "the kernels hold a channel group in a float4"
+#endif
+
 #ifdef HAVE_FP64
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #endif
@@ -48,7 +52,7 @@ static float linear_channel(__global const uchar *image, int in_kind, size_t ind
         return lut[k * lut_len + image[index]];
     if (in_kind == IN_U16)
         return lut[k * lut_len + ((__global const ushort *)image)[index]];
-    return ((__global const float *)image)[index];
+    return ((__global const float *)image)[index];  /* IN_F32 */
 }
 
 __kernel void linearise(__global const uchar *image, int in_kind, int channels, int cbase,

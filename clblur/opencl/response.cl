@@ -54,7 +54,7 @@ static float forward_response(float x, __constant const float *resp, __global co
         int off = (int)resp[2], n = (int)resp[3];
         return table_forward(x, tables + off, tables + off + n, n);
     }
-    default:
+    default:  /* KIND_LINEAR */
         return x;
     }
 }
@@ -122,7 +122,7 @@ static void store_codes(int4 q, __global uchar *restrict out, int out_kind, size
         if (cg > 1) out[base + 1] = (uchar)q.y;
         if (cg > 2) out[base + 2] = (uchar)q.z;
         if (cg > 3) out[base + 3] = (uchar)q.w;
-    } else {
+    } else {  /* OUT_U16 */
         __global ushort *o = (__global ushort *)out;
         o[base] = (ushort)q.x;
         if (cg > 1) o[base + 1] = (ushort)q.y;
