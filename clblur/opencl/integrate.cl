@@ -204,6 +204,46 @@ static void store_row8(float16 lo, float16 hi, size_t pixel, int valid, STORE_PA
 #define SPREAD_LO(v) shuffle((v), (uint16)(0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3))
 #define SPREAD_HI(v) shuffle((v), (uint16)(4, 4, 4, 4, 5, 5, 5, 5, 6, 6, 6, 6, 7, 7, 7, 7))
 
+/* One tap of the CPU field kernel for its 8 lanes, given base, fx, upper and lower. */
+#define FIELD_TAP                                                                         \
+    {                                                                                     \
+        float8 w_tl = (1.0f - fx) * upper, w_tr = fx * upper;                             \
+        float8 w_bl = (1.0f - fx) * lower, w_br = fx * lower;                             \
+        float16 tl_lo, tl_hi, tr_lo, tr_hi, bl_lo, bl_hi, br_lo, br_hi;                   \
+        if (all(base == (int8)(base.s0) + lane)) {                                        \
+            /* base.s0 .. base.s0 + 8 lie in one padded row (w + 1 > w columns) */        \
+            size_t b = base.s0;                                                           \
+            tl_lo = LOAD16(b); tl_hi = LOAD16(b + 4);                                     \
+            tr_lo = LOAD16(b + 1); tr_hi = LOAD16(b + 5);                                 \
+            bl_lo = LOAD16(b + ws); bl_hi = LOAD16(b + ws + 4);                           \
+            br_lo = LOAD16(b + ws + 1); br_hi = LOAD16(b + ws + 5);                       \
+        } else {                                                                          \
+            float8 t0 = LOAD8(base.s0), t1 = LOAD8(base.s1), t2 = LOAD8(base.s2);         \
+            float8 t3 = LOAD8(base.s3), t4 = LOAD8(base.s4), t5 = LOAD8(base.s5);         \
+            float8 t6 = LOAD8(base.s6), t7 = LOAD8(base.s7);                              \
+            tl_lo = (float16)(t0.lo, t1.lo, t2.lo, t3.lo);                                \
+            tl_hi = (float16)(t4.lo, t5.lo, t6.lo, t7.lo);                                \
+            tr_lo = (float16)(t0.hi, t1.hi, t2.hi, t3.hi);                                \
+            tr_hi = (float16)(t4.hi, t5.hi, t6.hi, t7.hi);                                \
+            t0 = LOAD8(base.s0 + ws); t1 = LOAD8(base.s1 + ws);                           \
+            t2 = LOAD8(base.s2 + ws); t3 = LOAD8(base.s3 + ws);                           \
+            t4 = LOAD8(base.s4 + ws); t5 = LOAD8(base.s5 + ws);                           \
+            t6 = LOAD8(base.s6 + ws); t7 = LOAD8(base.s7 + ws);                           \
+            bl_lo = (float16)(t0.lo, t1.lo, t2.lo, t3.lo);                                \
+            bl_hi = (float16)(t4.lo, t5.lo, t6.lo, t7.lo);                                \
+            br_lo = (float16)(t0.hi, t1.hi, t2.hi, t3.hi);                                \
+            br_hi = (float16)(t4.hi, t5.hi, t6.hi, t7.hi);                                \
+        }                                                                                 \
+        left_lo = fma(tl_lo, SPREAD_LO(w_tl), left_lo);                                   \
+        left_lo = fma(bl_lo, SPREAD_LO(w_bl), left_lo);                                   \
+        left_hi = fma(tl_hi, SPREAD_HI(w_tl), left_hi);                                   \
+        left_hi = fma(bl_hi, SPREAD_HI(w_bl), left_hi);                                   \
+        right_lo = fma(tr_lo, SPREAD_LO(w_tr), right_lo);                                 \
+        right_lo = fma(br_lo, SPREAD_LO(w_br), right_lo);                                 \
+        right_hi = fma(tr_hi, SPREAD_HI(w_tr), right_hi);                                 \
+        right_hi = fma(br_hi, SPREAD_HI(w_br), right_hi);                                 \
+    }
+
 /* CPU variant: LANES consecutive pixels of a row per work-item, as vector lanes; the tap loop
  * runs to the largest N among them (a lane whose taps are done gets weight 0, and
  * fma(0, v, acc) leaves acc unchanged bit for bit: v is finite, acc never -0).  When the 8
@@ -239,54 +279,44 @@ __kernel void integrate_field(__global const STORE_T *lin, FIELD_PARAMS, int w, 
     const int8 lane = (int8)(0, 1, 2, 3, 4, 5, 6, 7);
     int8 px = (int8)(col0) + lane;
     float16 left_lo = 0.0f, left_hi = 0.0f, right_lo = 0.0f, right_hi = 0.0f;
-    for (int j = 0; j < nmax; ++j) {
-        float8 t = (float8)((float)j) - a_n1;
-        float8 ox = -(sx * t), oy = -(sy * t);
-        int8 ix = floor_int8(ox), iy = floor_int8(oy);
-        float8 fx = ox - convert_float8(ix), fy = oy - convert_float8(iy);
-        int8 xi = px + ix, yi = (int8)(row) + iy;
-        /* Before the first pixel the sample is the first pixel; past the last, the padding
-         * repeats the last, so the fraction does not matter there. */
-        fx = select(fx, (float8)(0.0f), xi < 0);
-        fy = select(fy, (float8)(0.0f), yi < 0);
-        int8 base = clamp(yi, 0, h - 1) * ws + clamp(xi, 0, w - 1);
-        float8 wj = select((float8)(0.0f), (float8)(weighted ? time_w[j] : 1.0f),
-                           (int8)(j) < n);
-        float8 upper = (1.0f - fy) * wj, lower = fy * wj;
-        float8 w_tl = (1.0f - fx) * upper, w_tr = fx * upper;
-        float8 w_bl = (1.0f - fx) * lower, w_br = fx * lower;
-        float16 tl_lo, tl_hi, tr_lo, tr_hi, bl_lo, bl_hi, br_lo, br_hi;
-        if (all(base == (int8)(base.s0) + lane)) {
-            /* base.s0 .. base.s0 + 8 lie in one padded row (a row has w + 1 > w columns) */
-            size_t b = base.s0;
-            tl_lo = LOAD16(b); tl_hi = LOAD16(b + 4);
-            tr_lo = LOAD16(b + 1); tr_hi = LOAD16(b + 5);
-            bl_lo = LOAD16(b + ws); bl_hi = LOAD16(b + ws + 4);
-            br_lo = LOAD16(b + ws + 1); br_hi = LOAD16(b + ws + 5);
-        } else {
-            float8 t0 = LOAD8(base.s0), t1 = LOAD8(base.s1), t2 = LOAD8(base.s2);
-            float8 t3 = LOAD8(base.s3), t4 = LOAD8(base.s4), t5 = LOAD8(base.s5);
-            float8 t6 = LOAD8(base.s6), t7 = LOAD8(base.s7);
-            tl_lo = (float16)(t0.lo, t1.lo, t2.lo, t3.lo);
-            tl_hi = (float16)(t4.lo, t5.lo, t6.lo, t7.lo);
-            tr_lo = (float16)(t0.hi, t1.hi, t2.hi, t3.hi);
-            tr_hi = (float16)(t4.hi, t5.hi, t6.hi, t7.hi);
-            t0 = LOAD8(base.s0 + ws); t1 = LOAD8(base.s1 + ws); t2 = LOAD8(base.s2 + ws);
-            t3 = LOAD8(base.s3 + ws); t4 = LOAD8(base.s4 + ws); t5 = LOAD8(base.s5 + ws);
-            t6 = LOAD8(base.s6 + ws); t7 = LOAD8(base.s7 + ws);
-            bl_lo = (float16)(t0.lo, t1.lo, t2.lo, t3.lo);
-            bl_hi = (float16)(t4.lo, t5.lo, t6.lo, t7.lo);
-            br_lo = (float16)(t0.hi, t1.hi, t2.hi, t3.hi);
-            br_hi = (float16)(t4.hi, t5.hi, t6.hi, t7.hi);
+    /* Samples move monotonically with j, so the first and the last tap bound every lane's
+     * positions.  When all of them (and their right/lower neighbours, which the padding
+     * holds) lie inside the window and the lanes share N without time weights, the clamps,
+     * the edge selects and the per-lane weight vanish from the loop: the same values. */
+    int nmin = min(min(min(n.s0, n.s1), min(n.s2, n.s3)), min(min(n.s4, n.s5), min(n.s6, n.s7)));
+    float8 t_end = (float8)((float)(nmax - 1)) - a_n1;
+    int8 x_a = px + floor_int8(-(sx * -a_n1)), x_b = px + floor_int8(-(sx * t_end));
+    int8 y_a = (int8)(row) + floor_int8(-(sy * -a_n1));
+    int8 y_b = (int8)(row) + floor_int8(-(sy * t_end));
+    bool inside = all(min(x_a, x_b) >= 0) && all(max(x_a, x_b) <= w - 1) &&
+                  all(min(y_a, y_b) >= 0) && all(max(y_a, y_b) <= h - 1);
+    if (inside && nmin == nmax && !weighted) {
+        for (int j = 0; j < nmax; ++j) {
+            float8 t = (float8)((float)j) - a_n1;
+            float8 ox = -(sx * t), oy = -(sy * t);
+            int8 ix = floor_int8(ox), iy = floor_int8(oy);
+            float8 fx = ox - convert_float8(ix), fy = oy - convert_float8(iy);
+            int8 base = ((int8)(row) + iy) * ws + px + ix;
+            float8 upper = 1.0f - fy, lower = fy;  /* (1 - fy) * 1 and fy * 1, exactly */
+            FIELD_TAP
         }
-        left_lo = fma(tl_lo, SPREAD_LO(w_tl), left_lo);
-        left_lo = fma(bl_lo, SPREAD_LO(w_bl), left_lo);
-        left_hi = fma(tl_hi, SPREAD_HI(w_tl), left_hi);
-        left_hi = fma(bl_hi, SPREAD_HI(w_bl), left_hi);
-        right_lo = fma(tr_lo, SPREAD_LO(w_tr), right_lo);
-        right_lo = fma(br_lo, SPREAD_LO(w_br), right_lo);
-        right_hi = fma(tr_hi, SPREAD_HI(w_tr), right_hi);
-        right_hi = fma(br_hi, SPREAD_HI(w_br), right_hi);
+    } else {
+        for (int j = 0; j < nmax; ++j) {
+            float8 t = (float8)((float)j) - a_n1;
+            float8 ox = -(sx * t), oy = -(sy * t);
+            int8 ix = floor_int8(ox), iy = floor_int8(oy);
+            float8 fx = ox - convert_float8(ix), fy = oy - convert_float8(iy);
+            int8 xi = px + ix, yi = (int8)(row) + iy;
+            /* Before the first pixel the sample is the first pixel; past the last, the
+             * padding repeats the last, so the fraction does not matter there. */
+            fx = select(fx, (float8)(0.0f), xi < 0);
+            fy = select(fy, (float8)(0.0f), yi < 0);
+            int8 base = clamp(yi, 0, h - 1) * ws + clamp(xi, 0, w - 1);
+            float8 wj = select((float8)(0.0f), (float8)(weighted ? time_w[j] : 1.0f),
+                               (int8)(j) < n);
+            float8 upper = (1.0f - fy) * wj, lower = fy * wj;
+            FIELD_TAP
+        }
     }
     float16 sum_lo = left_lo + right_lo, sum_hi = left_hi + right_hi;
     if (!weighted) {
