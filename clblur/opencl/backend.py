@@ -304,27 +304,35 @@ def integrate_field(rt: Runtime, prog: Program, gpu: bool, plan: BlurPlan, src: 
 def integrate_box(rt: Runtime, prog: Program, plan: BlurPlan, src: DeviceInput,
                   box: tuple[int, int, int], finish: dict, cbase: int, cg: int,
                   after: list) -> list:
-    """Linearise into a float4 plane (transposed for a horizontal box) and run the box as
-    exact fixed-point running sums, finish fused.  Lanes run across the box: columns for a
-    vertical box, rows for a horizontal one."""
+    """The box as exact fixed-point running sums, finish fused.  Lanes run across the box:
+    columns for a vertical box, rows for a horizontal one.  Integer images are read as codes
+    through fixed-point tables (linearisation fused); float images are linearised on the host
+    and laid out in a float4 plane (transposed for a horizontal box) first."""
     h, w = plan.image.shape[:2]
     axis, lo, hi = box
     scale = taps.fixed_point_scale(src.max_abs, hi - lo + 1)
     transposed = axis == 0
     across, length = (h, w) if transposed else (w, h)
+    grid = _grid(-(-across // LANES), group=BOX_GROUP_SIZE)
+    ready = [ev for band in src.ready for ev in band] + after
+    channels = plan.image.shape[2]
+    table = _lut(src, cbase, cg)
+    if src.luts is not None:  # integer codes: fixed-point tables, no plane
+        lutq = np.rint(table.astype(np.float64) * scale).astype(np.int64)
+        return [prog.run("integrate_box_codes", rt.queue, grid, (BOX_GROUP_SIZE,),
+                         wait_for=ready, image=src.buffer, in_kind=src.kind,
+                         lutq=rt.upload("lutq", lutq), lut_len=table.shape[1], across=across,
+                         len=length, transposed=int(transposed), lo=lo, hi=hi, scale=scale,
+                         w=w, **finish)]
     stride = _round_up(across, LANES)  # whole 8-pixel vectors stay in bounds
     plane = rt.buffer("plane", stride * length * 16)
     shape = dict(ps=stride, across=across, len=length, transposed=int(transposed), w=w)
-    table = _lut(src, cbase, cg)
-    lut = rt.upload("lut", table)
-    ready = [ev for band in src.ready for ev in band] + after
     ev = prog.run("linearise_plane", rt.queue, _grid(stride, length), (GROUP_SIZE, 1),
-                  wait_for=ready, image=src.buffer, in_kind=src.kind,
-                  channels=plan.image.shape[2], cbase=cbase, cg=cg, lut=lut,
-                  lut_len=table.shape[1], plane=plane, **shape)
-    return [prog.run("integrate_box", rt.queue, _grid(-(-across // LANES), group=BOX_GROUP_SIZE),
-                     (BOX_GROUP_SIZE,), wait_for=[ev], plane=plane, lo=lo, hi=hi, scale=scale,
-                     **shape, **finish)]
+                  wait_for=ready, image=src.buffer, in_kind=src.kind, channels=channels,
+                  cbase=cbase, cg=cg, lut=rt.upload("lut", table), lut_len=table.shape[1],
+                  plane=plane, **shape)
+    return [prog.run("integrate_box", rt.queue, grid, (BOX_GROUP_SIZE,), wait_for=[ev],
+                     plane=plane, lo=lo, hi=hi, scale=scale, **shape, **finish)]
 
 
 def _download(rt: Runtime, out: np.ndarray, out_buf, src: DeviceInput, done: list) -> None:

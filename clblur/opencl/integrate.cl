@@ -540,3 +540,77 @@ __kernel void integrate_box(__global const float *plane, int ps, int across, int
         sum_hi += fixed_hi(plane, enter, scale) - fixed_hi(plane, leave, scale);
     }
 }
+
+/* Fixed-point exposures of one pixel's channel group straight from its integer codes:
+ * lutq[k * lut_len + code] is the host's rint(float32 table entry * scale), exactly the
+ * integer fixed_lo/fixed_hi make of the same entry (scale is a power of two, so the product
+ * is exact and both round half to even).  No intermediate plane is written or read. */
+static long4 fixed_codes(__global const uchar *image, int in_kind, __global const long *lutq,
+                         int lut_len, size_t pix, int channels, int cbase, int cg)
+{
+    size_t base = pix * channels + cbase;
+    long4 v = (long4)(0);
+    if (in_kind == IN_U8) {
+        v.x = lutq[image[base]];
+        if (cg > 1) v.y = lutq[lut_len + image[base + 1]];
+        if (cg > 2) v.z = lutq[2 * lut_len + image[base + 2]];
+        if (cg > 3) v.w = lutq[3 * lut_len + image[base + 3]];
+    } else {  /* IN_U16 */
+        __global const ushort *im = (__global const ushort *)image;
+        v.x = lutq[im[base]];
+        if (cg > 1) v.y = lutq[lut_len + im[base + 1]];
+        if (cg > 2) v.z = lutq[2 * lut_len + im[base + 2]];
+        if (cg > 3) v.w = lutq[3 * lut_len + im[base + 3]];
+    }
+    return v;
+}
+
+/* Window pixel of line x0 + L (clamped to the last line) at position k along the box. */
+#define BOX_PIXEL(L, k)                                                                   \
+    (transposed ? (size_t)min(x0 + (L), across - 1) * w + (k)                              \
+                : (size_t)(k) * w + min(x0 + (L), across - 1))
+#define CODES4(L0, k)                                                                     \
+    (long16)(fixed_codes(image, in_kind, lutq, lut_len, BOX_PIXEL(L0, k), channels, cbase, cg), \
+             fixed_codes(image, in_kind, lutq, lut_len, BOX_PIXEL(L0 + 1, k), channels,    \
+                         cbase, cg),                                                       \
+             fixed_codes(image, in_kind, lutq, lut_len, BOX_PIXEL(L0 + 2, k), channels,    \
+                         cbase, cg),                                                       \
+             fixed_codes(image, in_kind, lutq, lut_len, BOX_PIXEL(L0 + 3, k), channels,    \
+                         cbase, cg))
+
+/* integrate_box for integer images, read from the codes (same sums, same results). */
+__kernel void integrate_box_codes(__global const uchar *image, int in_kind,
+                                  __global const long *lutq, int lut_len, int across, int len,
+                                  int transposed, int lo, int hi, float scale, int w,
+                                  STORE_PARAMS)
+{
+    int x0 = get_global_id(0) * LANES;
+    if (x0 >= across) return;
+    float norm = 1.0f / ((float)(hi - lo + 1) * scale);
+    bool codes = out_kind != OUT_F32;
+    long16 sum_lo = (long16)(0), sum_hi = (long16)(0);
+    for (int d = lo; d <= hi; ++d) {
+        int at = clamp(d, 0, len - 1);
+        sum_lo += CODES4(0, at);
+        sum_hi += CODES4(4, at);
+    }
+    for (int k = 0; k < len; ++k) {
+        float16 m_lo = convert_float16(sum_lo) * norm, m_hi = convert_float16(sum_hi) * norm;
+        if (codes) {
+            int16 q_lo = quantise16(m_lo, thresholds, buckets);
+            int16 q_hi = quantise16(m_hi, thresholds, buckets);
+            BOX_CODES(0, q_lo.s0123) BOX_CODES(1, q_lo.s4567)
+            BOX_CODES(2, q_lo.s89ab) BOX_CODES(3, q_lo.scdef)
+            BOX_CODES(4, q_hi.s0123) BOX_CODES(5, q_hi.s4567)
+            BOX_CODES(6, q_hi.s89ab) BOX_CODES(7, q_hi.scdef)
+        } else {
+            BOX_STORE(0, m_lo.s0123) BOX_STORE(1, m_lo.s4567)
+            BOX_STORE(2, m_lo.s89ab) BOX_STORE(3, m_lo.scdef)
+            BOX_STORE(4, m_hi.s0123) BOX_STORE(5, m_hi.s4567)
+            BOX_STORE(6, m_hi.s89ab) BOX_STORE(7, m_hi.scdef)
+        }
+        int enter = clamp(k + hi + 1, 0, len - 1), leave = clamp(k + lo, 0, len - 1);
+        sum_lo += CODES4(0, enter) - CODES4(0, leave);
+        sum_hi += CODES4(4, enter) - CODES4(4, leave);
+    }
+}
