@@ -94,11 +94,29 @@ def _cases(rng):
 def test_gpu_kernel_variants_match_the_reference_and_the_cpu_variants(opencl, rng):
     rt = opencl.runtime(None)
     for plan in _cases(rng):
-        with rt.lock:
-            gpu = opencl.run_plan(rt, plan, gpu=True)
-            cpu = opencl.run_plan(rt, plan, gpu=False)
-        assert np.array_equal(gpu, cpu)
-        assert_matches_reference(_Fixed(gpu), plan)
+        for half in (False, True):
+            with rt.lock:
+                gpu = opencl.run_plan(rt, plan, gpu=True, half=half)
+                cpu = opencl.run_plan(rt, plan, gpu=False, half=half)
+            assert np.array_equal(gpu, cpu)
+            assert_matches_reference(_Fixed(gpu), plan)
+
+
+@pytest.mark.opencl
+@pytest.mark.parametrize("name", ["linear", "exp", "exp3", "gamma", "srgb", "table"])
+def test_half_storage_of_the_gpu_variants_keeps_the_tolerance(opencl, rng, name):
+    """GPU variants store uint8 exposures as half floats where the bound allows: the same
+    sweep as test_opencl.test_every_response, saturation 1 and 2.5."""
+    from test_opencl import RESPONSES
+
+    rt = opencl.runtime(None)
+    img = random_image(rng, np.uint8, 3)
+    for motion in (smooth_flow(rng), discontinuous_flow(rng), (4.6, -2.3), rng.random((5, 7))):
+        for sat in (1.0, 2.5):
+            plan = make_plan(img, motion, RESPONSES[name], saturation=sat)
+            with rt.lock:
+                got = opencl.run_plan(rt, plan, gpu=True)
+            assert_matches_reference(_Fixed(got), plan)
 
 
 class _Fixed:
@@ -133,7 +151,7 @@ def test_banded_pinned_transfers_on_two_queues_equal_the_shared_path(opencl, rng
     for plan, want in zip(plans, shared, strict=True):
         for gpu in (False, True):
             with rt.lock:
-                got = opencl.run_plan(rt, plan, gpu=gpu)
+                got = opencl.run_plan(rt, plan, gpu=gpu, half=False)
             assert np.array_equal(got, want)
     assert "image" in rt.pinned and "flow" in rt.pinned  # staging kept for the next call
 
