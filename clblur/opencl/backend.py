@@ -4,8 +4,8 @@ Conventions
 -----------
 * Stages, per group of up to four channels (``response_pack.channel_groups``):
   ``upload_input`` (the image, once) -> ``linearise`` (codes through per-channel tables, or
-  float input linearised on the host in float64, into an RGBA intermediate: on GPUs half
-  floats for uint8 outputs when ``half_float.half_storage_ok`` allows, else float) ->
+  float input linearised on the host in float64, into an RGBA intermediate: half floats for
+  uint8 outputs when ``half_float.half_storage_ok`` allows, except in the CPU field kernel) ->
   ``integrate_field``
   / ``integrate_taps`` / ``integrate_box``, each with the *finish* stage (forward response and
   quantisation, ``finish_args``) fused into its store.  Integer outputs are quantised by
@@ -361,7 +361,7 @@ def run_plan(rt: Runtime, plan: BlurPlan, gpu: bool | None = None, *, half: bool
 
     ``gpu`` forces the GPU (True) or CPU (False) kernel variants; default: the device's type.
     ``half`` allows (True) or forbids (False) half-float storage of the intermediate where
-    its error bound holds; default: the GPU variants use it, the CPU variants do not.
+    its error bound holds; default: allowed except for the CPU field kernel.
     ``resident_image`` (a buffer holding the integer image), ``resident_flow`` (a
     ``pyopencl.array.Array``) and ``resident_out`` (a buffer for the output codes) keep data on
     the device; with ``resident_out`` nothing is downloaded and None is returned.
@@ -376,10 +376,12 @@ def run_plan(rt: Runtime, plan: BlurPlan, gpu: bool | None = None, *, half: bool
                else rt.buffer("output", h * w * channels * np.dtype(out_dtype).itemsize))
     tap_set = taps.space_invariant_taps(plan)
     box = tap_set.box() if tap_set is not None else None
-    # Half storage halves a GPU's memory traffic; on CPUs its conversions cost more than the
-    # traffic they save (PoCL, 4K field: 17.6 vs 19.6 MP per CPU-second), so CPUs use float.
-    half = (gpu if half is None else half) and box is None and \
-        half_float.half_storage_ok(plan, src.luts)
+    # Half storage halves the memory traffic.  The CPU field kernel is bound by instructions,
+    # not traffic, and the conversions cost more than they save (PoCL, 4K: 17.6 vs 19.6 MP per
+    # CPU-second with float); the taps kernel streams rows and gains (4K diagonal: 60 vs 47).
+    if half is None:
+        half = gpu or tap_set is not None
+    half = half and box is None and half_float.half_storage_ok(plan, src.luts)
     prog = rt.program(half, gpu)
     field = upload_flow(rt, plan, src, resident_flow) if tap_set is None else None
     lin_buf = None if box is not None else rt.buffer("linear",
