@@ -115,7 +115,9 @@ static int sample_count(float vx, float vy)
 static int8 sample_counts8(float8 vx, float8 vy)
 {
     float8 l2 = vx * vx + vy * vy;
-    float8 m = ceil(sqrt(l2));
+    float8 root = sqrt(l2);
+    float8 m = convert_float8(convert_int8(root));  /* ceil (root >= 0) without the call */
+    m = select(m, m + 1.0f, m < root);
     float8 below = (m - 1.0f) * (m - 1.0f), above = m * m;
     int8 zero = vx == 0.0f && vy == 0.0f;
     int8 clear = l2 > 1e-20f && m < 4096.0f && above > l2 * (1.0f + 1e-6f) &&
@@ -256,17 +258,33 @@ __kernel void integrate_field(__global const STORE_T *lin, FIELD_PARAMS, int w, 
     int col0 = get_global_id(0) * LANES;
     if (row >= h || col0 >= w) return;
     int ws = w + 1;
-    float vxs[LANES], vys[LANES];
-    int ns[LANES];
-    for (int l = 0; l < LANES; ++l) {
-        size_t i = (size_t)row * w + min(col0 + l, w - 1);
-        float2 v = read_flow(flow, flow_half, i, bad_flow, col0 + l < w);
-        vxs[l] = v.x;
-        vys[l] = v.y;
-        ns[l] = host_counts ? counts[i] : fixed_n;
+    float8 vx, vy;
+    int8 n = (int8)(fixed_n);
+    size_t i0 = (size_t)row * w + col0;
+    bool whole = col0 + LANES <= w;
+    if (whole) {  /* one vector load; bad values take the per-lane path below */
+        float16 f = flow_half ? vload_half16(0, (__global const half *)flow + 2 * i0)
+                              : vload16(0, (__global const float *)flow + 2 * i0);
+        vx = f.even;
+        vy = f.odd;
+        whole = all(isfinite(vx) && isfinite(vy) && fabs(vx) <= FLOW_LIMIT &&
+                    fabs(vy) <= FLOW_LIMIT);
+        if (host_counts) n = vload8(0, counts + i0);
     }
-    float8 vx = vload8(0, vxs), vy = vload8(0, vys);
-    int8 n = vload8(0, ns);
+    if (!whole) {
+        float vxs[LANES], vys[LANES];
+        int ns[LANES];
+        for (int l = 0; l < LANES; ++l) {
+            size_t i = (size_t)row * w + min(col0 + l, w - 1);
+            float2 v = read_flow(flow, flow_half, i, bad_flow, col0 + l < w);
+            vxs[l] = v.x;
+            vys[l] = v.y;
+            ns[l] = host_counts ? counts[i] : fixed_n;
+        }
+        vx = vload8(0, vxs);
+        vy = vload8(0, vys);
+        n = vload8(0, ns);
+    }
 #ifdef HAVE_FP64
     if (!host_counts && fixed_n <= 0)
         n = sample_counts8(vx, vy);
