@@ -21,6 +21,7 @@ import pytest
 from test_opencl import (
     assert_matches_reference,
     discontinuous_flow,
+    near_integer_flow,
     random_image,
     smooth_flow,
 )
@@ -88,6 +89,7 @@ def _cases(rng):
     yield make_plan(random_image(rng, np.uint8, 3), (4.6, -2.3), "exp")
     yield make_plan(random_image(rng, np.uint8, 3), rng.random((5, 7)), "srgb")
     yield make_plan(random_image(rng, np.uint16, 3), (40.5, 3.0), "exp")  # wider than a tile
+    yield make_plan(random_image(rng, np.float32, 3), near_integer_flow(rng), "exp")
 
 
 @pytest.mark.opencl

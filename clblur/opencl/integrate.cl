@@ -150,7 +150,17 @@ static int pixel_count(float2 v, size_t i, __global const int *counts, int host_
 {
     if (host_counts) return counts[i];
 #ifdef HAVE_FP64
-    if (fixed_n <= 0) return sample_count(v.x, v.y);
+    if (fixed_n <= 0) {
+        /* the float32 candidate of sample_counts8, float64 only when it is not clear
+         * (float64 is slow on many GPUs) */
+        float l2 = v.x * v.x + v.y * v.y;
+        float m = ceil(sqrt(l2));
+        if (v.x == 0.0f && v.y == 0.0f) return 1;
+        if (l2 > 1e-20f && m < 4096.0f && m * m > l2 * (1.0f + 1e-6f) &&
+            (m == 1.0f || (m - 1.0f) * (m - 1.0f) < l2 * (1.0f - 1e-6f)))
+            return (int)m + 1;
+        return sample_count(v.x, v.y);
+    }
 #endif
     return fixed_n;
 }
