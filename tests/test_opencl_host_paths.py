@@ -11,6 +11,7 @@ reference (``tests/test_opencl.py``'s tolerance) and against the default path, b
 from __future__ import annotations
 
 import re
+import shutil
 import subprocess
 import sys
 import zipfile
@@ -255,7 +256,12 @@ def test_pinned_empty_is_an_ordinary_array(opencl, rng):
 
 def test_wheel_ships_the_kernel_sources(tmp_path):
     """A non-editable install finds the .cl files: build the wheel, load them from it."""
-    res = subprocess.run([sys.executable, "-m", "pip", "wheel", str(REPO), "--no-deps",
+    src = tmp_path / "src"  # a copy: building in place would leave build/ in the checkout
+    shutil.copytree(REPO / "clblur", src / "clblur",
+                    ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(REPO / name, src / name)
+    res = subprocess.run([sys.executable, "-m", "pip", "wheel", str(src), "--no-deps",
                           "--no-build-isolation", "-q", "-w", str(tmp_path)],
                          capture_output=True, text=True, timeout=300)
     if res.returncode != 0 and "No module named" in res.stderr:

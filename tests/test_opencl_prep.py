@@ -84,7 +84,7 @@ def test_thresholds_and_buckets_quantise_like_rint(rng, spec, dtype):
     assert np.all(t[0, 1:] >= t[0, :-1]) and np.isposinf(t[0, int(full):]).all()
     by_search = np.searchsorted(t[0], e, side="left")  # count of boundaries below e
     assert np.array_equal(by_search[away], want[away])
-    # the kernel's search: bucket start, then `steps` halvings (kernels/response.cl)
+    # the kernel's search: bucket start, then `steps` halvings (clblur/opencl/response.cl)
     b = quantisation.quantisation_buckets(t)
     shift, base, nb, steps, stride = (int(v) for v in b[:QHEAD])
     assert stride == t.shape[1] and 1 <= steps <= max(quantisation.BUCKET_MAX_STEPS, bits)

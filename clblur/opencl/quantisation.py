@@ -52,7 +52,7 @@ def quantisation_thresholds(responses, dtype: np.dtype) -> np.ndarray:
 
 
 def quantisation_buckets(thresholds: np.ndarray) -> np.ndarray:
-    """Bucket table for kernels/response.cl ``quantise`` (int32).
+    """Bucket table for clblur/opencl/response.cl ``quantise`` (int32).
 
     Layout: ``[shift, base, nb, steps, stride]`` then ``nb`` counts per channel.  Bucket b
     covers the float32 values whose bit patterns shifted right by ``shift`` equal

@@ -32,7 +32,7 @@ def four_channels(group):
 
 def response_params(responses: tuple[Response, ...] | list[Response]
                     ) -> tuple[np.ndarray, np.ndarray]:
-    """Pack up to four channels' forward responses for kernels/response.cl.
+    """Pack up to four channels' forward responses for clblur/opencl/response.cl.
 
     Returns (params: float32[GROUP * RESP_STRIDE], tables: float32, at least one element).
     """
