@@ -337,19 +337,22 @@ def integrate_box(rt: Runtime, prog: Program, plan: BlurPlan, src: DeviceInput,
 
 
 def _download(rt: Runtime, out: np.ndarray, out_buf, src: DeviceInput, done: list) -> None:
-    """Copy the output back: band by band on the band's queue (each after its kernel), or one
-    blocking copy on unified devices."""
+    """Copy the output back: band by band on the band's queue, each after its own band's
+    kernel (``done[k]``: earlier channel groups are finished), so band k comes down while
+    band k + 1 computes; or one blocking copy on unified devices."""
     cl = pyopencl_module()
     if rt.unified or len(src.bands) == 1:
         cl.enqueue_copy(rt.queue, out, out_buf, wait_for=done, is_blocking=True)
         return
     row_bytes = out.nbytes // out.shape[0]
     flat = out.reshape(-1).view(np.uint8)
+    per_band = len(done) == len(src.bands)  # the box kernel runs once for the whole image
     events = []
     for k, (r0, r1) in enumerate(src.bands):
         queue = rt.all_queues()[k % len(rt.all_queues())]
         events.append(cl.enqueue_copy(queue, flat[r0 * row_bytes:r1 * row_bytes], out_buf,
-                                      src_offset=r0 * row_bytes, wait_for=done,
+                                      src_offset=r0 * row_bytes,
+                                      wait_for=[done[k]] if per_band else done,
                                       is_blocking=False))
     cl.wait_for_events(events)
 
@@ -383,7 +386,7 @@ def run_plan(rt: Runtime, plan: BlurPlan, gpu: bool | None = None, *, half: bool
         half = gpu or tap_set is not None
     half = half and box is None and half_float.half_storage_ok(plan, src.luts)
     prog = rt.program(half, gpu)
-    field = upload_flow(rt, plan, src, resident_flow) if tap_set is None else None
+    field = None
     lin_buf = None if box is not None else rt.buffer("linear",
                                                      (h + 1) * (w + 1) * 4 * (2 if half else 4))
     done: list = []
@@ -394,6 +397,8 @@ def run_plan(rt: Runtime, plan: BlurPlan, gpu: bool | None = None, *, half: bool
             continue
         linear = linearise(rt, prog, src, plan, cbase, cg, lin_buf)
         after = linear + done  # the next group reuses the intermediate
+        if tap_set is None and field is None:  # queued behind the image: linearise first
+            field = upload_flow(rt, plan, src, resident_flow)
         if field is None:
             done = integrate_taps(rt, prog, gpu, plan, src, lin_buf, tap_set, finish, after)
         else:
