@@ -135,10 +135,10 @@ class _Fixed:
 @pytest.mark.opencl
 def test_banded_pinned_transfers_on_two_queues_equal_the_shared_path(opencl, rng,
                                                                       monkeypatch):
-    from clblur.opencl import backend
+    from clblur.opencl import transfers
 
     rt = opencl.runtime(None)
-    monkeypatch.setattr(backend, "MIN_BAND_ROWS", 8)  # 37 rows -> 4 bands
+    monkeypatch.setattr(transfers, "MIN_BAND_ROWS", 8)  # 37 rows -> 4 bands
     shape = (37, 53)
     plans = [make_plan(random_image(rng, np.uint8, 3, shape), smooth_flow(rng, shape), "exp"),
              make_plan(random_image(rng, np.float32, 5, shape), (3.5, 1.0), "exp"),

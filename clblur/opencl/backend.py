@@ -14,9 +14,9 @@ Conventions
   PSFs, ``taps``), running sums for boxes (exact 64-bit fixed point, cost independent of the
   length).  Every kernel argument is passed by name (``program.Program.run``).
 * CPU devices (host-unified memory) read the caller's arrays in place.  Other devices (GPUs)
-  get the image in row bands: upload (through reused pinned staging, unless the caller's
-  array is already pinned, ``pinned_empty``), linearise, integrate and download of different
-  bands overlap on two queues.
+  get the image in row bands (``transfers``): upload (through reused pinned staging, unless
+  the caller's array is already pinned, ``pinned_empty``), linearise, integrate and download
+  of different bands overlap on two queues.
 * The flow is validated on the device while it is read (non-finite components and components
   beyond ``FLOW_LIMIT`` px are counted into a flag buffer); a non-zero count is refused with
   the message of ``clblur.motion.check_flow``.  float16 flows are read as they are.
@@ -35,9 +35,10 @@ from clblur.opencl.constants import IN_F32, IN_KINDS, LANES, OUT_F32, OUT_KINDS
 from clblur.opencl.device import Runtime, pyopencl_module, runtime
 from clblur.opencl.linearisation import linearisation_tables, linearise_float_image
 from clblur.opencl.program import Program
+from clblur.opencl.transfers import bands_of, download, pinned_empty, upload_rows
 from clblur.plan import BlurPlan
 
-__all__ = ["BANDS", "DeviceInput", "blur", "finish_args", "integrate_box", "integrate_field",
+__all__ = ["DeviceInput", "blur", "finish_args", "integrate_box", "integrate_field",
            "integrate_taps", "linearise", "pinned_empty", "run_plan", "upload_input"]
 
 # Work-items per work-group along x, fixed so that drivers which specialise code per
@@ -49,8 +50,6 @@ GPU_GROUP = (16, 8)  # GPU variants: one pixel per work-item, compact 2-D patche
 # CPU field kernel: 8 x 8 work-items = 64 x 8 pixels per group; measured on PoCL (2 cores,
 # 4K): 1.03x over (64, 1) for |v| 10..40, 1.13x for |v| ~ 80, where rows leave the cache.
 FIELD_GROUP = (8, 8)
-BANDS = 4  # row bands whose transfers and kernels overlap (devices with their own memory)
-MIN_BAND_ROWS = 64
 
 
 def blur(plan: BlurPlan, device: str | None = None) -> np.ndarray:
@@ -58,40 +57,6 @@ def blur(plan: BlurPlan, device: str | None = None) -> np.ndarray:
     rt = runtime(device)
     with rt.lock:
         return run_plan(rt, plan)
-
-
-def pinned_empty(shape, dtype, device: str | None = None) -> np.ndarray:
-    """An uninitialised host array in pinned (page-locked, ``ALLOC_HOST_PTR``) memory.
-
-    Images and flows passed to ``clblur.blur`` in such arrays are copied to a GPU at the
-    bus's full speed without a staging copy.  The array keeps its OpenCL buffer alive.
-
-    Parameters
-    ----------
-    shape : tuple of int
-    dtype : numpy dtype
-    device : OpenCL device selector (``clblur info``); default ``$CLBLUR_DEVICE`` or the first
-        GPU.
-    """
-    cl = pyopencl_module()
-    rt = runtime(device)
-    nbytes = max(int(np.prod(shape)) * np.dtype(dtype).itemsize, 1)
-    with rt.lock:
-        buf = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE | cl.mem_flags.ALLOC_HOST_PTR,
-                        nbytes)
-        host, _ = cl.enqueue_map_buffer(rt.queue, buf, cl.map_flags.READ | cl.map_flags.WRITE,
-                                        0, tuple(shape), dtype, is_blocking=True)
-    return host
-
-
-def _is_pinned(array: np.ndarray) -> bool:
-    """Whether ``array`` views a mapped OpenCL buffer (``pinned_empty``)."""
-    base = array
-    while base is not None:
-        if type(base).__name__ == "MemoryMap":
-            return True
-        base = getattr(base, "base", None)
-    return False
 
 
 def _grid(*sizes: int, group: int = GROUP_SIZE) -> tuple[int, ...]:
@@ -118,53 +83,22 @@ class DeviceInput:
     ready: list
 
 
-def _bands(rt: Runtime, h: int) -> list[tuple[int, int]]:
-    """Row ranges: one for devices that share host memory, up to BANDS otherwise."""
-    count = 1 if rt.unified else max(1, min(BANDS, h // MIN_BAND_ROWS))
-    # inner edges on multiples of 8 rows: work-groups of 8 rows never cross into a band
-    edges = [0, *(round(h * k / count / 8) * 8 for k in range(1, count)), h]
-    return [(edges[k], edges[k + 1]) for k in range(count)]
-
-
-def _upload_rows(rt: Runtime, role: str, array: np.ndarray, bands) -> tuple[object, list]:
-    """``array`` (rows first) on the device: the array itself on unified devices, else one
-    non-blocking copy per band on alternating queues (through pinned staging unless the
-    array is pinned).  Returns (buffer, one event list per band)."""
-    array = np.ascontiguousarray(array)
-    if rt.unified:
-        return rt.share(role, array), [[] for _ in bands]
-    cl = pyopencl_module()
-    buf = rt.buffer(role, array.nbytes)
-    row_bytes = array.nbytes // max(array.shape[0], 1)
-    staged = array if _is_pinned(array) else rt.staging(role, array.nbytes)
-    events = []
-    for k, (r0, r1) in enumerate(bands):
-        part = array[r0:r1].reshape(-1).view(np.uint8)
-        if staged is not array:
-            staged[r0 * row_bytes:r1 * row_bytes] = part
-            part = staged[r0 * row_bytes:r1 * row_bytes]
-        queue = rt.all_queues()[k % len(rt.all_queues())]
-        events.append([cl.enqueue_copy(queue, buf, part, dst_offset=r0 * row_bytes,
-                                       is_blocking=False)])
-    return buf, events
-
-
 def upload_input(rt: Runtime, plan: BlurPlan, resident=None) -> DeviceInput:
     """Stage 0: the image on the device (integer codes, or float32 exposures for float
     images, linearised on the host in float64 as the reference does).  ``resident``: a
     device buffer that already holds the integer image."""
     img = plan.image
-    bands = _bands(rt, img.shape[0])
+    bands = bands_of(rt, img.shape[0])
     if img.dtype.kind == "u":
         luts = linearisation_tables(plan.responses, img.dtype, plan.saturation)
         if resident is not None:
             buf, ready = resident, [[] for _ in bands]
         else:
-            buf, ready = _upload_rows(rt, "image", img, bands)
+            buf, ready = upload_rows(rt, "image", img, bands)
         return DeviceInput(buf, IN_KINDS[img.dtype], luts, float(np.max(np.abs(luts))), bands,
                            ready)
     linear = linearise_float_image(img, plan.responses, plan.saturation)
-    buf, ready = _upload_rows(rt, "image", linear, bands)
+    buf, ready = upload_rows(rt, "image", linear, bands)
     return DeviceInput(buf, IN_F32, None, float(np.max(np.abs(linear))), bands, ready)
 
 
@@ -278,7 +212,7 @@ def upload_flow(rt: Runtime, plan: BlurPlan, src: DeviceInput, resident=None) ->
         buf, ready = resident.base_data, [[] for _ in src.bands]
         flow = resident.get(queue=rt.queue) if host_counts else flow
     else:
-        buf, ready = _upload_rows(rt, "flow", flow, src.bands)
+        buf, ready = upload_rows(rt, "flow", flow, src.bands)
     counts = (sample_counts(flow[..., 0], flow[..., 1]) if host_counts
               else np.zeros(1, np.int32))
     bad = rt.upload("bad_flow", np.zeros(2, np.int32))
@@ -336,27 +270,6 @@ def integrate_box(rt: Runtime, prog: Program, plan: BlurPlan, src: DeviceInput,
                      plane=plane, lo=lo, hi=hi, scale=scale, **shape, **finish)]
 
 
-def _download(rt: Runtime, out: np.ndarray, out_buf, src: DeviceInput, done: list) -> None:
-    """Copy the output back: band by band on the band's queue, each after its own band's
-    kernel (``done[k]``: earlier channel groups are finished), so band k comes down while
-    band k + 1 computes; or one blocking copy on unified devices."""
-    cl = pyopencl_module()
-    if rt.unified or len(src.bands) == 1:
-        cl.enqueue_copy(rt.queue, out, out_buf, wait_for=done, is_blocking=True)
-        return
-    row_bytes = out.nbytes // out.shape[0]
-    flat = out.reshape(-1).view(np.uint8)
-    per_band = len(done) == len(src.bands)  # the box kernel runs once for the whole image
-    events = []
-    for k, (r0, r1) in enumerate(src.bands):
-        queue = rt.all_queues()[k % len(rt.all_queues())]
-        events.append(cl.enqueue_copy(queue, flat[r0 * row_bytes:r1 * row_bytes], out_buf,
-                                      src_offset=r0 * row_bytes,
-                                      wait_for=[done[k]] if per_band else done,
-                                      is_blocking=False))
-    cl.wait_for_events(events)
-
-
 def run_plan(rt: Runtime, plan: BlurPlan, gpu: bool | None = None, *, half: bool | None = None,
              resident_image=None, resident_flow=None,
              resident_out=None) -> np.ndarray | None:
@@ -409,7 +322,7 @@ def run_plan(rt: Runtime, plan: BlurPlan, gpu: bool | None = None, *, half: bool
     if resident_out is not None:
         return None
     out = np.empty((h, w, channels), dtype=out_dtype)
-    _download(rt, out, out_buf, src, done)
+    download(rt, out, out_buf, src.bands, done)
     if img.dtype == np.float64:
         out = out.astype(np.float64)
     return plan.finish(out)
