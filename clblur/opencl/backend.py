@@ -38,8 +38,9 @@ from clblur.opencl.program import Program
 from clblur.opencl.transfers import bands_of, download, pinned_empty, upload_rows
 from clblur.plan import BlurPlan
 
-__all__ = ["DeviceInput", "blur", "finish_args", "integrate_box", "integrate_field",
-           "integrate_taps", "linearise", "pinned_empty", "run_plan", "upload_input"]
+__all__ = ["DeviceInput", "FieldInput", "blur", "finish_args", "integrate_box",
+           "integrate_field", "integrate_taps", "linearise", "pinned_empty", "run_plan",
+           "upload_flow", "upload_input"]
 
 # Work-items per work-group along x, fixed so that drivers which specialise code per
 # work-group size (PoCL) build each kernel once, not once per image size.  Image kernels use
