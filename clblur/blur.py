@@ -39,12 +39,20 @@ def blur(image: np.ndarray, motion, response="exp", *, anchor: str = "center",
         saturates (>= 1; see ``clblur.pixels``).
     device : OpenCL device selector (overrides ``CLBLUR_DEVICE``); see ``clblur info``.
 
-    Returns the blurred image with the input's dtype and shape.
+    Returns the blurred image with the input's dtype and shape.  A ``pyopencl.array.Array``
+    image (and flow) stays on its device and the result is one too
+    (``clblur.opencl.blur_array``).
     """
     check_backend(backend)
+    if type(image).__module__.startswith("pyopencl"):
+        from clblur import opencl
+
+        return opencl.blur_array(image, motion, response, anchor=anchor, samples=samples,
+                                 weights=weights, saturation=saturation, device=device)
+    chosen = resolve_backend(backend, device)
     plan = make_plan(image, motion, response, anchor=anchor, samples=samples, weights=weights,
-                     saturation=saturation)
-    return blur_plan(plan, backend, device)
+                     saturation=saturation, check_flow=chosen == "numpy")
+    return blur_plan(plan, chosen, device)
 
 
 def check_backend(backend: str) -> None:

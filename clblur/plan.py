@@ -64,12 +64,14 @@ def check_image(image) -> np.ndarray:
 
 def make_plan(image, motion, response="exp", *, anchor: str = "center",
               samples: int | None = None, weights=None, saturation: float = 1.0,
-              region: tuple[int, int, int, int] | None = None) -> BlurPlan:
+              region: tuple[int, int, int, int] | None = None,
+              check_flow: bool = True) -> BlurPlan:
     """Validate a request.  ``region = (row0, col0, full_h, full_w)`` marks ``image`` as a
-    window of a larger image (used by tiling); the flow, if any, covers the window."""
+    window of a larger image (used by tiling); the flow, if any, covers the window.
+    ``check_flow=False``: the OpenCL backend validates the flow's values on the device."""
     img = check_image(image)
     h, w, c = img.shape
-    parsed = parse_motion(motion, (h, w))
+    parsed = parse_motion(motion, (h, w), check=check_flow)
     n, wts = time_weights(samples, weights)
     return BlurPlan(image=img, squeeze=np.ndim(image) == 2, motion=parsed,
                     responses=tuple(per_channel(response, c)), anchor=anchor_value(anchor),

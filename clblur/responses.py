@@ -26,7 +26,7 @@ import numpy as np
 
 FORMAT_VERSION = 1
 
-# Codes shared with kernels/response.cl; keep in step.
+# Response kind codes; the kernels get them as -D options (clblur/opencl/constants.py).
 KIND_CODES = {"linear": 0, "exp": 1, "gamma": 2, "srgb": 3, "table": 4}
 
 
@@ -46,7 +46,7 @@ class Response:
         return {}
 
     def device_params(self) -> tuple[float, ...]:
-        """Up to four float parameters the kernels read (see kernels/response.cl)."""
+        """Up to four float parameters the kernels read (see clblur/opencl/response.cl)."""
         return ()
 
     def to_dict(self) -> dict:

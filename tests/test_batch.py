@@ -171,7 +171,7 @@ def _worker_state() -> tuple[int, str | None, int | None]:
     cl = sys.modules.get("clblur.opencl")
     cache = os.environ.get("POCL_CACHE_DIR")
     return os.getpid(), cache if cache and Path(cache).is_dir() else None, \
-        None if cl is None else len(cl._runtimes)
+        None if cl is None else len(cl.runtimes())
 
 
 def test_two_worker_local_cluster(folder, capsys):
