@@ -1,0 +1,271 @@
+"""Occlusion study: gather, speed layers and depth layers against sub-frame ground truth.
+
+Part 1 renders the scenes of ``clblur.scenes.example_scenes`` at ``--samples`` shutter
+instants with exact occlusion (``clblur.scenes.render``), blurs the sharp centre frame with each
+method along the renderer's own motion vectors (straight exposure chords, anchor ``center``)
+and scores PSNR against the true exposure over the swept region (whole-frame PSNR hides the
+error in the static background), over its part whose light the sharp frame shows, and over
+the whole frame.
+
+Part 2 repeats the GoPro 240 fps comparison of ``docs/studies/video.md`` (same truth, same
+DIS flows, same bent path) with a depth proxy for the depth layers.
+
+Methods: ``gather`` is ``clblur.blur``; ``speed layers`` is the two-layer exposure of
+``clblur video --layers`` (``layered_half``); ``depth layers`` is ``clblur.blur(...,
+depth=...)``, scored only when ``clblur.blur`` takes ``depth``.
+
+Run:  python docs/studies/occlusion_study.py [--backend numpy] [--samples 128] [--no-gopro]
+Writes docs/studies/figures/occlusion/{results.json,*.png} and prints the tables.
+"""
+
+from __future__ import annotations
+
+import argparse
+import inspect
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+import clblur
+from clblur import scenes
+from clblur.pixels import linearise, normalise, quantise
+
+try:  # occl-core renames the module; accept either name
+    from clblur.layered_exposure import layered_half
+except ImportError:  # pragma: no cover - depends on the branch state
+    from clblur.video_layers import layered_half
+
+FIG = Path(__file__).resolve().parent / "figures" / "occlusion"
+RESPONSE = "srgb"
+HIDDEN_MAX = 0.01  # a pixel is "visible" when < 1 % of its light comes from hidden surfaces
+
+
+def depth_supported() -> bool:
+    return "depth" in inspect.signature(clblur.blur).parameters
+
+
+def linearised(img: np.ndarray, resp) -> np.ndarray:
+    v = normalise(img)
+    return np.stack([linearise(v[..., c], r, img.dtype, 1.0) for c, r in enumerate(resp)],
+                    axis=-1).astype(np.float32)
+
+
+def picture(exposure: np.ndarray, resp, dtype) -> np.ndarray:
+    e = np.asarray(exposure, np.float64)
+    return quantise(np.stack([r.forward(e[..., c]) for c, r in enumerate(resp)], axis=-1),
+                    dtype)
+
+
+def methods_for(r: scenes.Render, backend: str) -> dict[str, np.ndarray]:
+    """Every method's blur of the sharp frame along the renderer's vectors."""
+    out = {"sharp frame (no blur)": r.sharp,
+           "gather": clblur.blur(r.sharp, r.flow, RESPONSE, anchor="center", backend=backend)}
+    e = layered_half(linearised(r.sharp, r.response), r.flow, "center", backend=backend)
+    out["speed layers"] = picture(e, r.response, r.sharp.dtype)
+    if depth_supported():
+        out["depth layers"] = clblur.blur(r.sharp, r.flow, RESPONSE, anchor="center",
+                                          backend=backend, depth=r.depth)
+    return out
+
+
+def scene_part(args) -> tuple[dict, dict]:
+    table, renders = {}, {}
+    for name, scene in scenes.example_scenes().items():
+        t0 = time.perf_counter()
+        r = scenes.render(scene, RESPONSE, np.uint8, samples=args.samples, spp=args.spp)
+        t1 = time.perf_counter()
+        got = methods_for(r, args.backend)
+        visible = r.swept & (r.hidden < HIDDEN_MAX)
+        row = {"description": scene.description, "render_s": round(t1 - t0, 2),
+               "swept_fraction": float(r.swept.mean()),
+               "hidden_share_of_swept": float((r.hidden[r.swept] >= HIDDEN_MAX).mean()),
+               "occlusion": len(scene.objects) > 0,
+               "psnr_swept_db": {}, "psnr_visible_db": {}, "psnr_frame_db": {}}
+        for m, img in got.items():
+            row["psnr_swept_db"][m] = scenes.psnr(img, r.image, r.swept)
+            row["psnr_visible_db"][m] = scenes.psnr(img, r.image, visible)
+            row["psnr_frame_db"][m] = scenes.psnr(img, r.image)
+        table[name] = row
+        renders[name] = (r, got)
+        print(f"{name}: rendered in {t1 - t0:.1f} s, methods in "
+              f"{time.perf_counter() - t1:.1f} s", flush=True)
+    return table, renders
+
+
+def gopro_part(args) -> dict | None:
+    """Interior frames c = 8..12 of docs/studies/video.md: the gamma 2.2 truth over c-4..c+4,
+    DIS flows to c-8 and c+8, 360-degree shutter, srgb.  Depth proxy: motion that departs
+    from the frame's dominant (median) motion is nearer (see depth_proxy)."""
+    from clblur import video
+    from clblur.data import data_dir
+    from clblur.flow import FlowEstimator
+    from clblur.io import read_image
+
+    d = data_dir()
+    if d is None or not (d / "gopro240" / "frames").is_dir():
+        print("GoPro frames not found ($CLBLUR_DATA); part 2 skipped")
+        return None
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "video_study", Path(__file__).resolve().parent / "video_study.py")
+    vs = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(vs)
+    names = sorted((d / "gopro240" / "frames").glob("*.png"))
+    frames = [read_image(p) for p in names]
+    est = FlowEstimator("dis")
+    rows: dict[str, dict[str, float]] = {}
+    for c in range(8, 13):
+        truth = vs.truth_exposure(frames, c, vs.PRIMARY_TRUTH)
+        bwd = est(frames[c], frames[c - 8])
+        fwd = est(frames[c], frames[c + 8])
+        got = {"gather": video.blur_frame(frames[c], bwd, fwd, RESPONSE, shutter=360,
+                                          backend=args.backend),
+               "speed layers": video.blur_frame(frames[c], bwd, fwd, RESPONSE, shutter=360,
+                                                backend=args.backend, layers=True)}
+        if depth_supported():
+            got["depth layers (proxy)"] = depth_blur_frame(frames[c], bwd, fwd, args.backend)
+        for m, img in got.items():
+            rows.setdefault(m, {})[str(c)] = vs.psnr(img, truth)
+        print(f"GoPro frame {c}: " + ", ".join(f"{m} {rows[m][str(c)]:.2f}" for m in rows),
+              flush=True)
+    return {m: {"per_frame": v, "mean": float(np.mean(list(v.values())))}
+            for m, v in rows.items()}
+
+
+def depth_proxy(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """Depth proxy (smaller = nearer) from motion alone: ``1 / (1 + |v - median v|)`` with
+    ``v`` the whole-shutter displacement.  Assumption: the camera tracks a static scene, so
+    the dominant motion is the background's and what moves against it is in front.  It is a
+    guess, stated as such; a renderer's Z pass or a depth estimator replaces it."""
+    v = first.astype(np.float64) + second
+    dev = np.hypot(*(v - np.median(v.reshape(-1, 2), axis=0)).transpose(2, 0, 1))
+    return (1.0 / (1.0 + dev)).astype(np.float32)
+
+
+def depth_blur_frame(frame: np.ndarray, bwd: np.ndarray, fwd: np.ndarray,
+                     backend: str) -> np.ndarray:
+    """``clblur.video.blur_frame``'s bent path with the depth layers: each half is one
+    ``clblur.blur(..., depth=)`` call on the linearised frame (linear response), the halves'
+    exposures are averaged, the response is applied once."""
+    from clblur import video
+    from clblur.responses import per_channel
+
+    resp = per_channel(RESPONSE, 3)
+    first, second = video.half_paths(bwd, fwd, 360, frame.shape[:2])
+    depth = depth_proxy(first, second)
+    lin = linearised(frame, resp)
+    e1 = clblur.blur(lin, first, "linear", anchor="end", backend=backend, depth=depth)
+    e2 = clblur.blur(lin, second, "linear", anchor="start", backend=backend, depth=depth)
+    return picture(0.5 * (e1.astype(np.float64) + e2), resp, frame.dtype)
+
+
+def figures(renders: dict, table: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    FIG.mkdir(parents=True, exist_ok=True)
+    names = list(renders)
+    cols = ["truth"] + [m for m in renders[names[0]][1] if m != "sharp frame (no blur)"]
+    cols = ["sharp frame (no blur)"] + cols
+    fig, axes = plt.subplots(len(names), len(cols), figsize=(2.9 * len(cols),
+                                                             2.2 * len(names)))
+    for i, n in enumerate(names):
+        r, got = renders[n]
+        ys, xs = np.nonzero(r.swept)
+        if r.swept.all():
+            y0, y1, x0, x1 = 0, r.swept.shape[0], 0, r.swept.shape[1]
+        else:
+            y0, y1 = max(ys.min() - 6, 0), min(ys.max() + 7, r.swept.shape[0])
+            x0, x1 = max(xs.min() - 6, 0), min(xs.max() + 7, r.swept.shape[1])
+        for j, m in enumerate(cols):
+            ax = axes[i, j]
+            img = r.image if m == "truth" else got[m]
+            ax.imshow(img[y0:y1, x0:x1], interpolation="nearest")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            label = m if m == "truth" else f"{m}\n{table[n]['psnr_swept_db'][m]:.1f} dB"
+            ax.set_title(label if i == 0 or m == "truth" else
+                         f"{table[n]['psnr_swept_db'][m]:.1f} dB", fontsize=8)
+            if j == 0:
+                ax.set_ylabel(n, fontsize=8)
+    fig.tight_layout()
+    fig.savefig(FIG / "scenes.png", dpi=80)
+    plt.close(fig)
+
+    # error maps of the crossing with the fast disc behind (the hard case)
+    n = "crossing_fast_behind"
+    r, got = renders[n]
+    ms = [m for m in got if m != "sharp frame (no blur)"]
+    fig, axes = plt.subplots(1, len(ms) + 1, figsize=(3.6 * (len(ms) + 1), 2.8),
+                             layout="constrained")
+    for ax, m in zip(axes, ms, strict=False):
+        err = np.abs(got[m].astype(np.int16) - r.image).mean(axis=2)
+        im = ax.imshow(err, cmap="magma", vmin=0, vmax=40)
+        ax.set_title(f"|{m} - truth|", fontsize=9)
+        ax.axis("off")
+    axes[-1].imshow(r.hidden, cmap="gray", vmin=0, vmax=1)
+    axes[-1].set_title("light the sharp frame hides\n(fraction of the shutter)", fontsize=9)
+    axes[-1].axis("off")
+    fig.colorbar(im, ax=axes[:-1], shrink=0.9, label="code values (mean over RGB)")
+    fig.savefig(FIG / "crossing_error.png", dpi=80)
+    plt.close(fig)
+
+
+def summarise(table: dict, gopro: dict | None) -> str:
+    ms = ["gather", "speed layers", "depth layers", "sharp frame (no blur)"]
+
+    def cell(row, key, m):
+        v = row[key].get(m)
+        return "TODO" if v is None else f"{v:.2f}"
+
+    lines = ["PSNR (dB) over the swept region:", "",
+             "| scene | " + " | ".join(ms) + " | hidden share |", "|---|" + "---|" * (len(ms) + 1)]
+    for n, row in table.items():
+        lines.append(f"| {n} | " + " | ".join(cell(row, "psnr_swept_db", m) for m in ms)
+                     + f" | {row['hidden_share_of_swept']:.2f} |")
+    for key, title in (("psnr_visible_db", "swept pixels whose light the sharp frame shows"),
+                       ("psnr_frame_db", "whole frame")):
+        lines += ["", f"PSNR (dB), {title}:", "", "| scene | " + " | ".join(ms) + " |",
+                  "|---|" + "---|" * len(ms)]
+        for n, row in table.items():
+            lines.append(f"| {n} | " + " | ".join(cell(row, key, m) for m in ms) + " |")
+    if gopro:
+        lines += ["", "GoPro, whole frame, gamma 2.2 truth, mean of frames 8-12:", ""]
+        lines += [f"| {m} | {v['mean']:.2f} | " + " ".join(f"{x:.2f}" for x in
+                                                           v["per_frame"].values()) + " |"
+                  for m, v in gopro.items()]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--backend", default="numpy",
+                    help="backend for the synthetic scenes (default numpy, the reference)")
+    ap.add_argument("--gopro-backend", default="auto",
+                    help="backend for the 1280x720 GoPro frames (default auto)")
+    ap.add_argument("--samples", type=int, default=128, help="shutter instants (>= 64)")
+    ap.add_argument("--spp", type=int, default=2, help="sub-pixel samples per axis")
+    ap.add_argument("--no-gopro", action="store_true", help="skip part 2")
+    args = ap.parse_args()
+    if args.samples < 64:
+        ap.error("--samples must be >= 64")
+    FIG.mkdir(parents=True, exist_ok=True)
+    table, renders = scene_part(args)
+    figures(renders, table)
+    gopro = None
+    if not args.no_gopro:
+        gopro = gopro_part(argparse.Namespace(backend=args.gopro_backend))
+    doc = {"response": RESPONSE, "samples": args.samples, "spp": args.spp,
+           "backend": args.backend, "depth_layers_scored": depth_supported(),
+           "hidden_max": HIDDEN_MAX, "scenes": table, "gopro_gamma22_truth": gopro}
+    (FIG / "results.json").write_text(json.dumps(doc, indent=1) + "\n")
+    print(summarise(table, gopro))
+
+
+if __name__ == "__main__":
+    main()
