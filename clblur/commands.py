@@ -62,6 +62,10 @@ def motion_from_args(args) -> object:
     if args.motion is not None:
         return parse_vector(args.motion)
     if args.flow is not None:
+        if getattr(args, "vectors", "clblur") != "clblur":  # a renderer's vector pass
+            from clblur.vectors import load_flow
+
+            return load_flow(args.flow, args.vectors, args.vector_shutter)
         return args.flow
     return read_psf(args.psf)
 
@@ -118,6 +122,13 @@ def register(sub) -> None:
     add_blur_options(p)
     p.add_argument("--memory-budget", default=None, metavar="SIZE",
                    help="bound memory use, e.g. 2G or 500M (tiles big images)")
+    p.add_argument("--vectors", choices=["clblur", "blender", "nuke"], default="clblur",
+                   help="convention of --flow: clblur (displacement over the exposure, "
+                        "default), blender (Vector pass X,Y,Z,W) or nuke (forward/backward "
+                        "u,v); see docs/model.md")
+    p.add_argument("--vector-shutter", type=float, default=0.5, metavar="FRAMES",
+                   help="with --vectors blender|nuke: centred shutter in frames (default 0.5, "
+                        "i.e. 180 degrees)")
     p.set_defaults(func=cmd_blur)
     p = sub.add_parser("info", help="versions and OpenCL devices")
     p.set_defaults(func=cmd_info)

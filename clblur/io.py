@@ -58,10 +58,14 @@ def refuse_overwrite(out: str | os.PathLike, *inputs: str | os.PathLike) -> None
 
 
 def read_image(path: str | os.PathLike) -> np.ndarray:
-    """Read PNG/TIFF/JPEG/... as uint8, uint16 or float32 (H x W or H x W x C; RGB order)."""
+    """Read PNG/TIFF/JPEG/EXR/... as uint8, uint16 or float32 (H x W or H x W x C; RGB order)."""
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"image file not found: {path}")
+    if path.suffix.lower() == ".exr":  # linear float channels: clblur.exr
+        from clblur import exr
+
+        return exr.read_image(path)
     if path.suffix.lower() in (".tif", ".tiff"):
         import tifffile
 
@@ -84,9 +88,14 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
 
 
 def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
-    """Write an image atomically; the format follows the suffix (PNG, TIFF, JPEG, ...)."""
+    """Write an image atomically; the format follows the suffix (PNG, TIFF, JPEG, EXR, ...)."""
     path = Path(path)
     suffix = path.suffix.lower()
+    if suffix == ".exr":
+        from clblur import exr
+
+        exr.write_image(path, image)
+        return
     if suffix in (".tif", ".tiff"):
         import tifffile
 
@@ -113,10 +122,14 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
 
 
 def read_flow(path: str | os.PathLike) -> np.ndarray:
-    """Read a flow field (.npy H x W x 2, or Middlebury .flo) as float32."""
+    """Read a flow field (.npy H x W x 2, Middlebury .flo, or EXR flow.x/flow.y) as float32."""
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"flow file not found: {path}")
+    if path.suffix.lower() == ".exr":
+        from clblur import exr
+
+        return exr.read_flow(path)
     if path.suffix.lower() == ".flo":
         raw = path.read_bytes()
         if len(raw) < 12 or np.frombuffer(raw[:4], "<f4")[0] != FLO_MAGIC:
@@ -135,8 +148,13 @@ def read_flow(path: str | os.PathLike) -> np.ndarray:
 
 
 def write_flow(path: str | os.PathLike, flow: np.ndarray) -> None:
-    """Write a flow field as .flo or .npy (by suffix), atomically."""
+    """Write a flow field as .flo, .exr or .npy (by suffix), atomically."""
     path = Path(path)
+    if path.suffix.lower() == ".exr":
+        from clblur import exr
+
+        exr.write_flow(path, flow)
+        return
     flow = np.asarray(flow, dtype=np.float32)
     if path.suffix.lower() == ".flo":
         h, w = flow.shape[:2]

@@ -431,7 +431,7 @@ def blur_file(src: str | os.PathLike, dst: str | os.PathLike, motion, *, respons
     refuse_overwrite(dst, src, *([motion] if isinstance(motion, (str, os.PathLike)) else []))
     dst = Path(dst)
     image = open_image(src)
-    if not is_tiff(dst) and np.dtype(image.dtype).kind == "f":
+    if not is_tiff(dst) and dst.suffix.lower() != ".exr" and np.dtype(image.dtype).kind == "f":
         raise ValueError(f"{dst.suffix} cannot hold float images; write .tif or .tiff instead")
     options = dict(response=response, anchor=anchor, samples=samples, weights=weights,
                    backend=backend, saturation=saturation, device=device, tile=tile,
