@@ -68,8 +68,8 @@ def test_depth_order_ids_alpha_and_ties():
     b = SceneObject(Disc(10), blue, (38.0, 24.0), depth=1.0)
     r = scenes.render(Scene(64, 48, _bg(), (a, b)), "linear", np.float64)
     assert r.ids[24, 34] == 2 and r.depth[24, 34] == 1.0 and r.sharp[24, 34, 2] == 0.6
-    r2 = scenes.render(Scene(64, 48, _bg(), (SceneObject(Disc(10), red, (30.0, 24.0), depth=0.5), b)),
-                       "linear", np.float64)
+    near_red = SceneObject(Disc(10), red, (30.0, 24.0), depth=0.5)
+    r2 = scenes.render(Scene(64, 48, _bg(), (near_red, b)), "linear", np.float64)
     assert r2.ids[24, 34] == 1 and r2.sharp[24, 34, 0] == 0.6
     tie = SceneObject(Disc(10), red, (30.0, 24.0), depth=1.0)
     r3 = scenes.render(Scene(64, 48, _bg(), (tie, b)), "linear", np.float64)
