@@ -235,10 +235,15 @@ def summarise(table: dict, gopro: dict | None) -> str:
         for n, row in table.items():
             lines.append(f"| {n} | " + " | ".join(cell(row, key, m) for m in ms) + " |")
     if gopro:
-        lines += ["", "GoPro, whole frame, gamma 2.2 truth, mean of frames 8-12:", ""]
-        lines += [f"| {m} | {v['mean']:.2f} | " + " ".join(f"{x:.2f}" for x in
-                                                           v["per_frame"].values()) + " |"
-                  for m, v in gopro.items()]
+        frames = list(next(iter(gopro.values()))["per_frame"])
+        lines += ["", "GoPro, PSNR (dB) over the whole frame, gamma 2.2 truth:", "",
+                  "| method | mean | " + " | ".join(frames) + " |",
+                  "|---|---|" + "---|" * len(frames)]
+        lines += [f"| {m} | {v['mean']:.2f} | " + " | ".join(
+            f"{v['per_frame'][f]:.2f}" for f in frames) + " |" for m, v in gopro.items()]
+        if "depth layers (proxy)" not in gopro:
+            lines.append("| depth layers (proxy) | TODO | " + " | ".join("TODO" for _ in frames)
+                         + " |")
     return "\n".join(lines)
 
 
