@@ -19,11 +19,17 @@ Conventions
   offer ``fused(plan)``, one call that does all three with the plain gather (the OpenCL backend
   fuses the response and the quantisation into its integration kernel); :func:`run` uses it
   when no other integrator is asked for and the backend's optional ``can_fuse(plan)`` agrees.
+* A *sparse* integrator (attribute ``sparse = True``) changes the plain result at a few pixels
+  only: it is called with a function that returns the linear image on demand, and answers
+  None (nothing differs from the gather) or ``(rows, cols, values)``, the exposures (n x C)
+  of those pixels.  :func:`run` then runs the plain pipeline and replaces those pixels by
+  their finished values, so every other pixel is the plain result bit for bit.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -88,6 +94,20 @@ def run(plan: BlurPlan, backend: Backend = NUMPY,
         if fused is not None and (can_fuse is None or can_fuse(plan)):
             return fused(plan)
         integrate = backend.integrate
+    if getattr(integrate, "sparse", False):
+        patch = integrate(lambda: backend.linearise(plan), plan)
+        out = run(plan, backend)
+        if patch is None:
+            return out
+        rows, cols, values = patch
+        # finish the patch as a 1-pixel-wide image with the plan's channels
+        column = backend.finish(values[:, None, :], replace(plan, squeeze=False))
+        out = out.copy() if not out.flags.writeable else out
+        if plan.squeeze:
+            out[rows, cols] = column[:, 0, 0]
+        else:
+            out[rows, cols] = column[:, 0]
+        return out
     return backend.finish(integrate(backend.linearise(plan), plan), plan)
 
 

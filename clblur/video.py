@@ -96,11 +96,14 @@ def half_paths(backward: np.ndarray | None, forward: np.ndarray | None, shutter:
 def blur_frame(frame: np.ndarray, backward: np.ndarray | None, forward: np.ndarray | None,
                response=DEFAULT_RESPONSE, *, shutter: float = DEFAULT_SHUTTER,
                samples: int | None = None, backend: str = "auto", saturation: float = 1.0,
-               device: str | None = None, layers: bool = False) -> np.ndarray:
+               device: str | None = None, layers: bool = False,
+               depth: np.ndarray | None = None) -> np.ndarray:
     """Blur one frame along the bent path given by its backward and forward flows.
 
-    ``layers``: let objects that move faster than their surroundings smear over them
-    (``clblur.layered_exposure``, speed as the ordering signal); without it every pixel gathers along its own vector only.
+    ``layers``: integrate each half as layered exposure (``clblur.layered_exposure``), so
+    moving objects smear over what lies behind them, ordered by ``depth`` (H x W, smaller =
+    nearer) or, without it, by speed (faster = nearer); without ``layers`` every pixel
+    gathers along its own vector only.
     Returns an array with the frame's dtype and shape (see the module Conventions).
     """
     first, second = half_paths(backward, forward, shutter, check_image(frame).shape[:2])
@@ -108,7 +111,7 @@ def blur_frame(frame: np.ndarray, backward: np.ndarray | None, forward: np.ndarr
     # integrator below closes over (the plan's own motion is not used).
     plan = make_plan(frame, (0.0, 0.0), response, saturation=saturation)
     integrate = bent_path(first, second, samples=samples, backend=backend, device=device,
-                          layers=layers)
+                          layers=layers, depth=depth)
     return run_numpy(plan, integrate)
 
 
