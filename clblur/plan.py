@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from clblur.motion import Motion, anchor_value, parse_motion, time_weights
+from clblur.motion import Field, Motion, anchor_value, parse_motion, time_weights
 from clblur.pixels import SUPPORTED_DTYPES, validate_saturation
 from clblur.responses import Response, per_channel
 
@@ -32,6 +32,18 @@ class BlurPlan:
     # so a tile with a large enough halo reproduces the untiled result bit for bit.
     origin: tuple[int, int] = (0, 0)
     extent: tuple[int, int] | None = None
+    # The last channel is coverage (alpha), not light: see ``clblur.reference`` Conventions.
+    alpha: bool = False
+    # Occlusion ordering (``clblur.layered_exposure``): None (plain gather), an H x W float64
+    # depth (smaller = nearer), or H x W int64 layer IDs (smaller = nearer).
+    depth: np.ndarray | None = None
+    # What lies behind every layer (a clean plate), the input's dtype and layout, or None.
+    background: np.ndarray | None = None
+
+    @property
+    def colour_channels(self) -> int:
+        """Channels that carry light (all but the alpha channel)."""
+        return self.image.shape[2] - (1 if self.alpha else 0)
 
     @property
     def full_shape(self) -> tuple[int, int]:
@@ -64,17 +76,72 @@ def check_image(image) -> np.ndarray:
 
 def make_plan(image, motion, response="exp", *, anchor: str = "center",
               samples: int | None = None, weights=None, saturation: float = 1.0,
-              region: tuple[int, int, int, int] | None = None) -> BlurPlan:
+              region: tuple[int, int, int, int] | None = None, depth=None,
+              alpha: bool = False, background=None) -> BlurPlan:
     """Validate a request.  ``region = (row0, col0, full_h, full_w)`` marks ``image`` as a
-    window of a larger image (used by tiling); the flow, if any, covers the window."""
+    window of a larger image (used by tiling); the flow, if any, covers the window.
+    ``depth``: occlusion ordering, H x W (see ``check_depth``); ``alpha``: the last channel is
+    coverage; ``background``: a clean plate (what lies behind every layer), same shape and
+    dtype as ``image``, used with ``depth``."""
     img = check_image(image)
     h, w, c = img.shape
     parsed = parse_motion(motion, (h, w))
     n, wts = time_weights(samples, weights)
+    if not isinstance(alpha, (bool, np.bool_)):
+        raise TypeError(f"alpha must be True or False, got {alpha!r}")
+    if alpha and c < 2:
+        raise ValueError("alpha=True needs an image with at least 2 channels (colour + alpha), "
+                         f"got {c}")
     return BlurPlan(image=img, squeeze=np.ndim(image) == 2, motion=parsed,
                     responses=tuple(per_channel(response, c)), anchor=anchor_value(anchor),
                     samples=n, weights=wts, saturation=validate_saturation(saturation),
+                    alpha=bool(alpha), depth=check_depth(_speed(depth, parsed), (h, w)),
+                    background=_check_background(background, image, depth),
                     **_region(region, (h, w)))
+
+
+def _check_background(background, image: np.ndarray, depth) -> np.ndarray | None:
+    if background is None:
+        return None
+    if depth is None:
+        raise ValueError("a background plate is only used with a depth ordering (depth=...)")
+    if not isinstance(background, np.ndarray) or background.shape != image.shape \
+            or background.dtype != image.dtype:
+        raise ValueError("background must be an array with the image's shape and dtype "
+                         f"({image.shape}, {image.dtype})")
+    return check_image(background)
+
+
+def _speed(depth, motion):
+    """``depth="speed"``: order by speed, faster = nearer (``-|v|``); no order for uniform
+    motion or a PSF, where nothing moves relative to anything else."""
+    if not (isinstance(depth, str) and depth == "speed"):
+        return depth
+    if not isinstance(motion, Field):
+        return None
+    return -np.hypot(motion.flow[..., 0].astype(np.float64), motion.flow[..., 1])
+
+
+def check_depth(depth, shape: tuple[int, int]) -> np.ndarray | None:
+    """An occlusion ordering for an image of ``shape``: None, an H x W float depth (smaller is
+    nearer; returned as float64) or H x W integer layer IDs (smaller is nearer; int64)."""
+    if depth is None:
+        return None
+    d = np.asarray(depth)
+    if d.dtype == object or not np.issubdtype(d.dtype, np.number):
+        raise TypeError(f"depth must be a numeric H x W array or 'speed', got {depth!r:.40}")
+    if d.ndim == 3 and d.shape[2] == 1:
+        d = d[..., 0]
+    if d.shape != tuple(shape):
+        raise ValueError(f"depth has shape {d.shape}, expected {tuple(shape)} to match the "
+                         "image")
+    if np.issubdtype(d.dtype, np.integer):
+        return d.astype(np.int64)
+    d = d.astype(np.float64)
+    bad = ~np.isfinite(d)
+    if bad.any():
+        raise ValueError(f"depth contains {int(bad.sum())} NaN or infinite value(s)")
+    return d
 
 
 def _region(region, shape) -> dict:
