@@ -124,8 +124,11 @@ def test_psnr_mask_and_errors():
         scenes.render(Scene(8, 8, _bg()), samples=1)
 
 
-@pytest.mark.skipif("depth" not in inspect.signature(clblur.blur).parameters,
-                    reason="clblur.blur does not take depth= yet (occlusion branch)")
+needs_depth = pytest.mark.skipif("depth" not in inspect.signature(clblur.blur).parameters,
+                                 reason="clblur.blur does not take depth= yet (occlusion branch)")
+
+
+@needs_depth
 def test_depth_layers_score_on_a_crossing_with_the_fast_object_behind():
     """Two discs cross during the shutter, the fast one behind: the depth-ordered blur must
     beat the gather clearly over the swept region and where the sharp frame shows the light;
@@ -144,3 +147,33 @@ def test_depth_layers_score_on_a_crossing_with_the_fast_object_behind():
     d = scenes.psnr(clblur.blur(pan.sharp, pan.flow, "srgb", backend="numpy", depth=pan.depth),
                     pan.image)
     assert d >= g - 0.1, (d, g)
+
+
+def _rank(depth: np.ndarray) -> np.ndarray:
+    """Depth -> integer layer IDs (0 = nearest), one per distinct depth."""
+    return np.unique(depth, return_inverse=True)[1].reshape(depth.shape).astype(np.int32)
+
+
+@needs_depth
+def test_layer_ids_put_the_fast_object_behind_where_speed_cannot():
+    """With the fast disc behind, ordering by speed paints it in front; the true order (the
+    renderer's depth as layer IDs) must score clearly better over the swept region."""
+    r = scenes.render(scenes.example_scenes(120, 80)["crossing_fast_behind"], "srgb", samples=64)
+    by_speed = clblur.blur(r.sharp, r.flow, "srgb", backend="numpy", depth="speed")
+    by_ids = clblur.blur(r.sharp, r.flow, "srgb", backend="numpy", depth=_rank(r.depth))
+    s, i = scenes.psnr(by_speed, r.image, r.swept), scenes.psnr(by_ids, r.image, r.swept)
+    assert i > s + 5.0, (i, s)
+
+
+@needs_depth
+@pytest.mark.xfail(strict=True, reason="known: float depth is cut into layers at gaps wider "
+                   "than 5 % of the whole depth range, so a far background (depth 1000) "
+                   "merges two discs at depths 1 and 2 into one layer (docs/studies/"
+                   "occlusion.md); remove this marker when the layering is fixed")
+def test_float_depth_orders_near_objects_in_front_of_a_far_background():
+    """A renderer's Z pass: objects at depth 1 and 2 over a background at 1000.  The float
+    depth must order them as their ranks do."""
+    r = scenes.render(scenes.example_scenes(120, 80)["crossing_fast_front"], "srgb", samples=64)
+    by_depth = clblur.blur(r.sharp, r.flow, "srgb", backend="numpy", depth=r.depth)
+    by_ids = clblur.blur(r.sharp, r.flow, "srgb", backend="numpy", depth=_rank(r.depth))
+    assert scenes.psnr(by_depth, r.image, r.swept) > scenes.psnr(by_ids, r.image, r.swept) - 0.5

@@ -10,9 +10,11 @@ the whole frame.
 Part 2 repeats the GoPro 240 fps comparison of ``docs/studies/video.md`` (same truth, same
 DIS flows, same bent path) with a depth proxy for the depth layers.
 
-Methods: ``gather`` is ``clblur.blur``; ``speed layers`` is the two-layer exposure of
-``clblur video --layers`` (``layered_half``); ``depth layers`` is ``clblur.blur(...,
-depth=...)``, scored only when ``clblur.blur`` takes ``depth``.
+Methods: ``gather`` is ``clblur.blur``; ``speed layers`` is ``clblur.blur(..., depth="speed")``,
+what ``clblur video --layers`` runs; ``depth layers`` is ``clblur.blur(..., depth=depth)`` and
+``depth layers + clean plate`` adds ``background=plate``.  The two-layer speed exposure that
+``clblur video --layers`` ran before the layered integrator (``clblur/video_layers.py``) was
+scored by this script at commit fdb19ad: ``figures/occlusion/results_video_layers.json``.
 
 Run:  python docs/studies/occlusion_study.py [--backend numpy] [--samples 128] [--no-gopro]
 Writes docs/studies/figures/occlusion/{results.json,*.png} and prints the tables.
@@ -30,12 +32,6 @@ import numpy as np
 
 import clblur
 from clblur import scenes
-from clblur.pixels import linearise, normalise, quantise
-
-try:  # occl-core renames the module; accept either name
-    from clblur.layered_exposure import layered_half
-except ImportError:  # pragma: no cover - depends on the branch state
-    from clblur.video_layers import layered_half
 
 FIG = Path(__file__).resolve().parent / "figures" / "occlusion"
 RESPONSE = "srgb"
@@ -51,27 +47,24 @@ def plate_supported() -> bool:
     return "background" in inspect.signature(clblur.blur).parameters
 
 
-def linearised(img: np.ndarray, resp) -> np.ndarray:
-    v = normalise(img)
-    return np.stack([linearise(v[..., c], r, img.dtype, 1.0) for c, r in enumerate(resp)],
-                    axis=-1).astype(np.float32)
-
-
-def picture(exposure: np.ndarray, resp, dtype) -> np.ndarray:
-    e = np.asarray(exposure, np.float64)
-    return quantise(np.stack([r.forward(e[..., c]) for c, r in enumerate(resp)], axis=-1),
-                    dtype)
-
-
 def methods_for(r: scenes.Render, backend: str) -> dict[str, np.ndarray]:
     """Every method's blur of the sharp frame along the renderer's vectors."""
     out = {"sharp frame (no blur)": r.sharp,
            "gather": clblur.blur(r.sharp, r.flow, RESPONSE, anchor="center", backend=backend)}
-    e = layered_half(linearised(r.sharp, r.response), r.flow, "center", backend=backend)
-    out["speed layers"] = picture(e, r.response, r.sharp.dtype)
+    # what clblur video --layers runs: layered exposure ordered by speed (faster = nearer)
+    out["speed layers"] = clblur.blur(r.sharp, r.flow, RESPONSE, anchor="center",
+                                      backend=backend, depth="speed")
     if depth_supported():
         out["depth layers"] = clblur.blur(r.sharp, r.flow, RESPONSE, anchor="center",
                                           backend=backend, depth=r.depth)
+    if depth_supported():
+        # the same ordering as integer layer IDs (the depth's rank): every object is its own
+        # layer whatever the spacing of the depth values (see the doc: a far background makes
+        # the float-depth layering merge near objects)
+        rank = np.unique(r.depth, return_inverse=True)[1].reshape(r.depth.shape)
+        out["depth rank as layer IDs"] = clblur.blur(
+            r.sharp, r.flow, RESPONSE, anchor="center", backend=backend,
+            depth=rank.astype(np.int32))
     if depth_supported() and plate_supported():
         # a multi-layer render also hands over the background alone: the hidden light of the
         # background is then known (hidden parts of far objects still are not)
@@ -158,19 +151,14 @@ def depth_proxy(first: np.ndarray, second: np.ndarray) -> np.ndarray:
 
 def depth_blur_frame(frame: np.ndarray, bwd: np.ndarray, fwd: np.ndarray,
                      backend: str) -> np.ndarray:
-    """``clblur.video.blur_frame``'s bent path with the depth layers: each half is one
-    ``clblur.blur(..., depth=)`` call on the linearised frame (linear response), the halves'
-    exposures are averaged, the response is applied once."""
+    """``clblur.video.blur_frame``'s bent path with layered exposure ordered by the depth
+    proxy (each half integrated as layers, the halves' exposures averaged, the response
+    applied once)."""
     from clblur import video
-    from clblur.responses import per_channel
 
-    resp = per_channel(RESPONSE, 3)
     first, second = video.half_paths(bwd, fwd, 360, frame.shape[:2])
-    depth = depth_proxy(first, second)
-    lin = linearised(frame, resp)
-    e1 = clblur.blur(lin, first, "linear", anchor="end", backend=backend, depth=depth)
-    e2 = clblur.blur(lin, second, "linear", anchor="start", backend=backend, depth=depth)
-    return picture(0.5 * (e1.astype(np.float64) + e2), resp, frame.dtype)
+    return video.blur_frame(frame, bwd, fwd, RESPONSE, shutter=360, backend=backend,
+                            layers=True, depth=depth_proxy(first, second))
 
 
 def figures(renders: dict, table: dict) -> None:
@@ -228,8 +216,8 @@ def figures(renders: dict, table: dict) -> None:
 
 
 def summarise(table: dict, gopro: dict | None, gentle: dict | None = None) -> str:
-    ms = ["gather", "speed layers", "depth layers", "depth layers + clean plate",
-          "sharp frame (no blur)"]
+    ms = ["gather", "speed layers", "depth layers", "depth rank as layer IDs",
+          "depth layers + clean plate", "sharp frame (no blur)"]
 
     def cell(row, key, m):
         v = row[key].get(m)
