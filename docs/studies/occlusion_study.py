@@ -36,6 +36,9 @@ from clblur import scenes
 FIG = Path(__file__).resolve().parent / "figures" / "occlusion"
 RESPONSE = "srgb"
 GENTLE = 0.15  # background contrast of the second scene set (the main set: 0.6)
+# 1 px per shutter half, the moving-pixel margin of the former clblur/video_layers.py, fixed
+# before looking at these frames
+FOREGROUND_PX = 2.0
 HIDDEN_MAX = 0.01  # a pixel is "visible" when < 1 % of its light comes from hidden surfaces
 
 
@@ -131,6 +134,8 @@ def gopro_part(args) -> dict | None:
                                                 backend=args.backend, layers=True)}
         if depth_supported():
             got["depth layers (proxy)"] = depth_blur_frame(frames[c], bwd, fwd, args.backend)
+            got["depth layers (two-layer proxy IDs)"] = depth_blur_frame(
+                frames[c], bwd, fwd, args.backend, ids=True)
         for m, img in got.items():
             rows.setdefault(m, {})[str(c)] = vs.psnr(img, truth)
         print(f"GoPro frame {c}: " + ", ".join(f"{m} {rows[m][str(c)]:.2f}" for m in rows),
@@ -150,15 +155,18 @@ def depth_proxy(first: np.ndarray, second: np.ndarray) -> np.ndarray:
 
 
 def depth_blur_frame(frame: np.ndarray, bwd: np.ndarray, fwd: np.ndarray,
-                     backend: str) -> np.ndarray:
+                     backend: str, ids: bool = False) -> np.ndarray:
     """``clblur.video.blur_frame``'s bent path with layered exposure ordered by the depth
     proxy (each half integrated as layers, the halves' exposures averaged, the response
-    applied once)."""
+    applied once).  ``ids``: two integer layers instead, foreground (0) where the motion
+    departs from the dominant one by more than ``FOREGROUND_PX`` over the shutter."""
     from clblur import video
 
     first, second = video.half_paths(bwd, fwd, 360, frame.shape[:2])
+    proxy = depth_proxy(first, second)
+    order = (proxy >= 1.0 / (1.0 + FOREGROUND_PX)).astype(np.int32) if ids else proxy
     return video.blur_frame(frame, bwd, fwd, RESPONSE, shutter=360, backend=backend,
-                            layers=True, depth=depth_proxy(first, second))
+                            layers=True, depth=order)
 
 
 def figures(renders: dict, table: dict) -> None:
