@@ -53,6 +53,7 @@ from clblur.motion import PSF, Field, Uniform, sample_counts
 from clblur.plan import BlurPlan
 
 __all__ = ["GAP_FRACTION", "MAX_LAYERS", "SPREAD_PX", "TILE", "Layers", "boundary_mask",
+           "region_mask",
            "integrate", "integrator", "layer_labels", "layered_half", "prepare",
            "speed_order", "composite"]
 
@@ -96,8 +97,11 @@ def layer_labels(order: np.ndarray, max_layers: int = MAX_LAYERS) -> np.ndarray:
 
 def reach(v: np.ndarray, anchor: float) -> float:
     """Farthest any sample of ``v`` lands from its pixel: ``max |v| * max(a, 1 - a)``."""
-    longest = float(np.hypot(v[..., 0], v[..., 1]).max()) if v.size else 0.0
-    return longest * max(anchor, 1.0 - anchor)
+    if not v.size:
+        return 0.0
+    x, y = v[..., 0], v[..., 1]
+    longest = math.sqrt(float(np.max(x * x + y * y)))  # float32 squares, rounded up below
+    return longest * (1 + 1e-6) * max(anchor, 1.0 - anchor)
 
 
 def boundary_mask(v: np.ndarray, anchor: float, tile: int = TILE,
@@ -112,15 +116,50 @@ def boundary_mask(v: np.ndarray, anchor: float, tile: int = TILE,
 
     h, w = v.shape[:2]
     th, tw = -(-h // tile), -(-w // tile)
-    padded = np.pad(v.astype(np.float64), ((0, th * tile - h), (0, tw * tile - w), (0, 0)),
-                    mode="edge").reshape(th, tile, tw, tile, 2)
-    tmax = padded.max(axis=(1, 3))
-    tmin = padded.min(axis=(1, 3))
+    pad = ((0, th * tile - h), (0, tw * tile - w))
+    tmax = np.empty((th, tw, 2), v.dtype)
+    tmin = np.empty((th, tw, 2), v.dtype)
+    for c in range(2):  # per component, one axis at a time: contiguous, hence fast
+        comp = np.ascontiguousarray(v[..., c])
+        if th * tile != h or tw * tile != w:
+            comp = np.pad(comp, pad, mode="edge")
+        comp = comp.reshape(th, tile, tw, tile)
+        tmax[..., c] = comp.max(axis=3).max(axis=1)
+        tmin[..., c] = comp.min(axis=3).min(axis=1)
     size = 2 * math.ceil((reach(v, anchor) + 2.0) / tile) + 1
     nmax = maximum_filter(tmax, size=(size, size, 1), mode="nearest")
     nmin = minimum_filter(tmin, size=(size, size, 1), mode="nearest")
     flagged = ((nmax - nmin) > spread).any(axis=2)
     return np.repeat(np.repeat(flagged, tile, axis=0), tile, axis=1)[:h, :w]
+
+
+def region_mask(v: np.ndarray, anchor: float, tile: int = TILE,
+                spread: float = SPREAD_PX) -> np.ndarray:
+    """The pixels that take the layered path: the flagged tiles of :func:`boundary_mask`,
+    narrowed to the pixels within ``R + 2`` of a motion edge (a pixel whose 3 x 3
+    neighbourhood's vectors differ by more than ``spread`` in x or y).  Farther away, every
+    surface that can reach a pixel moves as the pixel does, and the gather is kept."""
+    from scipy.ndimage import distance_transform_edt, maximum_filter, minimum_filter
+
+    tiles = boundary_mask(v, anchor, tile, spread)
+    if not tiles.any():
+        return tiles
+    r = reach(v, anchor)
+    margin = int(math.ceil(r)) + 4
+    rows, cols = np.nonzero(tiles.any(axis=1))[0], np.nonzero(tiles.any(axis=0))[0]
+    h, w = tiles.shape
+    r0, r1 = max(rows[0] - margin, 0), min(rows[-1] + margin + 1, h)
+    c0, c1 = max(cols[0] - margin, 0), min(cols[-1] + margin + 1, w)
+    crop = v[r0:r1, c0:c1]
+    edge = np.zeros(crop.shape[:2], bool)
+    for c in range(2):
+        edge |= (maximum_filter(crop[..., c], size=3, mode="nearest")
+                 - minimum_filter(crop[..., c], size=3, mode="nearest")) > spread
+    out = np.zeros_like(tiles)
+    if edge.any():
+        near = distance_transform_edt(~edge) <= r + 2.0
+        out[r0:r1, c0:c1] = near & tiles[r0:r1, c0:c1]
+    return out
 
 
 @dataclass
@@ -130,7 +169,9 @@ class Layers:
     ``origin``: (row, col) of the crop in the full image; ``planes``: K x h x w x (C + 1)
     premultiplied ``(M L, M)``; ``vectors``: K x h x w x 2 float32 ``D_k``; ``flow`` and
     ``linear``: the crop of the image's own vectors and linear image (for uncovered light);
-    ``region``: h x w bool, the pixels to composite.
+    ``region``: h x w bool, the pixels to composite; ``present``: K x h x w bool, whether
+    layer ``k`` can cover the pixel at any sample (farther than its reach plus the bilinear
+    footprint it reads only zeros, so skipping it changes nothing but the sample count).
     """
 
     origin: tuple[int, int]
@@ -139,6 +180,7 @@ class Layers:
     flow: np.ndarray
     linear: np.ndarray
     region: np.ndarray
+    present: np.ndarray
 
 
 def _inpaint(lin: np.ndarray, known: np.ndarray) -> np.ndarray:
@@ -154,12 +196,13 @@ def _inpaint(lin: np.ndarray, known: np.ndarray) -> np.ndarray:
     return np.where(known[..., None], lin, out)
 
 
-def prepare(lin: np.ndarray, v: np.ndarray, order: np.ndarray, anchor: float,
+def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
             region: np.ndarray, background: np.ndarray | None = None,
             split_edges: bool = True) -> Layers:
     """Build the layers around ``region`` (H x W bool) from the linear image, the vectors and
     the ordering signal; ``background``: the linear clean plate, if known.  Host-side, shared
-    by both backends."""
+    by both backends.  ``lin``: the linear image, or a function that returns the linear image
+    of a crop ``(row slice, col slice)`` (so only the crop is linearised)."""
     from scipy.ndimage import distance_transform_edt, maximum_filter, minimum_filter
 
     h, w = region.shape
@@ -170,7 +213,8 @@ def prepare(lin: np.ndarray, v: np.ndarray, order: np.ndarray, anchor: float,
     r0, r1 = max(rows[0] - margin, 0), min(rows[-1] + margin + 1, h)
     c0, c1 = max(cols[0] - margin, 0), min(cols[-1] + margin + 1, w)
     crop = (slice(r0, r1), slice(c0, c1))
-    lin_c, v_c = lin[crop], v[crop].astype(np.float32)
+    lin_c = lin(crop) if callable(lin) else lin[crop]
+    v_c = v[crop].astype(np.float32)
     labels = layer_labels(order[crop])
     last = int(labels.max())
     # Mixed pixels: a pixel next to another layer holds light of both; it is split, half to
@@ -188,7 +232,15 @@ def prepare(lin: np.ndarray, v: np.ndarray, order: np.ndarray, anchor: float,
         if core.any() and joined.any():
             idx = distance_transform_edt(~core, return_indices=True)[1]
             v_c[joined] = v_c[idx[0][joined], idx[1][joined]]
-    planes, vectors = [], []
+    fills: dict[int, np.ndarray] = {}
+
+    def fill(k: int) -> np.ndarray:
+        """The linear image with everything nearer than layer ``k`` reconstructed."""
+        if k not in fills:
+            fills[k] = _inpaint(lin_c, labels >= k)
+        return fills[k]
+
+    planes, vectors, present = [], [], []
     for k in range(last + 1):
         at_or_behind = labels >= k
         if k == last and background is not None:
@@ -205,33 +257,39 @@ def prepare(lin: np.ndarray, v: np.ndarray, order: np.ndarray, anchor: float,
                 source = (idx[0], idx[1])  # nearest pixel at or behind layer k (itself there)
                 # only the rearmost layer is assumed to continue far under what hides it
                 ext = (labels[source] == k) & (dist <= (band if k == last else MID_EXTEND_PX))
-                colour = _inpaint(lin_c, at_or_behind)
+                colour = fill(k)
                 vec = v_c[source]
             mine = split & (labels == k)
             cover = np.where(mine, 0.5, 1.0)
             if mine.any():
                 behind = (background[crop] if background is not None and k == last - 1
-                          else _inpaint(lin_c, labels > k))
+                          else fill(k + 1))
                 colour = np.where(mine[..., None], (colour - 0.5 * behind) / 0.5, colour)
         if not ext.any():
             continue
-        m = (ext * cover).astype(lin.dtype)[..., None]
+        m = (ext * cover).astype(lin_c.dtype)[..., None]
         planes.append(np.concatenate([colour * m, m], axis=2))
         # D_k: the vector of the nearest pixel of the (extended) layer, everywhere.
-        nearest = distance_transform_edt(~ext, return_indices=True)[1]
-        vectors.append(vec[nearest[0], nearest[1]])
+        dist, nearest = distance_transform_edt(~ext, return_indices=True)
+        d = vec[nearest[0], nearest[1]].astype(np.float32)
+        vectors.append(d)
+        farthest = np.hypot(d[..., 0], d[..., 1]) * max(anchor, 1.0 - anchor)
+        present.append(dist <= farthest + 1.5)  # a bilinear footprint reaches sqrt(2) px
     return Layers(origin=(int(r0), int(c0)), planes=np.stack(planes),
-                  vectors=np.stack(vectors).astype(np.float32), flow=own, linear=lin_c,
-                  region=region[crop])
+                  vectors=np.stack(vectors), flow=own, linear=lin_c,
+                  region=region[crop], present=np.stack(present))
 
 
 def counts(layers: Layers, samples: int | None) -> np.ndarray:
-    """Samples per pixel: ``samples``, or ``ceil(max_k |D_k|) + 1`` (int32, h x w)."""
+    """Samples per pixel: ``samples``, or ``ceil(max |v|) + 1`` over the pixel's own vector
+    and the vectors ``D_k`` of the layers present there (int32, h x w)."""
     h, w = layers.region.shape
     if samples is not None:
         return np.full((h, w), samples, np.int32)
     d = layers.vectors
-    return sample_counts(d[..., 0], d[..., 1]).max(axis=0)
+    own = sample_counts(layers.flow[..., 0], layers.flow[..., 1])
+    per_layer = np.where(layers.present, sample_counts(d[..., 0], d[..., 1]), 1)
+    return np.maximum(own, per_layer.max(axis=0))
 
 
 def composite(layers: Layers, anchor: float, samples: int | None, weights: np.ndarray | None,
@@ -254,10 +312,10 @@ def composite(layers: Layers, anchor: float, samples: int | None, weights: np.nd
         num = j - anchor * (n - 1)
         left = np.ones((h, w, 1))
         e = np.zeros((h, w, channels))
-        for plane, d in zip(layers.planes, layers.vectors, strict=True):
+        for plane, d, there in zip(layers.planes, layers.vectors, layers.present, strict=True):
             x = xx - (d[..., 0].astype(np.float64) * num) / den
             y = yy - (d[..., 1].astype(np.float64) * num) / den
-            s = bilinear_at(plane, x, y, layers.origin, full_shape)
+            s = bilinear_at(plane, x, y, layers.origin, full_shape) * there[..., None]
             e += left * s[..., :channels]
             left = left * (1.0 - s[..., channels:])
         v = layers.flow.astype(np.float64)
@@ -288,7 +346,7 @@ def integrate(lin: np.ndarray, plan: BlurPlan) -> np.ndarray:
     if ordered is None:
         return acc
     v, order = ordered
-    region = boundary_mask(v, plan.anchor)
+    region = region_mask(v, plan.anchor)
     if not region.any():
         return acc
     layers = prepare(lin, v, order, plan.anchor, region, background_linear(plan))

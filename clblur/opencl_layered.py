@@ -123,7 +123,8 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
         kern(rt.queue, (-(-n // GROUP) * GROUP,), (GROUP,),
              buf(layers.planes.astype(np.float32)), buf(layers.vectors.astype(np.float32)),
              buf(layers.flow.astype(np.float32)), buf(layers.linear.astype(np.float32)),
-             buf(pix), buf(counts), buf(wts), np.int32(weighted), np.int32(n), np.int32(k),
+             buf(layers.present.astype(np.uint8)), buf(pix), buf(counts), buf(wts),
+             np.int32(weighted), np.int32(n), np.int32(k),
              np.int32(channels), np.int32(h), np.int32(w), np.int32(r0), np.int32(c0),
              np.int32(fh), np.int32(fw), np.float32(anchor), out_buf)
         cl.enqueue_copy(rt.queue, out, out_buf, is_blocking=True)
@@ -138,11 +139,12 @@ def integrator(device: str | None = None):
         if ordered is None:
             return None
         v, order = ordered
-        region = layered.boundary_mask(v, plan.anchor)
+        region = layered.region_mask(v, plan.anchor)
         if not region.any():
             return None
-        lin = linear()
-        layers = layered.prepare(lin, v, order, plan.anchor, region,
+        def crop_linear(crop):  # linearise only the crop the layers need
+            return reference.linearise(replace(plan, image=plan.image[crop], background=None))
+        layers = layered.prepare(crop_linear, v, order, plan.anchor, region,
                                  layered.background_linear(plan))
         values = composite(layers, plan.anchor, plan.samples, plan.weights, plan.full_shape,
                            device)

@@ -7,6 +7,7 @@
  * - planes: K x h x w x CP floats, premultiplied (colour * coverage ..., coverage), CP = C + 1.
  * - vectors: K x h x w x 2 (dx, dy) per layer; flow: h x w x 2, the image's own vectors;
  *   linear: h x w x C, the linear image (light no layer covers is read from it).
+ * - present: K x h x w, 0 where layer k cannot reach the pixel at any sample (skipped).
  * - One work-item per listed pixel (pix: n x 2 (row, col) in the crop); counts: its sample
  *   count N; weights: N time weights when weighted != 0, else 1/N each.
  * - Sample j of a pixel p reads each layer k at p - D_k(p) (j - a (N-1)) / max(N-1, 1).
@@ -42,7 +43,7 @@ static void sample(__global const float *img, int cp, int h, int w, int r0, int 
 
 __kernel void composite_layers(__global const float *planes, __global const float *vectors,
                                __global const float *flow, __global const float *linear,
-                               __global const int *pix, __global const int *counts,
+                               __global const uchar *present, __global const int *pix, __global const int *counts,
                                __global const float *weights, int weighted, int n,
                                int layers, int channels, int h, int w, int r0, int c0,
                                int fh, int fw, float anchor, __global float *out)
@@ -66,6 +67,8 @@ __kernel void composite_layers(__global const float *planes, __global const floa
         for (int c = 0; c < channels; ++c)
             e[c] = 0.0f;
         for (int k = 0; k < layers; ++k) {
+            if (!present[(size_t)k * h * w + at])
+                continue;  /* the layer cannot reach this pixel: it would add zeros */
             __global const float *v = vectors + ((size_t)k * h * w + at) * 2;
             float x = px - (v[0] * num) / den;
             float y = py - (v[1] * num) / den;
