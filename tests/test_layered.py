@@ -236,3 +236,34 @@ def test_opencl_alpha_matches_the_reference(opencl, dtype):
     depth = np.where(flow[..., 0] > 0, 1.0, 2.0)
     agree(clblur.blur(img, flow, "srgb", alpha=True, depth=depth, backend="numpy"),
           clblur.blur(img, flow, "srgb", alpha=True, depth=depth, backend="opencl"))
+
+
+# --------------------------------------------------------------------------- command line
+
+def test_command_line_depth_and_alpha(tmp_path, capsys):
+    from clblur.cli import main
+    from clblur.io import read_image, write_image
+
+    sc = scenes()["disc"]
+    img = np.rint(SRGB.forward(sc.render(0.5)) * 255).astype(np.uint8)
+    flow, depth = sc.maps()
+    write_image(tmp_path / "in.png", img)
+    np.save(tmp_path / "flow.npy", flow)
+    np.save(tmp_path / "depth.npy", depth)
+    common = ["--flow", str(tmp_path / "flow.npy"), "--response", "srgb", "--backend", "numpy"]
+    assert main(["blur", str(tmp_path / "in.png"), str(tmp_path / "out.png"), *common,
+                 "--depth", str(tmp_path / "depth.npy")]) == 0
+    np.testing.assert_array_equal(
+        read_image(tmp_path / "out.png"),
+        clblur.blur(img, flow, "srgb", backend="numpy", depth=depth))
+    rgba = np.dstack([img, np.full(img.shape[:2], 255, np.uint8)])
+    rgba[:20, :, 3] = 0
+    write_image(tmp_path / "rgba.png", rgba)
+    assert main(["blur", str(tmp_path / "rgba.png"), str(tmp_path / "o.png"), *common]) == 0
+    np.testing.assert_array_equal(
+        read_image(tmp_path / "o.png"),
+        clblur.blur(rgba, flow, "srgb", backend="numpy", alpha=True))
+    assert main(["blur", str(tmp_path / "in.png"), str(tmp_path / "x.png"), *common,
+                 "--depth", str(tmp_path / "flow.npy")]) == 2
+    assert "depth has shape" in capsys.readouterr().err
+    assert not (tmp_path / "x.png").exists()
