@@ -198,11 +198,12 @@ def _inpaint(lin: np.ndarray, known: np.ndarray) -> np.ndarray:
 
 def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
             region: np.ndarray, background: np.ndarray | None = None,
-            split_edges: bool = True) -> Layers:
+            split_edges: bool = True) -> Layers | None:
     """Build the layers around ``region`` (H x W bool) from the linear image, the vectors and
     the ordering signal; ``background``: the linear clean plate, if known.  Host-side, shared
     by both backends.  ``lin``: the linear image, or a function that returns the linear image
-    of a crop ``(row slice, col slice)`` (so only the crop is linearised)."""
+    of a crop ``(row slice, col slice)`` (so only the crop is linearised).  None when the
+    ordering gives one layer there: a single surface is what the gather integrates."""
     from scipy.ndimage import distance_transform_edt, maximum_filter, minimum_filter
 
     h, w = region.shape
@@ -213,10 +214,12 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     r0, r1 = max(rows[0] - margin, 0), min(rows[-1] + margin + 1, h)
     c0, c1 = max(cols[0] - margin, 0), min(cols[-1] + margin + 1, w)
     crop = (slice(r0, r1), slice(c0, c1))
-    lin_c = lin(crop) if callable(lin) else lin[crop]
-    v_c = v[crop].astype(np.float32)
     labels = layer_labels(order[crop])
     last = int(labels.max())
+    if last == 0 and background is None:
+        return None
+    lin_c = lin(crop) if callable(lin) else lin[crop]
+    v_c = v[crop].astype(np.float32)
     # Mixed pixels: a pixel next to another layer holds light of both; it is split, half to
     # the nearer layer around it and half to what lies behind (reconstructed), so the
     # composite at the anchor time is the image itself.
@@ -350,6 +353,8 @@ def integrate(lin: np.ndarray, plan: BlurPlan) -> np.ndarray:
     if not region.any():
         return acc
     layers = prepare(lin, v, order, plan.anchor, region, background_linear(plan))
+    if layers is None:
+        return acc
     out = composite(layers, plan.anchor, plan.samples, plan.weights, plan.full_shape)
     h, w = layers.region.shape
     r0, c0 = layers.origin

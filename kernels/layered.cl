@@ -4,6 +4,7 @@
  * Conventions
  * - Arrays cover a crop (h x w) starting at full-image (r0, c0) of an fh x fw image; positions
  *   are full-image coordinates, clamped to the image (clamp-to-edge), then to the crop.
+ * - Build option -DCHANNELS=C (the light channels).
  * - planes: K x h x w x CP floats, premultiplied (colour * coverage ..., coverage), CP = C + 1.
  * - vectors: K x h x w x 2 (dx, dy) per layer; flow: h x w x 2, the image's own vectors;
  *   linear: h x w x C, the linear image (light no layer covers is read from it).
@@ -15,9 +16,14 @@
  */
 #pragma OPENCL FP_CONTRACT OFF
 
-#define MAXC 8
+/* CHANNELS (light channels, C) is a build option: loops over channels unroll and the
+ * per-sample accumulators stay in registers. */
+#ifndef CHANNELS
+#define CHANNELS 3
+#endif
+#define CP (CHANNELS + 1)
 
-static void sample(__global const float *img, int cp, int h, int w, int r0, int c0, int fh,
+static void sample(__global const float *img, const int cp, int h, int w, int r0, int c0, int fh,
                    int fw, float x, float y, float *out)
 {
     x = clamp(x, 0.0f, (float)(fw - 1));
@@ -45,7 +51,7 @@ __kernel void composite_layers(__global const float *planes, __global const floa
                                __global const float *flow, __global const float *linear,
                                __global const uchar *present, __global const int *pix, __global const int *counts,
                                __global const float *weights, int weighted, int n,
-                               int layers, int channels, int h, int w, int r0, int c0,
+                               int layers, int h, int w, int r0, int c0,
                                int fh, int fw, float anchor, __global float *out)
 {
     int i = get_global_id(0);
@@ -53,12 +59,12 @@ __kernel void composite_layers(__global const float *planes, __global const floa
         return;
     int row = pix[2 * i], col = pix[2 * i + 1];
     float px = (float)(c0 + col), py = (float)(r0 + row);
-    int cp = channels + 1;
+    const int channels = CHANNELS, cp = CP;
     int N = counts[i];
     float den = (float)max(N - 1, 1);
     size_t plane = (size_t)h * w * cp;
     size_t at = (size_t)row * w + col;
-    float acc[MAXC], e[MAXC], s[MAXC];
+    float acc[CHANNELS], e[CHANNELS], s[CP];
     for (int c = 0; c < channels; ++c)
         acc[c] = 0.0f;
     for (int j = 0; j < N; ++j) {
