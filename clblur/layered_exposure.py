@@ -183,15 +183,23 @@ class Layers:
     present: np.ndarray
 
 
-def _inpaint(lin: np.ndarray, known: np.ndarray) -> np.ndarray:
+def _inpaint(lin: np.ndarray, known: np.ndarray, depth: float) -> np.ndarray:
     """``lin`` with the pixels outside ``known`` reconstructed from the known ones
-    (Navier-Stokes inpainting, Bertalmio et al. 2001, as ``cv2.inpaint``; per channel)."""
+    (Navier-Stokes inpainting, Bertalmio et al. 2001, as ``cv2.inpaint``; per channel) up to
+    ``depth`` pixels from them; deeper pixels, which no sample reads, take their nearest known
+    pixel (so the inpainting only walks the band that can be uncovered)."""
     import cv2
+    from scipy.ndimage import distance_transform_edt
 
-    hole = (~known).astype(np.uint8)
-    out = lin.copy()
+    if not known.any():
+        return lin.copy()
+    dist, idx = distance_transform_edt(~known, return_indices=True)
+    deep = dist > depth + INPAINT_RADIUS + 1
+    base = lin[idx[0], idx[1]] if deep.any() else lin
+    hole = (~known & ~deep).astype(np.uint8)
+    out = np.array(base, copy=True)
     for c in range(lin.shape[2]):
-        out[..., c] = cv2.inpaint(np.ascontiguousarray(lin[..., c], np.float32), hole,
+        out[..., c] = cv2.inpaint(np.ascontiguousarray(base[..., c], np.float32), hole,
                                   INPAINT_RADIUS, cv2.INPAINT_NS)
     return np.where(known[..., None], lin, out)
 
@@ -240,7 +248,7 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     def fill(k: int) -> np.ndarray:
         """The linear image with everything nearer than layer ``k`` reconstructed."""
         if k not in fills:
-            fills[k] = _inpaint(lin_c, labels >= k)
+            fills[k] = _inpaint(lin_c, labels >= k, band)
         return fills[k]
 
     planes, vectors, present = [], [], []
