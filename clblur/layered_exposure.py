@@ -183,24 +183,41 @@ class Layers:
     present: np.ndarray
 
 
-def _inpaint(lin: np.ndarray, known: np.ndarray, depth: float) -> np.ndarray:
+def _inpaint(lin: np.ndarray, known: np.ndarray, depth: float,
+             nearest: tuple[np.ndarray, tuple[np.ndarray, np.ndarray]] | None = None,
+             needed: np.ndarray | None = None) -> np.ndarray:
     """``lin`` with the pixels outside ``known`` reconstructed from the known ones
     (Navier-Stokes inpainting, Bertalmio et al. 2001, as ``cv2.inpaint``; per channel) up to
     ``depth`` pixels from them; deeper pixels, which no sample reads, take their nearest known
-    pixel (so the inpainting only walks the band that can be uncovered)."""
+    pixel (so the inpainting only walks the band that can be uncovered).  ``nearest``: the
+    distance transform of ``~known`` with its indices, if already computed; ``needed``: the
+    pixels any sample can read (others take their nearest known pixel too), and the
+    inpainting runs only on the bounding box of the hole they leave, plus a margin."""
     import cv2
     from scipy.ndimage import distance_transform_edt
 
     if not known.any():
         return lin.copy()
-    dist, idx = distance_transform_edt(~known, return_indices=True)
+    dist, idx = nearest if nearest is not None else \
+        distance_transform_edt(~known, return_indices=True)
     deep = dist > depth + INPAINT_RADIUS + 1
+    if needed is not None:
+        deep |= ~needed
     base = lin[idx[0], idx[1]] if deep.any() else lin
-    hole = (~known & ~deep).astype(np.uint8)
+    hole = ~known & ~deep
     out = np.array(base, copy=True)
+    if not hole.any():
+        return np.where(known[..., None], lin, out)
+    # cv2.inpaint marches over the whole array it is given: give it only the hole's box
+    # plus the radius it reads (and one pixel of border) around it.
+    m = INPAINT_RADIUS + 2
+    rows, cols = np.nonzero(hole.any(axis=1))[0], np.nonzero(hole.any(axis=0))[0]
+    box = (slice(max(rows[0] - m, 0), rows[-1] + m + 1),
+           slice(max(cols[0] - m, 0), cols[-1] + m + 1))
+    hole8 = hole[box].astype(np.uint8)
     for c in range(lin.shape[2]):
-        out[..., c] = cv2.inpaint(np.ascontiguousarray(base[..., c], np.float32), hole,
-                                  INPAINT_RADIUS, cv2.INPAINT_NS)
+        out[box + (c,)] = cv2.inpaint(np.ascontiguousarray(base[box + (c,)], np.float32),
+                                      hole8, INPAINT_RADIUS, cv2.INPAINT_NS)
     return np.where(known[..., None], lin, out)
 
 
@@ -244,11 +261,22 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
             idx = distance_transform_edt(~core, return_indices=True)[1]
             v_c[joined] = v_c[idx[0][joined], idx[1][joined]]
     fills: dict[int, np.ndarray] = {}
+    nearest_at_or_behind: dict[int, tuple] = {}
+    # Samples of region pixels land within R (+ the bilinear footprint) of the region: the
+    # reconstruction is needed only there (plus the inpainting radius, so that what is read
+    # is inpainted from a filled neighbourhood).
+    needed = distance_transform_edt(~region[crop]) <= r + 2.0 + INPAINT_RADIUS + 1
+
+    def behind_edt(k: int) -> tuple:
+        """Distance to, and index of, the nearest pixel at or behind layer ``k``."""
+        if k not in nearest_at_or_behind:
+            nearest_at_or_behind[k] = distance_transform_edt(labels < k, return_indices=True)
+        return nearest_at_or_behind[k]
 
     def fill(k: int) -> np.ndarray:
         """The linear image with everything nearer than layer ``k`` reconstructed."""
         if k not in fills:
-            fills[k] = _inpaint(lin_c, labels >= k, band)
+            fills[k] = _inpaint(lin_c, labels >= k, band, behind_edt(k), needed)
         return fills[k]
 
     planes, vectors, present = [], [], []
@@ -264,7 +292,7 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
             if k == 0:
                 ext, colour, vec = labels == 0, lin_c, v_c
             else:
-                dist, idx = distance_transform_edt(~at_or_behind, return_indices=True)
+                dist, idx = behind_edt(k)
                 source = (idx[0], idx[1])  # nearest pixel at or behind layer k (itself there)
                 # only the rearmost layer is assumed to continue far under what hides it
                 ext = (labels[source] == k) & (dist <= (band if k == last else MID_EXTEND_PX))

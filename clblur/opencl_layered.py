@@ -31,6 +31,7 @@ from clblur.responses import response
 __all__ = ["OpenCLStages", "composite", "integrator"]
 
 MAXC = 16  # channels + coverage a work-item holds in registers (kernels/layered.cl)
+MAXK = 8  # layers a work-item holds (kernels/layered.cl)
 GROUP = 64
 
 
@@ -105,6 +106,11 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
     channels = cp - 1
     if cp > MAXC:
         raise ValueError(f"layered exposure on OpenCL takes at most {MAXC - 1} channels")
+    if k > MAXK:
+        raise ValueError(f"layered exposure on OpenCL takes at most {MAXK} layers")
+    # the linear image padded to the planes' layout (one zero channel): one load per tap
+    linear = np.zeros((h, w, cp), np.float32)
+    linear[..., :channels] = layers.linear
     counts = layered.counts(layers, samples)[rows, cols].astype(np.int32)
     weighted = weights is not None
     wts = weights.astype(np.float32) if weighted else np.zeros(1, np.float32)
@@ -123,7 +129,7 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
         r0, c0 = layers.origin
         kern(rt.queue, (-(-n // GROUP) * GROUP,), (GROUP,),
              buf(layers.planes.astype(np.float32)), buf(layers.vectors.astype(np.float32)),
-             buf(layers.flow.astype(np.float32)), buf(layers.linear.astype(np.float32)),
+             buf(layers.flow.astype(np.float32)), buf(linear),
              buf(layers.present.astype(np.uint8)), buf(pix), buf(counts), buf(wts),
              np.int32(weighted), np.int32(n), np.int32(k), np.int32(h), np.int32(w),
              np.int32(r0), np.int32(c0),
