@@ -38,6 +38,12 @@ Conventions
   ``2 R + 2`` pixels of the visible part (nothing deeper can be revealed during the shutter).
   Pixels hidden under a nearer object join layer ``k`` only when that nearest pixel is on
   layer ``k``.
+* **Mixed pixels** (within one pixel of a layer boundary) hold light of both layers.  They
+  join the nearer layer with coverage ``a`` fitted to their light, ``I = a F + (1 - a) B``
+  (``F`` the nearest unmixed pixel of that layer, ``B`` the reconstruction behind; least
+  squares over the channels, the colour-line model of alpha matting, pulled towards 1/2
+  where ``F`` and ``B`` are alike), and carry ``I - (1 - a) B`` premultiplied, so the
+  composite at the anchor time is the image.
 * Tiling windows (``plan.extent``) are not supported with an ordering: layered exposure needs
   the whole image.
 """
@@ -52,10 +58,10 @@ import numpy as np
 from clblur.motion import PSF, Field, Uniform, sample_counts
 from clblur.plan import BlurPlan
 
-__all__ = ["GAP_FRACTION", "MAX_LAYERS", "SPREAD_PX", "TILE", "Layers", "boundary_mask",
-           "region_mask",
+__all__ = ["GAP_FRACTION", "MAX_LAYERS", "SPLIT_PRIOR", "SPREAD_PX", "TILE", "Layers",
+           "boundary_mask", "region_mask",
            "integrate", "integrator", "layer_labels", "layered_half", "prepare",
-           "speed_order", "composite"]
+           "speed_order", "split_coverage", "composite"]
 
 MAX_LAYERS = 4
 GAP_FRACTION = 0.05
@@ -63,6 +69,7 @@ SPREAD_PX = 1.0
 TILE = 16
 INPAINT_RADIUS = 3
 MID_EXTEND_PX = 2.0
+SPLIT_PRIOR = 1e-4  # (linear light)^2: below this contrast a mixed pixel stays half and half
 
 
 def speed_order(v: np.ndarray) -> np.ndarray:
@@ -221,6 +228,21 @@ def _inpaint(lin: np.ndarray, known: np.ndarray, depth: float,
     return np.where(known[..., None], lin, out)
 
 
+def split_coverage(light: np.ndarray, front: np.ndarray, behind: np.ndarray) -> np.ndarray:
+    """Coverage of the nearer layer in mixed pixels, from their light (H x W, in [0, 1]).
+
+    A mixed pixel holds ``a F + (1 - a) B`` (``F``: the nearest unmixed pixel of the nearer
+    layer, ``B``: what lies behind); ``a`` is the least-squares fit over the channels (the
+    colour-line model of alpha matting), regularised towards 1/2 by ``SPLIT_PRIOR`` (where
+    ``F`` and ``B`` are alike the light cannot tell, and half and half is kept; also where
+    ``F`` is unknown, NaN)."""
+    fb = front - behind
+    num = np.sum((light - behind) * fb, axis=-1) + 0.5 * SPLIT_PRIOR
+    den = np.sum(fb * fb, axis=-1) + SPLIT_PRIOR
+    a = np.clip(num / den, 0.0, 1.0)
+    return np.where(np.isfinite(a), a, 0.5)
+
+
 def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
             region: np.ndarray, background: np.ndarray | None = None,
             split_edges: bool = True) -> Layers | None:
@@ -245,21 +267,25 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
         return None
     lin_c = lin(crop) if callable(lin) else lin[crop]
     v_c = v[crop].astype(np.float32)
-    # Mixed pixels: a pixel next to another layer holds light of both; it is split, half to
-    # the nearer layer around it and half to what lies behind (reconstructed), so the
-    # composite at the anchor time is the image itself.
+    # Mixed pixels: a pixel next to another layer holds light of both; it is split between the
+    # nearer layer around it (coverage fitted to its light, split_coverage) and what lies
+    # behind (reconstructed), so the composite at the anchor time is the image itself.
     front = minimum_filter(labels, size=3, mode="nearest")
     split = (front != maximum_filter(labels, size=3, mode="nearest")) if split_edges else \
         np.zeros(labels.shape, bool)
     labels = np.where(split, front, labels)
     own = v_c  # the image's own vectors, for light no layer covers
     v_c = v_c.copy()
+    pure = lin_c.copy()  # at a split pixel: the light of the nearest unmixed pixel of its layer
     for k in range(last + 1):  # a split pixel moves with the layer it joined
         core = (labels == k) & ~split
         joined = split & (labels == k)
         if core.any() and joined.any():
             idx = distance_transform_edt(~core, return_indices=True)[1]
             v_c[joined] = v_c[idx[0][joined], idx[1][joined]]
+            pure[joined] = lin_c[idx[0][joined], idx[1][joined]]
+        elif joined.any():
+            pure[joined] = np.nan  # no unmixed pixel: the split stays half and half
     fills: dict[int, np.ndarray] = {}
     nearest_at_or_behind: dict[int, tuple] = {}
     # Samples of region pixels land within R (+ the bilinear footprint) of the region: the
@@ -288,6 +314,7 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
             colour = np.where(at_or_behind[..., None], lin_c, background[crop])
             vec = np.where(at_or_behind[..., None], v_c, np.float32(0))
             cover = np.ones(ext.shape)
+            mine = np.zeros(ext.shape, bool)
         else:
             if k == 0:
                 ext, colour, vec = labels == 0, lin_c, v_c
@@ -299,15 +326,21 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
                 colour = fill(k)
                 vec = v_c[source]
             mine = split & (labels == k)
-            cover = np.where(mine, 0.5, 1.0)
+            cover = np.ones(ext.shape)
             if mine.any():
                 behind = (background[crop] if background is not None and k == last - 1
                           else fill(k + 1))
-                colour = np.where(mine[..., None], (colour - 0.5 * behind) / 0.5, colour)
+                cover = np.where(mine, split_coverage(lin_c, pure, behind), 1.0)
         if not ext.any():
             continue
         m = (ext * cover).astype(lin_c.dtype)[..., None]
-        planes.append(np.concatenate([colour * m, m], axis=2))
+        light = colour * m
+        if mine.any():
+            # premultiplied: what the pixel holds beyond the light behind it, so the
+            # composite at the anchor time is the image itself
+            held = (lin_c - (1.0 - cover[..., None]) * behind) * ext[..., None]
+            light = np.where(mine[..., None], held, light)
+        planes.append(np.concatenate([light, m], axis=2))
         # D_k: the vector of the nearest pixel of the (extended) layer, everywhere.
         dist, nearest = distance_transform_edt(~ext, return_indices=True)
         d = vec[nearest[0], nearest[1]].astype(np.float32)
