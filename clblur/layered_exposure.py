@@ -228,6 +228,34 @@ def _inpaint(lin: np.ndarray, known: np.ndarray, depth: float,
     return np.where(known[..., None], lin, out)
 
 
+# offsets within 2 px, nearest first (ties in a fixed order)
+_NEAR = sorted(((dy, dx) for dy in range(-2, 3) for dx in range(-2, 3) if dy or dx),
+               key=lambda o: (o[0] * o[0] + o[1] * o[1], o))
+
+
+def _nearest_pixel(inside: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, cols) of a nearest ``inside`` pixel to each ``at`` pixel (row-major order of
+    ``at``): looked up within 2 px, then by a distance transform for the rest (mixed pixels
+    lie next to their layer, so the lookup nearly always succeeds)."""
+    from scipy.ndimage import distance_transform_edt
+
+    h, w = inside.shape
+    ys, xs = np.nonzero(at)
+    ry, rx = np.full(ys.size, -1), np.full(ys.size, -1)
+    todo = np.ones(ys.size, bool)
+    for dy, dx in _NEAR:
+        y, x = ys + dy, xs + dx
+        hit = todo & (y >= 0) & (y < h) & (x >= 0) & (x < w)
+        hit[hit] = inside[y[hit], x[hit]]
+        ry[hit], rx[hit] = y[hit], x[hit]
+        todo &= ~hit
+        if not todo.any():
+            return ry, rx
+    idx = distance_transform_edt(~inside, return_indices=True)[1]
+    ry[todo], rx[todo] = idx[0][ys[todo], xs[todo]], idx[1][ys[todo], xs[todo]]
+    return ry, rx
+
+
 def split_coverage(light: np.ndarray, front: np.ndarray, behind: np.ndarray) -> np.ndarray:
     """Coverage of the nearer layer in mixed pixels, from their light (H x W, in [0, 1]).
 
@@ -251,7 +279,12 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     by both backends.  ``lin``: the linear image, or a function that returns the linear image
     of a crop ``(row slice, col slice)`` (so only the crop is linearised).  None when the
     ordering gives one layer there: a single surface is what the gather integrates."""
-    from scipy.ndimage import distance_transform_edt, maximum_filter, minimum_filter
+    from scipy.ndimage import (
+        binary_dilation,
+        distance_transform_edt,
+        maximum_filter,
+        minimum_filter,
+    )
 
     h, w = region.shape
     r = reach(v, anchor)
@@ -281,17 +314,29 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
         core = (labels == k) & ~split
         joined = split & (labels == k)
         if core.any() and joined.any():
-            idx = distance_transform_edt(~core, return_indices=True)[1]
-            v_c[joined] = v_c[idx[0][joined], idx[1][joined]]
-            pure[joined] = lin_c[idx[0][joined], idx[1][joined]]
+            ys, xs = _nearest_pixel(core, joined)
+            v_c[joined] = v_c[ys, xs]
+            pure[joined] = lin_c[ys, xs]
         elif joined.any():
             pure[joined] = np.nan  # no unmixed pixel: the split stays half and half
     fills: dict[int, np.ndarray] = {}
     nearest_at_or_behind: dict[int, tuple] = {}
-    # Samples of region pixels land within R (+ the bilinear footprint) of the region: the
-    # reconstruction is needed only there (plus the inpainting radius, so that what is read
-    # is inpainted from a filled neighbourhood).
-    needed = distance_transform_edt(~region[crop]) <= r + 2.0 + INPAINT_RADIUS + 1
+    # Samples of region pixels land within the reach of a layer's vectors (+ the bilinear
+    # footprint) of the region: the reconstruction of layer k is needed only there (plus the
+    # inpainting radius, so that what is read is inpainted from a filled neighbourhood), and
+    # around the mixed pixels of layer k - 1, which take it as what lies behind them.  The
+    # vectors of layer k all come from pixels at or behind it.
+    from_region = distance_transform_edt(~region[crop])
+    pad = 2.0 + INPAINT_RADIUS + 1
+    reach_at_or_behind = [reach(v_c[labels >= k], anchor) for k in range(last + 1)]
+
+    def needed(k: int) -> np.ndarray:
+        out = from_region <= reach_at_or_behind[k] + pad
+        mixed = split & (labels == k - 1)
+        if mixed.any():
+            out |= (binary_dilation(mixed, iterations=INPAINT_RADIUS + 1)
+                    & (from_region <= reach_at_or_behind[k - 1] + pad))
+        return out
 
     def behind_edt(k: int) -> tuple:
         """Distance to, and index of, the nearest pixel at or behind layer ``k``."""
@@ -302,7 +347,7 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     def fill(k: int) -> np.ndarray:
         """The linear image with everything nearer than layer ``k`` reconstructed."""
         if k not in fills:
-            fills[k] = _inpaint(lin_c, labels >= k, band, behind_edt(k), needed)
+            fills[k] = _inpaint(lin_c, labels >= k, band, behind_edt(k), needed(k))
         return fills[k]
 
     planes, vectors, present = [], [], []
