@@ -328,7 +328,12 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     # vectors of layer k all come from pixels at or behind it.
     from_region = distance_transform_edt(~region[crop])
     pad = 2.0 + INPAINT_RADIUS + 1
-    reach_at_or_behind = [reach(v_c[labels >= k], anchor) for k in range(last + 1)]
+    l2 = v_c[..., 0] * v_c[..., 0] + v_c[..., 1] * v_c[..., 1]
+    # reach() of the vectors at or behind each layer: the largest square, rearmost first
+    longest = np.maximum.accumulate(
+        [float(l2[labels == k].max(initial=0.0)) for k in range(last, -1, -1)])[::-1]
+    reach_at_or_behind = [math.sqrt(x) * (1 + 1e-6) * max(anchor, 1.0 - anchor)
+                          for x in longest]
 
     def needed(k: int) -> np.ndarray:
         out = from_region <= reach_at_or_behind[k] + pad
@@ -375,7 +380,7 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
             if mine.any():
                 behind = (background[crop] if background is not None and k == last - 1
                           else fill(k + 1))
-                cover = np.where(mine, split_coverage(lin_c, pure, behind), 1.0)
+                cover[mine] = split_coverage(lin_c[mine], pure[mine], behind[mine])
         if not ext.any():
             continue
         m = (ext * cover).astype(lin_c.dtype)[..., None]
@@ -383,8 +388,8 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
         if mine.any():
             # premultiplied: what the pixel holds beyond the light behind it, so the
             # composite at the anchor time is the image itself
-            held = (lin_c - (1.0 - cover[..., None]) * behind) * ext[..., None]
-            light = np.where(mine[..., None], held, light)
+            light[mine] = ((lin_c[mine] - (1.0 - cover[mine][:, None]) * behind[mine])
+                           * ext[mine][:, None])
         planes.append(np.concatenate([light, m], axis=2))
         # D_k: the vector of the nearest pixel of the (extended) layer, everywhere.
         dist, nearest = distance_transform_edt(~ext, return_indices=True)
@@ -397,15 +402,19 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
                   region=region[crop], present=np.stack(present))
 
 
-def counts(layers: Layers, samples: int | None) -> np.ndarray:
+def counts(layers: Layers, samples: int | None,
+           at: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Samples per pixel: ``samples``, or ``ceil(max |v|) + 1`` over the pixel's own vector
-    and the vectors ``D_k`` of the layers present there (int32, h x w)."""
-    h, w = layers.region.shape
+    and the vectors ``D_k`` of the layers present there (int32, h x w; with ``at``, (rows,
+    cols) of the crop, only at those pixels, as a flat array)."""
+    shape = layers.region.shape if at is None else at[0].shape
     if samples is not None:
-        return np.full((h, w), samples, np.int32)
-    d = layers.vectors
-    own = sample_counts(layers.flow[..., 0], layers.flow[..., 1])
-    per_layer = np.where(layers.present, sample_counts(d[..., 0], d[..., 1]), 1)
+        return np.full(shape, samples, np.int32)
+    pick = (Ellipsis,) if at is None else (slice(None),) + tuple(at)
+    d = layers.vectors[pick]
+    flow = layers.flow if at is None else layers.flow[at]
+    own = sample_counts(flow[..., 0], flow[..., 1])
+    per_layer = np.where(layers.present[pick], sample_counts(d[..., 0], d[..., 1]), 1)
     return np.maximum(own, per_layer.max(axis=0))
 
 

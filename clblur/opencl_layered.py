@@ -111,7 +111,7 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
     # the linear image padded to the planes' layout (one zero channel): one load per tap
     linear = np.zeros((h, w, cp), np.float32)
     linear[..., :channels] = layers.linear
-    counts = layered.counts(layers, samples)[rows, cols].astype(np.int32)
+    counts = layered.counts(layers, samples, (rows, cols)).astype(np.int32)
     weighted = weights is not None
     wts = weights.astype(np.float32) if weighted else np.zeros(1, np.float32)
     out = np.empty((n, channels), np.float32)
