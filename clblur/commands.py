@@ -77,13 +77,55 @@ def blur_options(args) -> dict:
 
 def cmd_blur(args) -> int:
     from clblur.io import refuse_overwrite
-    from clblur.tiling import blur_file
+    from clblur.tiling import blur_file, open_image
 
-    refuse_overwrite(args.output, args.input, args.flow, args.psf)
-    blur_file(args.input, args.output, motion_from_args(args), **blur_options(args),
-              memory_budget=args.memory_budget, progress=True)
+    refuse_overwrite(args.output, args.input, args.flow, args.psf, args.depth)
+    channels = (tuple(open_image(args.input).shape) + (1,))[2]
+    alpha = args.alpha == "yes" or (args.alpha == "auto" and channels in (2, 4))
+    if args.depth is not None or alpha:
+        _blur_whole(args, alpha)  # layered exposure and alpha need the whole image
+    else:
+        blur_file(args.input, args.output, motion_from_args(args), **blur_options(args),
+                  memory_budget=args.memory_budget, progress=True)
     print(f"wrote {args.output}")
     return 0
+
+
+def read_depth(path: str) -> np.ndarray:
+    """A depth map or layer IDs, H x W, from a ``.npy`` file, or a channel of an EXR file
+    (``FILE.exr`` finds ``Z``/``depth.Z``/``<layer>.Depth.Z``; ``FILE.exr:CHANNEL`` names it)."""
+    head, sep, channel = path.rpartition(":")
+    if sep and head.lower().endswith(".exr"):
+        from clblur.exr import read_depth as read_exr_depth
+
+        return read_exr_depth(head, channel)
+    if path.lower().endswith(".exr"):
+        from clblur.exr import read_depth as read_exr_depth
+
+        return read_exr_depth(path)
+    if not path.lower().endswith(".npy"):
+        raise ValueError(f"--depth must be a .npy file (H x W) or an EXR depth channel "
+                         f"(FILE.exr or FILE.exr:CHANNEL), got {path}")
+    try:
+        return np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"cannot read depth {path}: {e}") from None
+
+
+def _blur_whole(args, alpha: bool) -> None:
+    import clblur
+    from clblur.io import read_flow, read_image, write_image
+
+    motion = motion_from_args(args)
+    if isinstance(motion, str):
+        motion = read_flow(motion)
+    depth = read_depth(args.depth) if args.depth is not None else None
+    image = read_image(args.input)
+    if image.dtype.kind == "f" and not args.output.lower().endswith((".tif", ".tiff", ".exr")):
+        raise ValueError(f"{args.output} cannot hold float images; write .tif or .tiff instead")
+    out = clblur.blur(image, motion, **blur_options(args), depth=depth,
+                      alpha=alpha)
+    write_image(args.output, out)
 
 
 def cmd_info(args) -> int:
@@ -129,6 +171,13 @@ def register(sub) -> None:
     p.add_argument("--vector-shutter", type=float, default=0.5, metavar="FRAMES",
                    help="with --vectors blender|nuke: centred shutter in frames (default 0.5, "
                         "i.e. 180 degrees)")
+    p.add_argument("--depth", default=None, metavar="FILE",
+                   help="occlusion order, H x W .npy or EXR depth (FILE.exr[:CHANNEL]; smaller "
+                        "= nearer; integers: layer IDs): "
+                        "layered exposure, moving objects smear over what is behind them")
+    p.add_argument("--alpha", choices=("auto", "yes", "no"), default="auto",
+                   help="the last channel is coverage, blurred linearly with colour "
+                        "premultiplied in linear light (auto: 2- and 4-channel images)")
     p.set_defaults(func=cmd_blur)
     p = sub.add_parser("info", help="versions and OpenCL devices")
     p.set_defaults(func=cmd_info)

@@ -30,7 +30,8 @@ from clblur.responses import response
 
 __all__ = ["OpenCLStages", "composite", "integrator"]
 
-MAXC = 8  # channels + coverage a work-item holds (kernels/layered.cl)
+MAXC = 16  # channels + coverage a work-item holds in registers (kernels/layered.cl)
+MAXK = 8  # layers a work-item holds (kernels/layered.cl)
 GROUP = 64
 
 
@@ -41,14 +42,15 @@ def _source() -> str:
         return (Path(__file__).resolve().parent.parent / "kernels" / "layered.cl").read_text()
 
 
-def _kernel(rt):
-    """The compositing kernel, built once per runtime (kept in the runtime's caches)."""
-    key = ("layered.cl", "composite_layers")
+def _kernel(rt, channels: int):
+    """The compositing kernel for ``channels`` light channels, built once per runtime and
+    channel count (kept in the runtime's caches)."""
+    key = ("layered.cl", channels, "composite_layers")
     if key not in rt.kernels:
         cl = pyopencl_module()
-        program = cl.Program(rt.context, _source()).build()
-        rt.programs[key[:1]] = program
-        rt.kernels[key] = cl.Kernel(program, key[1])
+        program = cl.Program(rt.context, _source()).build(options=[f"-DCHANNELS={channels}"])
+        rt.programs[key[:2]] = program
+        rt.kernels[key] = cl.Kernel(program, key[2])
     return rt.kernels[key]
 
 
@@ -104,7 +106,12 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
     channels = cp - 1
     if cp > MAXC:
         raise ValueError(f"layered exposure on OpenCL takes at most {MAXC - 1} channels")
-    counts = layered.counts(layers, samples)[rows, cols].astype(np.int32)
+    if k > MAXK:
+        raise ValueError(f"layered exposure on OpenCL takes at most {MAXK} layers")
+    # the linear image padded to the planes' layout (one zero channel): one load per tap
+    linear = np.zeros((h, w, cp), np.float32)
+    linear[..., :channels] = layers.linear
+    counts = layered.counts(layers, samples, (rows, cols)).astype(np.int32)
     weighted = weights is not None
     wts = weights.astype(np.float32) if weighted else np.zeros(1, np.float32)
     out = np.empty((n, channels), np.float32)
@@ -115,16 +122,17 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
         return cl.Buffer(rt.context, mf.READ_ONLY | mf.COPY_HOST_PTR,
                          hostbuf=np.ascontiguousarray(a))
     with rt.lock:
-        kern = _kernel(rt)
+        kern = _kernel(rt, channels)
         out_buf = cl.Buffer(rt.context, mf.WRITE_ONLY, max(out.nbytes, 16))
         pix = np.stack([rows, cols], axis=1).astype(np.int32)
         fh, fw = full_shape
         r0, c0 = layers.origin
         kern(rt.queue, (-(-n // GROUP) * GROUP,), (GROUP,),
              buf(layers.planes.astype(np.float32)), buf(layers.vectors.astype(np.float32)),
-             buf(layers.flow.astype(np.float32)), buf(layers.linear.astype(np.float32)),
-             buf(pix), buf(counts), buf(wts), np.int32(weighted), np.int32(n), np.int32(k),
-             np.int32(channels), np.int32(h), np.int32(w), np.int32(r0), np.int32(c0),
+             buf(layers.flow.astype(np.float32)), buf(linear),
+             buf(layers.present.astype(np.uint8)), buf(pix), buf(counts), buf(wts),
+             np.int32(weighted), np.int32(n), np.int32(k), np.int32(h), np.int32(w),
+             np.int32(r0), np.int32(c0),
              np.int32(fh), np.int32(fw), np.float32(anchor), out_buf)
         cl.enqueue_copy(rt.queue, out, out_buf, is_blocking=True)
     return out
@@ -138,12 +146,15 @@ def integrator(device: str | None = None):
         if ordered is None:
             return None
         v, order = ordered
-        region = layered.boundary_mask(v, plan.anchor)
+        region = layered.region_mask(v, plan.anchor)
         if not region.any():
             return None
-        lin = linear()
-        layers = layered.prepare(lin, v, order, plan.anchor, region,
+        def crop_linear(crop):  # linearise only the crop the layers need
+            return reference.linearise(replace(plan, image=plan.image[crop], background=None))
+        layers = layered.prepare(crop_linear, v, order, plan.anchor, region,
                                  layered.background_linear(plan))
+        if layers is None:
+            return None
         values = composite(layers, plan.anchor, plan.samples, plan.weights, plan.full_shape,
                            device)
         rows, cols = np.nonzero(layers.region)

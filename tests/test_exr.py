@@ -110,3 +110,25 @@ def test_cli_blender_vector_pass_gives_the_clblur_flow_blur(tmp_path, rendered, 
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no Blender vector pass" in err[0]
     assert not (tmp_path / "x.exr").exists()
+
+
+@pytest.mark.skipif("depth" not in __import__("inspect").signature(clblur.blur).parameters,
+                    reason="clblur.blur does not take depth= yet")
+def test_cli_depth_from_an_exr_channel(tmp_path, rendered):
+    """`--depth FILE.exr` reads the Z channel, `FILE.exr:CHANNEL` a named one; with a Blender
+    vector pass the result is clblur.blur with the renderer's flow and depth."""
+    sc, r = rendered
+    prev, nxt = scenes.frame_displacements(sc, 0.5)
+    vp = vectors.to_blender(prev, nxt)
+    src = tmp_path / "frame.exr"
+    exr.write_image(src, r.sharp, extra={"Z": r.depth, "ids": r.ids, **{
+        f"ViewLayer.Vector.{c}": vp[..., i] for i, c in enumerate("XYZW")}})
+    expected = clblur.blur(r.sharp, r.flow, "linear", backend="numpy", depth=r.depth)
+    for depth_arg in (str(src), f"{src}:Z"):
+        out = tmp_path / "out.exr"
+        assert main(["blur", str(src), str(out), "--flow", str(src), "--vectors", "blender",
+                     "--depth", depth_arg, "--response", "linear", "--backend", "numpy"]) == 0
+        np.testing.assert_allclose(read_image(out), expected, atol=1e-5)
+        out.unlink()
+    assert main(["blur", str(src), str(tmp_path / "o.exr"), "--flow", str(src), "--vectors",
+                 "blender", "--depth", f"{src}:nope", "--response", "linear"]) == 2
