@@ -7,8 +7,11 @@ import warnings
 
 import numpy as np
 
-from clblur import reference
+from clblur import pipeline
+from clblur.errors import InputError
 from clblur.plan import BlurPlan, make_plan
+
+__all__ = ["BACKENDS", "blur", "blur_plan", "check_backend", "resolve_backend", "stages"]
 
 BACKENDS = ("auto", "numpy", "opencl")
 _warned_fallback = False
@@ -16,7 +19,8 @@ _warned_fallback = False
 
 def blur(image: np.ndarray, motion, response="exp", *, anchor: str = "center",
          samples: int | None = None, weights=None, backend: str = "auto",
-         saturation: float = 1.0, device: str | None = None) -> np.ndarray:
+         saturation: float = 1.0, device: str | None = None, depth=None,
+         alpha: bool = False, background: np.ndarray | None = None) -> np.ndarray:
     """Photo-consistent motion blur (Lin & Chang 2006, Eq. 8/9).
 
     ``g(p) = I( sum_j w_j I^-1(f(p - v(p) (s_j - a))) )``: linearise with the inverse
@@ -38,20 +42,40 @@ def blur(image: np.ndarray, motion, response="exp", *, anchor: str = "center",
     saturation : exposure given to full-scale pixels, in units of the least exposure that
         saturates (>= 1; see ``clblur.pixels``).
     device : OpenCL device selector (overrides ``CLBLUR_DEVICE``); see ``clblur info``.
+    depth : occlusion ordering, H x W: a float depth (smaller = nearer) or integer layer IDs
+        (smaller = nearer).  With it, a per-pixel flow is integrated as layered exposure
+        (``clblur.layered_exposure``): every shutter sample composites the layers front to
+        back, so moving objects smear over what lies behind them.  ``"speed"``: faster is
+        nearer.  Default None: the gather.
+    background : with ``depth``, what lies behind every layer (a clean plate; the input's shape
+        and dtype).  Without it, what a moving object uncovers is reconstructed from its
+        neighbours (``clblur.layered_exposure``).
+    alpha : the last channel is coverage, not light (straight alpha for integer images,
+        premultiplied for float images; see ``clblur.reference``).  Default False.
 
     Returns the blurred image with the input's dtype and shape.  A ``pyopencl.array.Array``
     image (and flow) stays on its device and the result is one too
     (``clblur.opencl.blur_array``).
+
+    Conventions
+    -----------
+    Motion, anchors and sampling: ``clblur.motion``; pixel values and rounding:
+    ``clblur.pixels``; the pipeline order: ``clblur.pipeline``.
     """
     check_backend(backend)
     if type(image).__module__.startswith("pyopencl"):
         from clblur import opencl
 
+        if depth is not None or alpha or background is not None:
+            raise InputError("depth, alpha and background take numpy arrays, not device arrays")
+
         return opencl.blur_array(image, motion, response, anchor=anchor, samples=samples,
                                  weights=weights, saturation=saturation, device=device)
     chosen = resolve_backend(backend, device)
     plan = make_plan(image, motion, response, anchor=anchor, samples=samples, weights=weights,
-                     saturation=saturation, check_flow=chosen == "numpy")
+                     saturation=saturation, depth=depth, alpha=alpha, background=background,
+                     # the layered path reads the flow on the host, so it is checked there
+                     check_flow=chosen == "numpy" or depth is not None)
     return blur_plan(plan, chosen, device)
 
 
@@ -77,13 +101,25 @@ def resolve_backend(backend: str, device: str | None = None) -> str:
     return "opencl"
 
 
-def blur_plan(plan: BlurPlan, backend: str = "auto", device: str | None = None) -> np.ndarray:
-    """Run a validated plan (whole image or a tiling window) on a backend."""
-    if resolve_backend(backend, device) == "numpy":
-        return reference.blur(plan)
-    from clblur import opencl
+def stages(backend: str, device: str | None = None) -> pipeline.Backend:
+    """The pipeline stages of a resolved backend (``"numpy"`` or ``"opencl"``)."""
+    if backend == "numpy":
+        return pipeline.NUMPY
+    from clblur.opencl_layered import OpenCLStages
 
-    return opencl.blur(plan, device=device)
+    return OpenCLStages(device)
+
+
+def blur_plan(plan: BlurPlan, backend: str = "auto", device: str | None = None) -> np.ndarray:
+    """Run a validated plan (whole image or a tiling window) on a backend, through the one
+    pipeline (``clblur.pipeline.run``); a depth ordering selects the layered integrator."""
+    ran = resolve_backend(backend, device)
+    integrate = None
+    if plan.depth is not None:
+        from clblur.layered_exposure import integrator
+
+        integrate = integrator(ran, device)
+    return pipeline.run(plan, stages(ran, device), integrate)
 
 
 def _warn_fallback(why: str) -> None:

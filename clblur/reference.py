@@ -1,8 +1,17 @@
 """The numpy reference backend: the executable specification of the blur.
 
-Clear float64 code, no cleverness.  Pipeline, per channel:
-linearise (pixels.linearise) -> integrate along the motion (bilinear, clamp to edge) ->
-forward response -> quantise (pixels.quantise).
+Clear float64 code, no cleverness.  The three stages that ``clblur.pipeline`` composes, per
+channel: :func:`linearise` (``pixels.linearise``) -> :func:`integrate` along the motion
+(bilinear, clamp to edge) -> :func:`finish` (forward response, ``pixels.quantise``).
+
+Conventions
+-----------
+* Alpha (``plan.alpha``; the last channel is coverage, not light): coverage is never passed
+  through a response.  Integer images carry straight alpha: colour is linearised, then
+  premultiplied by the coverage ``a = code / Imax``; after integration the colour exposure is
+  divided by the integrated coverage, the response re-applied, and both quantised (colour 0
+  where the coverage is 0).  Float images carry premultiplied alpha: the colour channels are
+  linearised as given and come out premultiplied; coverage is integrated as is.
 """
 
 from __future__ import annotations
@@ -10,8 +19,11 @@ from __future__ import annotations
 import numpy as np
 
 from clblur.motion import PSF, Field, Uniform, sample_counts, uniform_taps
-from clblur.pixels import linearise, normalise, quantise
+from clblur.pixels import linearise as linearise_channel
+from clblur.pixels import normalise, quantise
 from clblur.plan import BlurPlan
+
+__all__ = ["bilinear", "bilinear_at", "linearise", "integrate", "finish", "blur"]
 
 
 def bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray, plan: BlurPlan) -> np.ndarray:
@@ -20,8 +32,15 @@ def bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray, plan: BlurPlan) -> n
     Positions clamp to the full image (clamp-to-edge), then index the window at
     ``origin``; indices are clipped to the window as a guard (a correct halo never needs it).
     """
-    fh, fw = plan.full_shape
-    r0, c0 = plan.origin
+    return bilinear_at(img, x, y, plan.origin, plan.full_shape)
+
+
+def bilinear_at(img: np.ndarray, x: np.ndarray, y: np.ndarray, origin: tuple[int, int],
+                full_shape: tuple[int, int]) -> np.ndarray:
+    """:func:`bilinear` for a window ``img`` at ``origin`` (row, col) of a ``full_shape``
+    (H, W) image: the one bilinear sampler of the numpy backend."""
+    fh, fw = full_shape
+    r0, c0 = origin
     h, w = img.shape[:2]
     x = np.clip(x, 0.0, fw - 1.0)
     y = np.clip(y, 0.0, fh - 1.0)
@@ -77,13 +96,44 @@ def integrate(lin: np.ndarray, plan: BlurPlan) -> np.ndarray:
     raise TypeError(f"unknown motion {m!r}")
 
 
-def blur(plan: BlurPlan) -> np.ndarray:
+def linearise(plan: BlurPlan) -> np.ndarray:
+    """Pixel values -> linear exposures (float64, H x W x C); alpha as in the Conventions."""
     values = normalise(plan.image)
     lin = np.empty_like(values)
-    for c, resp in enumerate(plan.responses):
-        lin[..., c] = linearise(values[..., c], resp, plan.dtype, plan.saturation)
-    acc = integrate(lin, plan)
+    colour = plan.colour_channels
+    for c in range(colour):
+        lin[..., c] = linearise_channel(values[..., c], plan.responses[c], plan.dtype,
+                                        plan.saturation)
+    if plan.alpha:
+        a = values[..., -1]
+        lin[..., -1] = a
+        if plan.dtype.kind == "u":  # straight alpha in the file: premultiply in linear light
+            lin[..., :colour] *= a[..., None]
+    return lin
+
+
+def finish(acc: np.ndarray, plan: BlurPlan) -> np.ndarray:
+    """Linear exposures -> output: forward response, (alpha) un-premultiply, quantise."""
     out = np.empty_like(acc)
-    for c, resp in enumerate(plan.responses):
-        out[..., c] = resp.forward(acc[..., c])
+    colour = plan.colour_channels
+    straight = plan.alpha and plan.dtype.kind == "u"
+    if straight:
+        a = acc[..., -1]
+        seen = a > 0
+        acc = acc.copy()
+        acc[..., :colour] = np.where(seen[..., None], acc[..., :colour]
+                                     / np.where(seen, a, 1.0)[..., None], 0.0)
+    for c in range(colour):
+        out[..., c] = plan.responses[c].forward(acc[..., c])
+    if plan.alpha:
+        out[..., -1] = acc[..., -1]
+        if straight:
+            out[..., :colour] = np.where(seen[..., None], out[..., :colour], 0.0)
     return plan.finish(quantise(out, plan.dtype))
+
+
+def blur(plan: BlurPlan) -> np.ndarray:
+    """The whole numpy pipeline for ``plan`` (``clblur.pipeline.run`` on these stages)."""
+    from clblur.pipeline import run_numpy
+
+    return run_numpy(plan)

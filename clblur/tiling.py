@@ -344,7 +344,7 @@ def blur_file(src: str | os.PathLike, dst: str | os.PathLike, motion, *, respons
             "which are read and written window by window (convert with e.g. "
             "`vips tiffsave IN OUT.tif --tile --bigtiff`)")
     image = open_image(src)
-    if not is_tiff(dst) and np.dtype(image.dtype).kind == "f":
+    if not is_tiff(dst) and dst.suffix.lower() != ".exr" and np.dtype(image.dtype).kind == "f":
         raise InputError(f"{dst.suffix} cannot hold float images; write .tif or .tiff instead")
     options = dict(response=response, anchor=anchor, samples=samples, weights=weights,
                    backend=backend, saturation=saturation, device=device, tile=tile,

@@ -43,10 +43,10 @@ from clblur.io.video import (
     open_sink,
     open_source,
 )
-from clblur.pixels import linearise, normalise, quantise, validate_saturation
-from clblur.plan import check_image
+from clblur.layered_exposure import layered_half
+from clblur.pipeline import run_numpy
+from clblur.plan import check_image, make_plan
 from clblur.responses import per_channel
-from clblur.video_layers import layered_half
 
 # Chosen from docs/studies/video.md (GoPro 240 fps ground truth).
 DEFAULT_RESPONSE = "srgb"
@@ -96,36 +96,47 @@ def half_paths(backward: np.ndarray | None, forward: np.ndarray | None, shutter:
 def blur_frame(frame: np.ndarray, backward: np.ndarray | None, forward: np.ndarray | None,
                response=DEFAULT_RESPONSE, *, shutter: float = DEFAULT_SHUTTER,
                samples: int | None = None, backend: str = "auto", saturation: float = 1.0,
-               device: str | None = None, layers: bool = False) -> np.ndarray:
+               device: str | None = None, layers: bool = False,
+               depth: np.ndarray | None = None) -> np.ndarray:
     """Blur one frame along the bent path given by its backward and forward flows.
 
-    ``layers``: let objects that move faster than their surroundings smear over them
-    (``clblur.video_layers``); without it every pixel gathers along its own vector only.
+    ``layers``: integrate each half as layered exposure (``clblur.layered_exposure``), so
+    moving objects smear over what lies behind them, ordered by ``depth`` (H x W, smaller =
+    nearer) or, without it, by speed (faster = nearer); without ``layers`` every pixel
+    gathers along its own vector only.
     Returns an array with the frame's dtype and shape (see the module Conventions).
     """
-    img = check_image(frame)
-    dtype = img.dtype
-    responses = per_channel(response, img.shape[2])
-    sat = validate_saturation(saturation)
-    first, second = half_paths(backward, forward, shutter, img.shape[:2])
-    values = normalise(img)
-    lin = np.empty(img.shape, np.float32)
-    for c, r in enumerate(responses):
-        lin[..., c] = linearise(values[..., c], r, dtype, sat)
-    # The halves are exposures, not pictures: blur them with the identity response on the
-    # linearised frame, so nothing is quantised before they are summed.
+    first, second = half_paths(backward, forward, shutter, check_image(frame).shape[:2])
+    # The plan carries the frame, responses and saturation; the motion is the bent path the
+    # integrator below closes over (the plan's own motion is not used).
+    plan = make_plan(frame, (0.0, 0.0), response, saturation=saturation)
+    integrate = bent_path(first, second, samples=samples, backend=backend, device=device,
+                          layers=layers, depth=depth)
+    return run_numpy(plan, integrate)
+
+
+def bent_path(first: np.ndarray, second: np.ndarray, *, samples: int | None = None,
+              backend: str = "auto", device: str | None = None, layers: bool = False,
+              depth: np.ndarray | None = None):
+    """Integrator (``clblur.pipeline``) of the bent path: the mean of the two halves' exposures.
+
+    Each half is a straight blur of the linearised frame with the identity response (the
+    halves are exposures, not pictures, so nothing is quantised before they are summed);
+    ``layers`` integrates each half as layered exposure (``clblur.layered_exposure``) ordered
+    by ``depth``, or by speed when ``depth`` is None.
+    """
     opts = dict(samples=samples, backend=backend, device=device)
-    if layers:
-        e_first = layered_half(lin, first, "end", **opts)
-        e_second = layered_half(lin, second, "start", **opts)
-    else:
-        e_first = blur(lin, first, "linear", anchor="end", **opts)
-        e_second = blur(lin, second, "linear", anchor="start", **opts)
-    exposure = 0.5 * (e_first.astype(np.float64) + e_second)
-    out = np.empty(exposure.shape, np.float64)
-    for c, r in enumerate(responses):
-        out[..., c] = r.forward(exposure[..., c])
-    return quantise(out, dtype).reshape(frame.shape)
+
+    def integrate(lin: np.ndarray, plan) -> np.ndarray:
+        lin32 = lin.astype(np.float32)
+        if layers:
+            e_first = layered_half(lin32, first, "end", depth=depth, **opts)
+            e_second = layered_half(lin32, second, "start", depth=depth, **opts)
+        else:
+            e_first = blur(lin32, first, "linear", anchor="end", **opts)
+            e_second = blur(lin32, second, "linear", anchor="start", **opts)
+        return 0.5 * (e_first.astype(np.float64) + e_second)
+    return integrate
 
 
 @dataclass

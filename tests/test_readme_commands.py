@@ -59,6 +59,18 @@ def make_inputs(root: Path) -> Path:
     write_image(work / "photo.png", img)
     write_image(work / "huge.tif", img)
     write_flow(work / "huge_flow.npy", rng.normal(0, 3, (24, 32, 2)))
+    try:  # the EXR / render-pass commands
+        from clblur import exr
+    except ImportError:
+        exr = None
+    if exr is not None:
+        lin = (img / 255.0).astype(np.float32)
+        exr.write_image(work / "beauty.exr", lin)
+        exr.write_image(work / "plate.exr", lin)
+        v = rng.normal(0, 2, (24, 32)).astype(np.float32)
+        exr.write_channels(work / "vectors.exr", {f"Vector.{c}": v for c in "XYZW"})
+        exr.write_channels(work / "motion.exr", {f"{layer}.{c}": v for layer in
+                                                 ("forward", "backward") for c in "uv"})
     (work / "photos").mkdir()
     for i in range(2):
         write_image(work / "photos" / f"p{i}.png", img[:, i:])

@@ -494,32 +494,6 @@ def test_float_tiff_sequence_round_trip(tmp_path):
 
 # --------------------------------------------------------------------------- --layers
 
-def test_dilate_vectors_matches_brute_force(rng):
-    from clblur.video_layers import dilate_vectors
-
-    for _ in range(12):
-        h, w = (int(n) for n in rng.integers(3, 25, 2))
-        r = int(rng.integers(0, 30))
-        v = (rng.normal(size=(h, w, 2)) * 5).astype(np.float32)
-        mask = rng.random((h, w)) < 0.1
-        got = np.hypot(*dilate_vectors(v, mask, r).transpose(2, 0, 1))
-        length = np.where(mask, np.hypot(v[..., 0], v[..., 1]), 0.0)
-        expected = np.array([[length[max(0, y - r): y + r + 1, max(0, x - r): x + r + 1].max()
-                              for x in range(w)] for y in range(h)])
-        np.testing.assert_allclose(got, expected, rtol=1e-6)
-
-
-def test_moving_mask_ignores_a_pan_and_finds_an_object():
-    from clblur.video_layers import moving_mask
-
-    pan = uniform_flow(7, -2)
-    assert not moving_mask(pan, 8).any()
-    obj = pan.copy()
-    obj[10:20, 20:30] = (19, -2)
-    mask = moving_mask(obj, 12)
-    assert mask[10:20, 20:30].all() and mask.sum() == 100
-
-
 def ball_over_stripes(x, h=48, w=96, y=24.0):
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
     ball = np.hypot(xx - x, yy - y) < 6

@@ -82,6 +82,10 @@ def motion_from_args(args: argparse.Namespace) -> object:
     if args.motion is not None:
         return parse_vector(args.motion)
     if args.flow is not None:
+        if getattr(args, "vectors", "clblur") != "clblur":  # a renderer's vector pass
+            from clblur.vectors import load_flow
+
+            return load_flow(args.flow, args.vectors, args.vector_shutter)
         return args.flow
     return read_psf(args.psf)
 
@@ -119,4 +123,3 @@ def blur_options(args: argparse.Namespace) -> dict:
     """The library keyword arguments of the shared blur options."""
     return dict(response=args.response, anchor=args.anchor, samples=args.samples,
                 backend=args.backend, saturation=args.saturation, device=args.device)
-

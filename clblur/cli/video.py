@@ -47,9 +47,9 @@ def register(subparsers) -> None:
     p.add_argument("--crf", type=int, default=DEFAULT_CRF,
                    help=f"encoder quality, lower is better (default {DEFAULT_CRF})")
     p.add_argument("--layers", action="store_true",
-                   help="let objects moving faster than their surroundings smear over them "
-                        "(two-layer exposure; slower); default: gather along each pixel's "
-                        "own vector")
+                   help="layered exposure ordered by speed (faster = nearer): moving objects "
+                        "smear over what is behind them (slower); default: gather along each "
+                        "pixel's own vector")
     p.add_argument("--save-flows", default=None, metavar="DIR",
                    help="also write the flows used, in the --flow DIR layout")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -17,7 +17,7 @@ module               holds
 """
 
 from clblur.io.atomic import atomic_write, atomic_write_text, tmp_beside
-from clblur.io.flows import FLO_MAGIC, open_flow, read_flow, read_psf, write_flow
+from clblur.io.flows import FLO_MAGIC, open_flow, read_depth, read_flow, read_psf, write_flow
 from clblur.io.images import (
     IMAGE_FORMATS,
     check_decodable,
@@ -32,5 +32,5 @@ from clblur.io.raster import MappedRaster, as_array_like, create_tiff, is_tiff, 
 __all__ = ["FLO_MAGIC", "IMAGE_FORMATS", "MappedRaster", "as_array_like", "atomic_write",
            "atomic_write_text", "check_decodable", "check_output", "create_tiff",
            "image_format", "is_tiff", "open_flow", "open_image", "probe_image", "read_flow",
-           "read_image", "read_psf", "refuse_overwrite", "resolve_inside", "tmp_beside",
-           "write_flow", "write_image"]
+           "read_depth", "read_image", "read_psf", "refuse_overwrite", "resolve_inside",
+           "tmp_beside", "write_flow", "write_image"]

@@ -21,7 +21,8 @@ from clblur.io.atomic import atomic_write
 from clblur.io.images import read_image
 from clblur.io.raster import MappedRaster
 
-__all__ = ["FLO_MAGIC", "MAX_PSF_SIDE", "open_flow", "read_flow", "read_psf", "write_flow"]
+__all__ = ["FLO_MAGIC", "MAX_PSF_SIDE", "open_flow", "read_depth", "read_flow", "read_psf",
+           "write_flow"]
 
 FLO_MAGIC = 202021.25  # Middlebury .flo tag
 MAX_PSF_SIDE = 4096
@@ -47,10 +48,15 @@ def _check_flow_shape(shape: tuple[int, ...], path: Path) -> None:
 
 
 def read_flow(path: str | os.PathLike) -> np.ndarray:
-    """Read a flow field (.npy H x W x 2, or Middlebury .flo) whole, as float32."""
+    """Read a flow field (.npy H x W x 2, Middlebury .flo, or EXR flow.x/flow.y) whole, as
+    float32."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"flow file not found: {path}")
+    if path.suffix.lower() == ".exr":
+        from clblur import exr
+
+        return exr.read_flow(path)
     if path.suffix.lower() == ".flo":
         size = path.stat().st_size
         with path.open("rb") as f:
@@ -80,8 +86,13 @@ def open_flow(path: str | os.PathLike):
 
 
 def write_flow(path: str | os.PathLike, flow: np.ndarray) -> None:
-    """Write a flow field as .flo or .npy (by suffix), atomically."""
+    """Write a flow field as .flo, .exr or .npy (by suffix), atomically."""
     path = Path(path)
+    if path.suffix.lower() == ".exr":
+        from clblur import exr
+
+        exr.write_flow(path, flow)
+        return
     flow = np.asarray(flow, dtype=np.float32)
     if path.suffix.lower() == ".flo":
         h, w = flow.shape[:2]
@@ -117,3 +128,28 @@ def read_psf(path: str | os.PathLike) -> np.ndarray:
     if not np.isfinite(k).all() or (k < 0).any() or k.sum() <= 0:
         raise InputError(f"PSF {path} must be finite, non-negative and not all zero")
     return k
+
+
+def read_depth(path: str | os.PathLike) -> np.ndarray:
+    """A depth map or layer IDs, H x W, from a ``.npy`` file or a channel of an EXR file.
+
+    ``FILE.exr`` finds ``Z`` / ``depth.Z`` / ``<layer>.Depth.Z``; ``FILE.exr:CHANNEL`` names
+    the channel.  Smaller is nearer (see ``clblur.blur``'s ``depth``).
+    """
+    path = os.fspath(path)
+    head, sep, channel = path.rpartition(":")
+    if sep and head.lower().endswith(".exr"):
+        from clblur.exr import read_depth as read_exr_depth
+
+        return read_exr_depth(head, channel)
+    if path.lower().endswith(".exr"):
+        from clblur.exr import read_depth as read_exr_depth
+
+        return read_exr_depth(path)
+    if not path.lower().endswith(".npy"):
+        raise InputError(f"depth must be a .npy file (H x W) or an EXR depth channel "
+                         f"(FILE.exr or FILE.exr:CHANNEL), got {path}")
+    try:
+        return np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as e:
+        raise InputError(f"cannot read depth {path}: {e}") from None

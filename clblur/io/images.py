@@ -29,7 +29,7 @@ __all__ = ["IMAGE_FORMATS", "MAX_DECODE_PIXELS", "ImageHeader", "image_format",
 
 # extension -> format name; read_image/write_image dispatch on the name
 IMAGE_FORMATS = {".png": "png", ".tif": "tiff", ".tiff": "tiff", ".jpg": "jpeg",
-                 ".jpeg": "jpeg", ".bmp": "bmp", ".webp": "webp"}
+                 ".jpeg": "jpeg", ".bmp": "bmp", ".webp": "webp", ".exr": "exr"}
 # OpenCV's own decode limit (CV_IO_MAX_IMAGE_PIXELS); larger images belong in tiled TIFFs
 MAX_DECODE_PIXELS = 2**30
 TILED_TIFF_HINT = ("convert it to a tiled TIFF, which is read window by window (e.g. "
@@ -122,6 +122,10 @@ def probe_image(path: str | os.PathLike) -> ImageHeader:
         elif fmt == "jpeg":
             with path.open("rb") as f:
                 header = _jpeg_header(f)
+        elif fmt == "exr":
+            from clblur.exr import probe
+
+            header = ImageHeader(*probe(path))
         else:
             from PIL import Image
 
@@ -180,6 +184,10 @@ def read_image(path: str | os.PathLike, max_bytes: int | None = None) -> np.ndar
     if not path.is_file():
         raise InputError(f"image file not found: {path}")
     check_decodable(path, max_bytes)
+    if image_format(path) == "exr":  # linear float channels: clblur.exr
+        from clblur import exr
+
+        return exr.read_image(path)
     if image_format(path) == "tiff":
         import tifffile
 
@@ -236,6 +244,11 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
     """Write an image atomically; the format follows the extension (``image_format``)."""
     path = Path(path)
     fmt = image_format(path)
+    if fmt == "exr":
+        from clblur import exr
+
+        exr.write_image(path, image)
+        return
     if fmt == "tiff":
         import tifffile
 
@@ -246,7 +259,8 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
     import cv2
 
     if image.dtype.kind == "f":
-        raise InputError(f"{path.suffix} cannot hold float images; write .tif or .tiff instead")
+        raise InputError(f"{path.suffix} cannot hold float images; write .tif, .tiff or .exr "
+                         "instead")
     bgr = image
     if image.ndim == 3 and image.shape[2] in (3, 4):
         bgr = cv2.cvtColor(image, cv2.COLOR_RGBA2BGRA if image.shape[2] == 4

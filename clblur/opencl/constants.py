@@ -23,10 +23,12 @@ import numpy as np
 from clblur.motion import FLOW_LIMIT
 from clblur.responses import KIND_CODES
 
-__all__ = ["GROUP", "IN_F32", "IN_KINDS", "IN_U8", "IN_U16", "LANES", "OUT_F32", "OUT_KINDS",
-           "OUT_U8", "OUT_U16", "QHEAD", "RESP_STRIDE", "build_defines"]
+__all__ = ["GROUP", "IN_F32", "IN_KINDS", "IN_U8", "IN_U16", "LANES", "LAYERED_MAXK", "OUT_F32",
+           "OUT_KINDS", "OUT_U8", "OUT_U16", "QHEAD", "RESP_STRIDE", "build_defines"]
 
 LANES = 8
+# layers one work-item of the layered compositor (layered.cl) holds in registers
+LAYERED_MAXK = 8
 GROUP = 4
 RESP_STRIDE = 4
 QHEAD = 5
@@ -43,6 +45,7 @@ OUT_KINDS = {np.dtype(np.uint8): OUT_U8, np.dtype(np.uint16): OUT_U16,
 def build_defines() -> tuple[str, ...]:
     """``-DNAME=value`` options for every shared constant (sorted: a stable cache key)."""
     values = {"LANES": LANES, "GROUP": GROUP, "RESP_STRIDE": RESP_STRIDE, "QHEAD": QHEAD,
+              "MAXK": LAYERED_MAXK,
               "IN_U8": IN_U8, "IN_U16": IN_U16, "IN_F32": IN_F32,
               "OUT_U8": OUT_U8, "OUT_U16": OUT_U16, "OUT_F32": OUT_F32}
     values.update({f"KIND_{name.upper()}": code for name, code in KIND_CODES.items()})

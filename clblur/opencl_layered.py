@@ -1,0 +1,156 @@
+"""OpenCL pipeline stages and the layered-exposure integrator on the device.
+
+Conventions
+-----------
+* ``OpenCLStages`` is the OpenCL backend seen through ``clblur.pipeline``: ``fused(plan)`` is
+  the existing backend's one-call blur (gather + response + quantisation in one kernel);
+  ``linearise``/``finish`` run on the host in float64 (``clblur.reference``), and
+  ``integrate`` is the device gather of a float32 linear image (the existing kernels with the
+  identity response).  The staged path serves plans the fused kernel cannot (alpha).
+* The layered integrator is *sparse*: outside the pixels that ``boundary_mask`` flags, the
+  result is the plain gather of the backend, bit for bit (the fused output); at flagged pixels
+  the layers are built on the host (``clblur.layered_exposure.prepare``, shared with the
+  numpy reference), composited in float32 by ``clblur/opencl/layered.cl``, and finished on the host.
+  Tolerance against the numpy reference: ``docs/tolerances.md`` ("Layered exposure").
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from importlib import resources
+
+import numpy as np
+
+from clblur import layered_exposure as layered
+from clblur import reference
+from clblur.opencl.constants import LAYERED_MAXK, build_defines
+from clblur.opencl.device import pyopencl_module
+from clblur.opencl.program import Program
+from clblur.plan import BlurPlan
+from clblur.responses import response
+
+__all__ = ["OpenCLStages", "composite", "integrator"]
+
+MAXC = 16  # channels + coverage a work-item holds in registers (layered.cl)
+GROUP = 64
+
+
+def _program(rt, channels: int) -> Program:
+    """The compositing program for ``channels`` light channels, built once per runtime and
+    channel count (kept in the runtime's program cache, keyed by its build options)."""
+    options = (*build_defines(), f"-DCHANNELS={channels}")
+    key = ("layered.cl", *options)
+    if key not in rt.programs:
+        source = resources.files("clblur.opencl").joinpath("layered.cl").read_text()
+        rt.programs[key] = Program(rt.context, source, options)
+    return rt.programs[key]
+
+
+class OpenCLStages:
+    """The OpenCL backend's pipeline stages (module Conventions)."""
+
+    name = "opencl"
+
+    def __init__(self, device: str | None = None):
+        self.device = device
+
+    @staticmethod
+    def can_fuse(plan: BlurPlan) -> bool:
+        return not plan.alpha
+
+    def fused(self, plan: BlurPlan) -> np.ndarray:
+        from clblur import opencl
+
+        return opencl.blur(plan, device=self.device)
+
+    @staticmethod
+    def linearise(plan: BlurPlan) -> np.ndarray:
+        return reference.linearise(plan)
+
+    def integrate(self, linear: np.ndarray, plan: BlurPlan) -> np.ndarray:
+        """The plain gather of a linear image on the device (float32), as float64."""
+        from clblur import opencl
+
+        c = linear.shape[2]
+        lin_plan = replace(plan, image=np.ascontiguousarray(linear, np.float32), squeeze=False,
+                           responses=(response("linear"),) * c, saturation=1.0, alpha=False,
+                           depth=None, background=None)
+        return opencl.blur(lin_plan, device=self.device).astype(np.float64)
+
+    @staticmethod
+    def finish(linear: np.ndarray, plan: BlurPlan) -> np.ndarray:
+        return reference.finish(linear, plan)
+
+
+def composite(layers: layered.Layers, anchor: float, samples: int | None,
+              weights: np.ndarray | None, full_shape: tuple[int, int],
+              device: str | None = None) -> np.ndarray:
+    """:func:`clblur.layered_exposure.composite` on the device, for ``layers.region`` only.
+
+    Returns the exposures of the region's pixels (n x C float32, row-major order of the
+    region)."""
+    from clblur.opencl import runtime
+
+    cl = pyopencl_module()
+    rows, cols = np.nonzero(layers.region)
+    n = rows.size
+    k, h, w, cp = layers.planes.shape
+    channels = cp - 1
+    if cp > MAXC:
+        raise ValueError(f"layered exposure on OpenCL takes at most {MAXC - 1} channels")
+    if k > LAYERED_MAXK:
+        raise ValueError(f"layered exposure on OpenCL takes at most {LAYERED_MAXK} layers")
+    # the linear image padded to the planes' layout (one zero channel): one load per tap
+    linear = np.zeros((h, w, cp), np.float32)
+    linear[..., :channels] = layers.linear
+    counts = layered.counts(layers, samples, (rows, cols)).astype(np.int32)
+    weighted = weights is not None
+    wts = weights.astype(np.float32) if weighted else np.zeros(1, np.float32)
+    out = np.empty((n, channels), np.float32)
+    rt = runtime(device)
+    mf = cl.mem_flags
+
+    def buf(a):
+        return cl.Buffer(rt.context, mf.READ_ONLY | mf.COPY_HOST_PTR,
+                         hostbuf=np.ascontiguousarray(a))
+    with rt.lock:
+        program = _program(rt, channels)
+        out_buf = cl.Buffer(rt.context, mf.WRITE_ONLY, max(out.nbytes, 16))
+        pix = np.stack([rows, cols], axis=1).astype(np.int32)
+        fh, fw = full_shape
+        r0, c0 = layers.origin
+        program.run("composite_layers", rt.queue, (-(-n // GROUP) * GROUP,), (GROUP,),
+                    planes=buf(layers.planes.astype(np.float32)),
+                    vectors=buf(layers.vectors.astype(np.float32)),
+                    flow=buf(layers.flow.astype(np.float32)), linear=buf(linear),
+                    present=buf(layers.present.astype(np.uint8)), pix=buf(pix),
+                    counts=buf(counts), weights=buf(wts), weighted=weighted, n=n, layers=k,
+                    h=h, w=w, r0=r0, c0=c0, fh=fh, fw=fw, anchor=anchor, out=out_buf)
+        cl.enqueue_copy(rt.queue, out, out_buf, is_blocking=True)
+    return out
+
+
+def integrator(device: str | None = None):
+    """The sparse layered integrator on the device (``clblur.pipeline`` Conventions)."""
+
+    def integrate(linear, plan: BlurPlan):
+        ordered = layered.plan_order(plan)
+        if ordered is None:
+            return None
+        v, order = ordered
+        region = layered.region_mask(v, plan.anchor)
+        if not region.any():
+            return None
+        def crop_linear(crop):  # linearise only the crop the layers need
+            return reference.linearise(replace(plan, image=plan.image[crop], background=None))
+        layers = layered.prepare(crop_linear, v, order, plan.anchor, region,
+                                 layered.background_linear(plan))
+        if layers is None:
+            return None
+        values = composite(layers, plan.anchor, plan.samples, plan.weights, plan.full_shape,
+                           device)
+        rows, cols = np.nonzero(layers.region)
+        r0, c0 = layers.origin
+        return rows + r0, cols + c0, values.astype(np.float64)
+    integrate.sparse = True
+    return integrate

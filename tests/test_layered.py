@@ -1,0 +1,286 @@
+"""Layered exposure (``clblur.layered_exposure``), the pipeline entry and alpha.
+
+Scenes with an exact sub-frame exposure come from ``tests/layered_scenes.py``; the bench
+(``bench/bench_occlusion.py``) scores every scene at K = 64, these tests at K = 32.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import clblur
+from clblur import layered_exposure as layered
+from clblur import pipeline, reference
+from clblur.plan import make_plan
+from clblur.responses import response
+
+sys.path.insert(0, str(Path(__file__).parent))
+from layered_scenes import Disc, Scene, psnr, scenes  # noqa: E402
+
+SRGB = response("srgb")
+
+
+def scored(name: str, k: int = 32):
+    sc = scenes()[name]
+    frame = SRGB.forward(sc.render(sc.anchor))
+    truth = SRGB.forward(sc.truth(k))
+    flow, depth = sc.maps()
+    return sc, frame, truth, flow, depth, sc.swept()
+
+
+@pytest.fixture(scope="module")
+def disc():
+    return scored("disc")
+
+
+@pytest.fixture(scope="module")
+def crossing():
+    return scored("crossing-faster-behind")
+
+
+# --------------------------------------------------------------------- accuracy vs truth
+
+def test_disc_smears_over_the_background(disc):
+    sc, frame, truth, flow, depth, swept = disc
+    gather = clblur.blur(frame, flow, "srgb", backend="numpy")
+    layers = clblur.blur(frame, flow, "srgb", backend="numpy", depth=depth)
+    plate = clblur.blur(frame, flow, "srgb", backend="numpy", depth=depth,
+                        background=SRGB.forward(sc.background()))
+    # measured (K = 32): gather 30.9, depth 42.4, depth + clean plate 51.2 dB
+    assert psnr(gather, truth, swept) < 32
+    assert psnr(layers, truth, swept) > 41.5
+    assert psnr(plate, truth, swept) > 50
+
+
+def test_crossing_with_the_faster_object_behind(crossing):
+    """Depth decides who is in front; speed ordering gets this scene wrong."""
+    sc, frame, truth, flow, depth, swept = crossing
+    by_depth = clblur.blur(frame, flow, "srgb", backend="numpy", depth=depth)
+    by_speed = clblur.blur(frame, flow, "srgb", backend="numpy", depth="speed")
+    plate = clblur.blur(frame, flow, "srgb", backend="numpy", depth=depth,
+                        background=SRGB.forward(sc.background()))
+    gather = clblur.blur(frame, flow, "srgb", backend="numpy")
+    # measured (K = 32): gather 29.7, speed 32.6, depth 37.7, depth + plate 46.1 dB
+    assert psnr(by_depth, truth, swept) > psnr(by_speed, truth, swept) + 3
+    assert psnr(by_depth, truth, swept) > psnr(gather, truth, swept) + 6
+    assert psnr(plate, truth, swept) > 45.5
+
+
+def test_layer_ids_order_like_depth(crossing):
+    sc, frame, truth, flow, depth, swept = crossing
+    ids = np.where(depth < 10, 0, np.where(depth < 50, 1, 2)).astype(np.int32)
+    np.testing.assert_array_equal(
+        clblur.blur(frame, flow, "srgb", backend="numpy", depth=ids),
+        clblur.blur(frame, flow, "srgb", backend="numpy", depth=depth))
+
+
+# ------------------------------------------------------- the gather where nothing occludes
+
+def test_no_relative_motion_is_the_gather_bit_for_bit(rng):
+    img = rng.integers(0, 256, (40, 52, 3), dtype=np.uint8)
+    depth = rng.random((40, 52))
+    flow = np.zeros((40, 52, 2), np.float32) + (6.5, -2.0)
+    for motion in ((6.5, -2.0), flow):
+        np.testing.assert_array_equal(
+            clblur.blur(img, motion, "exp", backend="numpy", depth=depth),
+            clblur.blur(img, motion, "exp", backend="numpy"))
+
+
+def test_far_from_motion_boundaries_is_the_gather_bit_for_bit(disc):
+    sc, frame, truth, flow, depth, swept = disc
+    big = np.zeros((96, 160, 2), np.float32)
+    big[:64, :96] = flow
+    img = np.pad(frame, ((0, 32), (0, 64), (0, 0)), mode="reflect")
+    dep = np.pad(depth, ((0, 32), (0, 64)), mode="edge")
+    region = layered.boundary_mask(big, 0.5)
+    assert region.any() and not region[:, -48:].any()
+    got = clblur.blur(img, big, "srgb", backend="numpy", depth=dep)
+    plain = clblur.blur(img, big, "srgb", backend="numpy")
+    np.testing.assert_array_equal(got[~region], plain[~region])
+    assert np.abs(got[region] - plain[region]).max() > 0.1
+
+
+def test_boundary_mask_flags_only_tiles_near_relative_motion():
+    v = np.zeros((80, 128, 2), np.float32) + (3.0, 1.0)
+    assert not layered.boundary_mask(v, 0.5).any()
+    v[30:40, 50:60] = (12.0, 1.0)  # reach 6 px: neighbour radius ceil(8 / 16) = 1 tile
+    mask = layered.boundary_mask(v, 0.5)
+    rows, cols = np.nonzero(mask)
+    assert (rows.min(), rows.max(), cols.min(), cols.max()) == (0, 63, 32, 79)
+
+
+def test_split_coverage_fits_the_mixed_light(rng):
+    front, behind = rng.uniform(0.05, 0.9, (2, 50, 3))
+    a = rng.uniform(0, 1, 50)
+    mixed = a[:, None] * front + (1 - a[:, None]) * behind
+    got = layered.split_coverage(mixed, front, behind)
+    contrast = np.sum((front - behind) ** 2, axis=1)
+    # exact up to the pull of the prior towards 1/2, which fades with the contrast
+    bound = layered.SPLIT_PRIOR * np.abs(0.5 - a) / (contrast + layered.SPLIT_PRIOR)
+    assert np.all(np.abs(got - a) <= bound + 1e-12)
+    # no contrast, or no unmixed pixel to compare with: half and half
+    assert layered.split_coverage(mixed, behind, behind).tolist() == [0.5] * 50
+    front[:3] = np.nan
+    assert layered.split_coverage(mixed, front, behind)[:3].tolist() == [0.5] * 3
+    # light outside the segment from B to F clips to a coverage in [0, 1]
+    assert layered.split_coverage(2 * front - behind, front, behind)[3:].min() == 1.0
+
+
+def test_layer_labels():
+    assert layered.layer_labels(np.array([[3, 1], [1, 7]])).tolist() == [[1, 0], [0, 2]]
+    d = np.array([1.0, 1.01, 1.02, 5.0, 5.02, 9.0])
+    assert layered.layer_labels(d).tolist() == [0, 0, 0, 1, 1, 2]
+    smooth = np.linspace(0.0, 1.0, 100)  # gaps of 1 % of the range: one surface
+    assert layered.layer_labels(smooth).max() == 0
+    assert layered.layer_labels(np.arange(10.0)).max() == layered.MAX_LAYERS - 1
+    assert layered.layer_labels(np.arange(10)).max() == layered.MAX_LAYERS - 1
+
+
+def test_bad_depth_is_refused():
+    img = np.zeros((8, 9, 3), np.uint8)
+    flow = np.zeros((8, 9, 2), np.float32)
+    with pytest.raises(ValueError, match="depth has shape"):
+        clblur.blur(img, flow, depth=np.zeros((9, 8)))
+    with pytest.raises(ValueError, match="NaN"):
+        clblur.blur(img, flow, depth=np.full((8, 9), np.nan))
+    with pytest.raises(TypeError, match="depth must be"):
+        clblur.blur(img, flow, depth="far")
+    with pytest.raises(ValueError, match="background"):
+        clblur.blur(img, flow, background=img)
+    with pytest.raises(ValueError, match="whole image"):
+        plan = make_plan(img, flow, depth=np.zeros((8, 9)), region=(0, 0, 10, 10))
+        pipeline.run_numpy(plan, layered.integrate)
+
+
+def test_video_layers_use_the_layered_integrator():
+    from clblur.video import blur_frame
+
+    sc = Scene((40, 64), (Disc((30.0, 20.0), 8.0, (12.0, 0.0), 5.0, 1),))
+    frame = np.rint(SRGB.forward(sc.render(0.5)) * 255).astype(np.uint8)
+    flow, _ = sc.maps()
+    half = flow / 2
+    got = blur_frame(frame, -flow, flow, "srgb", shutter=360, layers=True, backend="numpy")
+    lin = reference.linearise(make_plan(frame, (0, 0), "srgb")).astype(np.float32)
+    e = 0.5 * (layered.layered_half(lin, half, "end", backend="numpy").astype(np.float64)
+               + layered.layered_half(lin, half, "start", backend="numpy"))
+    expected = np.rint(np.clip(SRGB.forward(e), 0, 1) * 255).astype(np.uint8)
+    np.testing.assert_array_equal(got, expected)
+
+
+# ----------------------------------------------------------------------------- pipeline
+
+def test_reference_blur_is_the_pipeline(rng):
+    img = rng.integers(0, 65536, (20, 30, 2), dtype=np.uint16)
+    flow = (rng.normal(size=(20, 30, 2)) * 4).astype(np.float32)
+    plan = make_plan(img, flow, "gamma:2.2", anchor="start")
+    by_hand = reference.finish(reference.integrate(reference.linearise(plan), plan), plan)
+    np.testing.assert_array_equal(reference.blur(plan), by_hand)
+    np.testing.assert_array_equal(pipeline.run(plan), by_hand)
+
+
+# -------------------------------------------------------------------------------- alpha
+
+def opaque_square(dtype):
+    img = np.zeros((24, 40, 4), np.float64)
+    img[8:16, 10:18, :3] = (0.8, 0.45, 0.15)
+    img[8:16, 10:18, 3] = 1.0
+    if dtype == np.uint8:
+        return np.rint(img * 255).astype(np.uint8)
+    return img.astype(dtype)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.float32])
+def test_alpha_is_coverage_blurred_linearly(dtype):
+    img = opaque_square(dtype)
+    full = 255.0 if dtype == np.uint8 else 1.0
+    out = clblur.blur(img, (8, 0), "srgb", alpha=True, backend="numpy")
+    a = img[..., 3] / full
+    a_blur = clblur.blur(a, (8, 0), "linear", backend="numpy")
+    lin = SRGB.inverse(img[..., :3] / full)
+    if dtype == np.uint8:  # straight alpha: premultiply in linear light, un-premultiply after
+        c_blur = clblur.blur(lin * a[..., None], (8, 0), "linear", backend="numpy")
+        colour = np.where(a_blur[..., None] > 0,
+                          SRGB.forward(c_blur / np.maximum(a_blur, 1e-300)[..., None]), 0)
+        np.testing.assert_array_equal(out[..., 3], np.rint(a_blur * 255))
+        np.testing.assert_array_equal(out[..., :3], np.rint(colour * 255))
+        assert (out[12, 6:22, 0] == img[12, 12, 0]).all()  # the colour keeps its value
+    else:  # premultiplied in, premultiplied out
+        colour = SRGB.forward(clblur.blur(lin, (8, 0), "linear", backend="numpy"))
+        np.testing.assert_allclose(out[..., 3], a_blur, atol=1e-6)
+        np.testing.assert_allclose(out[..., :3], colour, atol=1e-6)
+    assert 0 < out[12, 6, 3] < out[12, 12, 3]  # a linear ramp, no response applied
+
+
+# ------------------------------------------------------------------ OpenCL cross-checks
+
+def agree(a: np.ndarray, b: np.ndarray) -> None:
+    """The layered-path tolerance of docs/tolerances.md."""
+    if a.dtype.kind == "u":
+        d = np.abs(a.astype(np.int64) - b)
+        assert d.max() <= 1 and (d > 0).mean() <= 0.02
+    else:
+        np.testing.assert_allclose(b, a, atol=2e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32])
+def test_opencl_layered_matches_the_reference(opencl, crossing, dtype):
+    sc, frame, truth, flow, depth, swept = crossing
+    img = frame.astype(dtype) if dtype == np.float32 else \
+        np.rint(frame * np.iinfo(dtype).max).astype(dtype)
+    for opts in (dict(), dict(anchor="start", samples=9),
+                 dict(background=img[::-1].copy(), weights=[1, 2, 3, 2, 1])):
+        ref = clblur.blur(img, flow, "srgb", backend="numpy", depth=depth, **opts)
+        got = clblur.blur(img, flow, "srgb", backend="opencl", depth=depth, **opts)
+        agree(ref, got)
+        plain = clblur.blur(img, flow, "srgb", backend="opencl",
+                            **{k: v for k, v in opts.items() if k != "background"})
+        region = layered.boundary_mask(flow, 0.0 if opts.get("anchor") == "start" else 0.5)
+        np.testing.assert_array_equal(got[~region], plain[~region])
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.float32])
+def test_opencl_alpha_matches_the_reference(opencl, dtype):
+    img = opaque_square(dtype)
+    ref = clblur.blur(img, (8, 3), "srgb", alpha=True, backend="numpy")
+    got = clblur.blur(img, (8, 3), "srgb", alpha=True, backend="opencl")
+    agree(ref, got)
+    flow = np.zeros((24, 40, 2), np.float32)
+    flow[6:18, 8:20] = (9, 0)
+    depth = np.where(flow[..., 0] > 0, 1.0, 2.0)
+    agree(clblur.blur(img, flow, "srgb", alpha=True, depth=depth, backend="numpy"),
+          clblur.blur(img, flow, "srgb", alpha=True, depth=depth, backend="opencl"))
+
+
+# --------------------------------------------------------------------------- command line
+
+def test_command_line_depth_and_alpha(tmp_path, capsys):
+    from clblur.cli import main
+    from clblur.io import read_image, write_image
+
+    sc = scenes()["disc"]
+    img = np.rint(SRGB.forward(sc.render(0.5)) * 255).astype(np.uint8)
+    flow, depth = sc.maps()
+    write_image(tmp_path / "in.png", img)
+    np.save(tmp_path / "flow.npy", flow)
+    np.save(tmp_path / "depth.npy", depth)
+    common = ["--flow", str(tmp_path / "flow.npy"), "--response", "srgb", "--backend", "numpy"]
+    assert main(["blur", str(tmp_path / "in.png"), str(tmp_path / "out.png"), *common,
+                 "--depth", str(tmp_path / "depth.npy")]) == 0
+    np.testing.assert_array_equal(
+        read_image(tmp_path / "out.png"),
+        clblur.blur(img, flow, "srgb", backend="numpy", depth=depth))
+    rgba = np.dstack([img, np.full(img.shape[:2], 255, np.uint8)])
+    rgba[:20, :, 3] = 0
+    write_image(tmp_path / "rgba.png", rgba)
+    assert main(["blur", str(tmp_path / "rgba.png"), str(tmp_path / "o.png"), *common]) == 0
+    np.testing.assert_array_equal(
+        read_image(tmp_path / "o.png"),
+        clblur.blur(rgba, flow, "srgb", backend="numpy", alpha=True))
+    assert main(["blur", str(tmp_path / "in.png"), str(tmp_path / "x.png"), *common,
+                 "--depth", str(tmp_path / "flow.npy")]) == 2
+    assert "depth has shape" in capsys.readouterr().err
+    assert not (tmp_path / "x.png").exists()
