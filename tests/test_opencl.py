@@ -31,7 +31,7 @@ import pytest
 from clblur import reference
 from clblur.motion import sample_counts
 from clblur.pixels import imax, linearise, normalise
-from clblur.plan import make_plan
+from clblur.request import make_plan
 from clblur.responses import Gamma, Table, response
 
 TIE_LSB = 0.3

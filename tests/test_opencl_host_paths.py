@@ -29,7 +29,7 @@ from test_opencl import (
 
 from clblur.opencl.constants import build_defines
 from clblur.opencl.program import KERNEL_FILES, kernel_signatures, kernel_source
-from clblur.plan import make_plan
+from clblur.request import make_plan
 
 REPO = Path(__file__).resolve().parent.parent
 

@@ -415,7 +415,7 @@ class EmorBasis:
     @classmethod
     def load(cls, folder: str | os.PathLike | None = None) -> EmorBasis:
         """Read ``emor.txt`` from ``folder`` (default: the shared data's ``crf`` folder)."""
-        from clblur.data import data_dir
+        from clblur.io import data_dir
 
         if folder is None:
             root = data_dir()
