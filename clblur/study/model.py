@@ -30,9 +30,13 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
+from clblur.responses import ExpShape
 from clblur.study.effects import PARAMS, channel_gains
 
 CODES = 256
+# Free-shape warp coefficients of the response (``clblur.responses.ExpShape``); absent keys
+# are 0, so the paper's Eq. 3 stays the null of ``response_shape``.
+WARP_KEYS = ("w1", "w2", "w3", "w4")
 TOP = 1.0 - 1.0 / (4 * 255)  # largest normalised value linearised as is (clblur.pixels)
 _LOG2PI = float(np.log(2 * np.pi))
 
@@ -75,6 +79,13 @@ class Group:
                      self.fold[idx], self.source_clipped)
 
 
+def shape(p: dict[str, float]) -> ExpShape:
+    """The response curve above the black level (``black = 0``): Eq. 3 generalised by
+    ``gamma``, ``rho`` and the warp coefficients (``clblur.responses.ExpShape``)."""
+    warp = tuple(float(p.get(k, 0.0)) for k in WARP_KEYS)
+    return ExpShape(0.0, p["gamma"], p["rho"], warp if any(warp) else ())
+
+
 def inverse_table(p: dict[str, float]) -> np.ndarray:
     """``T[code]``: exposure of each source code under black level, shape and saturation."""
     v = np.arange(CODES, dtype=np.float64) / 255.0
@@ -84,24 +95,15 @@ def inverse_table(p: dict[str, float]) -> np.ndarray:
     # *shape* a hair away from Eq. 3 act as a saturation factor of 2.
     top = 1.0 - p["rho"] * (1.0 - TOP)
     w = np.clip((v - beta) / (1.0 - beta), 0.0, top)
-    t = _inverse(w, p["gamma"], p["rho"])
-    t[-1] = p["sat"] * _inverse(np.array([top]), p["gamma"], p["rho"])[0]
+    curve = shape(p)
+    t = curve.inverse(w)
+    t[-1] = p["sat"] * curve.inverse(np.array([top]))[0]
     return t
 
 
-def _inverse(w, gamma, rho):
-    return np.power(-np.log1p(-rho * w) / rho, gamma)
-
-
-def forward(x: np.ndarray, gamma: float, rho: float) -> tuple[np.ndarray, np.ndarray]:
-    """Normalised value and its slope d v / d x for exposure ``x`` (inverse of ``_inverse``)."""
-    x = np.maximum(x, 1e-12)
-    root = np.power(x, 1.0 / gamma)
-    ex = np.exp(-rho * root)
-    v = -np.expm1(-rho * root) / rho
-    slope = ex * root / (gamma * x)
-    over = v > 1.0
-    return np.where(over, 1.0, v), np.where(over, 0.0, slope)
+def forward(x: np.ndarray, gamma: float, rho: float, warp=()) -> tuple[np.ndarray, np.ndarray]:
+    """Normalised value above the black level and its slope d v / d x at exposure ``x``."""
+    return ExpShape(0.0, gamma, rho, tuple(warp)).forward_slope(x)
 
 
 def time_ok(p: dict[str, float]) -> bool:
@@ -123,6 +125,7 @@ def predict(g: Group, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
     pred = np.empty((n, nc))
     var = np.empty((n, nc))
     t = inverse_table(p)
+    curve_fs = shape(p).forward_slope
     step = np.gradient(t)
     step[-1] = step[-2]  # a clipped code's error is the saturation factor's business
     dq = step * step / 12.0
@@ -140,7 +143,7 @@ def predict(g: Group, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
         e = num / np.maximum(norm, 1e-12)
         m = g.ratio * np.exp(p["gain"]) * gains[c] * vig_out
         x = m * e
-        v, dv = forward(x, p["gamma"], p["rho"])
+        v, dv = curve_fs(x)
         scale = 255.0 * (1.0 - p["black"])
         pred[:, c] = 255.0 * p["black"] + scale * v
         s = scale * dv
