@@ -498,7 +498,7 @@ class SplineFamily:
     default_low = PAIR_LOW_CODE / 255.0
     uses_pixels = True
 
-    def fit(self, samples, tau, *, full_scale, refine_times=False, knots: int = 32,
+    def fit(self, samples, tau, *, full_scale, refine_times=False, knots: int = 64,
             smoothness: float = 0.3, max_gap: float = 4.5, **opts) -> FamilyFit:
         if opts:
             raise TypeError(f"unknown option(s) for the spline model: {sorted(opts)}")
@@ -522,9 +522,10 @@ class SplineFamily:
 
 
 def curve_black_level(curve: Response, fraction: float = 1e-3) -> float:
-    """The highest value whose exposure is below ``fraction`` of full scale (the toe)."""
+    """The toe: the highest value whose exposure is below ``fraction`` of mid-scale's."""
     v = np.linspace(0.0, 1.0, 1021)
-    below = v[np.asarray(curve.inverse(v)) <= fraction * float(curve.inverse(np.array([1.0]))[0])]
+    x = np.asarray(curve.inverse(v))
+    below = v[x <= fraction * float(curve.inverse(np.array([0.5]))[0])]
     return float(below[-1]) if below.size else 0.0
 
 
@@ -540,17 +541,21 @@ def pooled_pairs(values: np.ndarray, valid: np.ndarray, tau: np.ndarray, max_gap
     lo, hi = PAIR_LOW_CODE / 255.0, PAIR_HIGH_CODE / 255.0
     ok = valid & (values > lo) & (values < hi)
     bins = int(full_scale) + 1 if full_scale <= 255 else levels
-    keys, targets, ratios = [], [], []
+    keys, targets = [], []
     pairs = [(i, j) for i in range(n) for j in range(n)
              if i != j and abs(np.log2(tau[j] / tau[i])) <= max_gap]
-    for r_index, (i, j) in enumerate(pairs):
-        both = ok[:, i] & ok[:, j]
-        q = np.clip(np.rint(values[both, i] * (bins - 1)), 0, bins - 1).astype(np.int64)
-        keys.append(q + bins * r_index)
-        targets.append(values[both, j])
-        ratios.append(tau[j] / tau[i])
     if not pairs:
         return (np.zeros(0),) * 4
+    # pairs with the same ratio (a bracket in whole stops) share pools: the residual depends
+    # on the source value and the ratio only
+    log_ratio = np.round([np.log2(tau[j] / tau[i]) for i, j in pairs], 6)
+    ratios, which = np.unique(log_ratio, return_inverse=True)
+    ratios = 2.0 ** ratios
+    for r_index, (i, j) in zip(which, pairs, strict=True):
+        both = ok[:, i] & ok[:, j]
+        q = np.clip(np.rint(values[both, i] * (bins - 1)), 0, bins - 1).astype(np.int64)
+        keys.append(q + bins * int(r_index))
+        targets.append(values[both, j])
     key = np.concatenate(keys)
     tgt = np.concatenate(targets)
     uniq, inv, count = np.unique(key, return_inverse=True, return_counts=True)
@@ -609,9 +614,38 @@ def fit_cross_exposure(u: np.ndarray, src: np.ndarray, target: np.ndarray, ratio
     if theta0 is None:
         x0 = u ** 2.2
         theta0 = np.log(np.maximum(np.diff(x0), 1e-6))
-    sol = least_squares(residuals, theta0, jac=jacobian, method="trf", max_nfev=60,
-                        x_scale=1.0)
-    return sol.x
+    return _levenberg_marquardt(residuals, jacobian, np.asarray(theta0, dtype=np.float64))
+
+
+def _levenberg_marquardt(residuals, jacobian, theta: np.ndarray, iterations: int = 200,
+                         rtol: float = 1e-10) -> np.ndarray:
+    """Damped Gauss-Newton on the normal equations (few parameters, many residuals: a
+    K x K solve per step instead of an SVD of the whole Jacobian)."""
+    r = residuals(theta)
+    cost = float(r @ r)
+    lam = 1e-3
+    for _ in range(iterations):
+        jac = jacobian(theta)
+        a = jac.T @ jac
+        g = jac.T @ r
+        improved = False
+        for _ in range(30):
+            step = np.linalg.solve(a + lam * (np.diag(np.diag(a)) + 1e-12 * np.eye(a.shape[0])),
+                                   -g)
+            trial = theta + step
+            r_new = residuals(trial)
+            c_new = float(r_new @ r_new)
+            if np.isfinite(c_new) and c_new < cost:
+                improved = True
+                break
+            lam *= 4.0
+        if not improved:
+            break
+        done = cost - c_new <= rtol * cost
+        theta, r, cost, lam = trial, r_new, c_new, max(lam / 3.0, 1e-9)
+        if done:
+            break
+    return theta
 
 
 FAMILIES = {f.name: f for f in (ExpFamily(), ExpOffsetFamily(), GammaOffsetFamily(),

@@ -201,7 +201,8 @@ def _random_pixels(stack: np.ndarray, footprint: np.ndarray, n_pixels: int,
     if not isinstance(n_pixels, (int, np.integer)) or n_pixels < 0:
         raise ValueError(f"n_pixels must be a non-negative integer, got {n_pixels!r}")
     free = np.flatnonzero(~footprint.ravel())
-    idx = np.sort(rng.choice(free, min(int(n_pixels), free.size), replace=False))
+    # at most half the free pixels: the other half is left for held-out scoring
+    idx = np.sort(rng.choice(free, min(int(n_pixels), free.size // 2), replace=False))
     rows, cols = np.unravel_index(idx, footprint.shape)
     footprint[rows, cols] = True
     out = []
