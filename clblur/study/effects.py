@@ -7,10 +7,8 @@ Eq. 9 blur); at their *null* values the model is the paper's again, so each exte
 nested model and can be tested against the simpler one.  Parameters (``PARAMS``):
 
 * ``black``: black level ``beta`` (normalised): ``v = beta + (1 - beta) I(x)``.
-* ``gamma``, ``rho``, ``w1``..``w4``: response shape (``clblur.responses.ExpShape``).  Inverse
-  response ``x = (-ln(1 - rho v) / rho)^gamma exp(sum_m w_m B_m(v))``; ``rho = gamma = 1``,
-  ``w = 0`` is the paper's Eq. 3, ``rho -> 0`` gives the power law ``v^gamma``, the smooth
-  warp ``w`` takes free (e.g. S-shaped) curves.
+* ``gamma``, ``rho``: response shape.  Inverse response ``x = (-ln(1 - rho v) / rho)^gamma``;
+  ``rho = gamma = 1`` is the paper's Eq. 3, ``rho -> 0`` gives the power law ``v^gamma``.
 * ``sat``: saturation factor ``s >= 1``: a clipped source pixel holds ``s`` times the least
   exposure that clips (``clblur.pixels`` convention; the paper's model uses 1).
 * ``gain``: log of an exposure gain between source and target capture.
@@ -40,8 +38,6 @@ PARAMS: dict[str, tuple[float, float, float]] = {
     "na": (0.0, 0.0, 0.1),
     "nb": (0.0, 0.0, 0.01),
 }
-for _m in (1, 2, 3, 4):
-    PARAMS[f"w{_m}"] = (0.0, -2.0, 2.0)
 for _c in (1, 2, 3):
     PARAMS[f"cg{_c}"] = (0.0, -0.5, 0.5)
 
@@ -59,7 +55,7 @@ class Effect:
 
 _EFFECT_PARAMS = {
     "black_level": ("black",),
-    "response_shape": ("gamma", "rho", "w1", "w2", "w3", "w4"),
+    "response_shape": ("gamma", "rho"),
     "saturation": ("sat",),
     "noise": ("na", "nb"),
     "vignetting": ("vig",),
@@ -93,8 +89,7 @@ def readable_estimate(effect: str, p: dict[str, float], channels: int) -> dict:
     if effect == "black_level":
         return {"black_level_codes": 255.0 * p["black"]}
     if effect == "response_shape":
-        return {"gamma": p["gamma"], "rho": p["rho"],
-                "warp": [p.get(f"w{m}", 0.0) for m in (1, 2, 3, 4)]}
+        return {"gamma": p["gamma"], "rho": p["rho"]}
     if effect == "saturation":
         return {"factor": p["sat"]}
     if effect == "noise":

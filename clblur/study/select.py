@@ -36,7 +36,7 @@ import numpy as np
 from scipy import optimize, stats
 
 from clblur.study.effects import EFFECTS, PARAMS, explain, readable_estimate
-from clblur.study.model import Group, null_params, pixel_nll, predict, shape_starts, time_ok
+from clblur.study.model import Group, null_params, pixel_nll, predict, time_ok
 
 # Least held-out gain (nats per pixel value) that counts as a finding: with hundreds of
 # thousands of values, deviations far below any visible effect (a gain of 1.0001) are
@@ -150,8 +150,6 @@ def fit(groups: list[Group], free: list[str], start: dict, nvalid: int) -> dict:
     if "gamma" in free and start["gamma"] == 1.0 and start["rho"] == 1.0:
         # also start from the power-law corner: linear and display gamma
         starts += [{**s, "gamma": g, "rho": 0.05} for s in list(starts) for g in (1.0, 2.2)]
-        # and from a quick cross-exposure calibration on the data (free-shape curves)
-        starts += [q for s in starts[:1] for q in shape_starts(groups, s)]
     best, best_val = None, math.inf
     for s0 in starts:
         def objective(z, s0=s0):
