@@ -147,8 +147,9 @@ def test_wrong_family_is_caught_by_prediction_and_aic(rng):
     series, _ = make_stack(film_curve, rng, channels=2)
     free = fit(series, "nonparametric", n_samples=300)
     paper = fit(series, "exp", n_samples=300, sampling=free.sampling)
-    e_free = evaluate(series, free, refit=False, flat_tolerance=None)
-    e_paper = evaluate(series, paper, refit=False, flat_tolerance=None)
+    # scored above 10 % of full scale, where the free curve is fitted
+    e_free = evaluate(series, free, refit=False, flat_tolerance=None, low=0.1)
+    e_paper = evaluate(series, paper, refit=False, flat_tolerance=None, low=0.1)
     for gap in (1, 4):
         assert e_free["rmse"][gap] < 2.0  # noise is 0.5 DN, quantisation 0.29 DN
         assert e_paper["rmse"][gap] > 3 * e_free["rmse"][gap]
@@ -217,7 +218,7 @@ def test_uint16_series_and_unknown_model(rng):
     result = fit(series, "gamma-offset", n_samples=200)
     assert result.params["per_channel"][0]["gamma"] == pytest.approx(2.2, abs=0.08)
     with pytest.raises(ValueError, match="unknown response model"):
-        fit(series, "spline")
+        fit(series, "cubic")
     with pytest.raises(TypeError, match="unknown option"):
         fit(series, "exp", order=3)
 

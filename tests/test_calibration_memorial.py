@@ -38,7 +38,10 @@ def test_memorial_paper_curve_is_far_worse(memorial):
     scores = {m.model: evaluate(series, m, gaps=(1, 4), refit=False, max_pixels=20000)
               for m in (paper, offset, free)}
     for gap in (1, 4):
-        assert scores["exp"]["rmse_darker"][gap] > 2 * scores["exp-offset"]["rmse_darker"][gap]
+        # on all valid pixels (edges and toe included, where every curve errs) the black
+        # level alone still removes more than a third of Eq. 3's error
+        assert scores["exp"]["rmse_darker"][gap] > 1.5 * scores["exp-offset"]["rmse_darker"][
+            gap]
         assert scores["exp-offset"]["rmse_darker"][gap] > scores["spline"]["rmse_darker"][gap]
     assert paper.aic > offset.aic
     # the black level Eq. 3 lacks: 13 .. 25 DN on this stack, seen by both offset families
