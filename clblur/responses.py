@@ -729,8 +729,8 @@ def response(spec: str | Response | dict) -> Response:
     if name in ("exp", "gamma"):
         what, key = ("k", "k") if name == "exp" else ("exponent", "gamma")
         lo, hi = RANGES[key]
-        expected = (f"{name}:{key.upper() if name == 'exp' else 'G'} with the {what} a number "
-                    f"in [{lo:g}, {hi:g}]")
+        letter = "K" if name == "exp" else "G"
+        expected = f"{name}:{letter} with {letter} a number in [{lo:g}, {hi:g}]"
         if not arg:
             if name == "exp":
                 return Exp()
