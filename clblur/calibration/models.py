@@ -614,7 +614,9 @@ def fit_cross_exposure(u: np.ndarray, src: np.ndarray, target: np.ndarray, ratio
     if theta0 is None:
         x0 = u ** 2.2
         theta0 = np.log(np.maximum(np.diff(x0), 1e-6))
-    return _levenberg_marquardt(residuals, jacobian, np.asarray(theta0, dtype=np.float64))
+    # trial steps may overflow exp(); their non-finite cost rejects them
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        return _levenberg_marquardt(residuals, jacobian, np.asarray(theta0, dtype=np.float64))
 
 
 def _levenberg_marquardt(residuals, jacobian, theta: np.ndarray, iterations: int = 200,
