@@ -17,7 +17,8 @@ from clblur.study.model import forward, inverse_table, null_params, predict
 from clblur.study.synthetic import RANGES, null_stack, scenario
 
 REPORT_KEYS = {"kind", "baseline", "findings", "extended", "gain"}
-FINDING_KEYS = {"effect", "significant", "statistic", "p_value", "estimate", "explanation"}
+FINDING_KEYS = {"effect", "significant", "statistic", "p_value", "estimate", "interval",
+                "explanation"}
 # the extended model must cut the held-out RMSE at least this much (noise: the held-out NLL)
 MARGIN = 0.5
 
