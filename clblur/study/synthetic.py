@@ -133,9 +133,10 @@ def random_psf(rng: np.random.Generator, size: int = 11) -> np.ndarray:
 
 
 def null_stack(rng: np.random.Generator, shape=(48, 64), frames: int = 6,
-               gamma: float | None = None) -> Scenario:
+               gamma: float | None = None, storage: str = "round") -> Scenario:
     """A frame stack of a moving scene: ``frames`` short captures and the long one spanning
-    them, rendered as the exact temporal Eq. 8 (``gamma``: a power-law camera instead).
+    them, rendered as the exact temporal Eq. 8 (``gamma``: a power-law camera instead;
+    ``storage="floor"``: the long one truncated, a -0.5 code bias).
 
     The long capture's total exposure equals the frames' mean exposure (as when frames are
     averaged into a longer exposure, or the long one is taken through an ND filter)."""
@@ -143,8 +144,10 @@ def null_stack(rng: np.random.Generator, shape=(48, 64), frames: int = 6,
     scene = random_scene(rng, (shape[0], shape[1] + 3 * frames), 3, low=0.03, high=0.35)
     shots = [scene[:, 3 * t:3 * t + shape[1]] for t in range(frames)]
     short = [camera.capture(s, rng=rng) for s in shots]
-    long = camera.capture(sum(shots) / frames, rng=rng)
+    long = dataclasses.replace(camera, storage=storage).capture(sum(shots) / frames, rng=rng)
     truth = {"response_shape": gamma} if gamma else {}
+    if storage == "floor":
+        truth["quantisation"] = 0.5
     return Scenario("frame-stack", [stack_group(short, long)], truth)
 
 
