@@ -218,10 +218,11 @@ def test_estimates_stay_physically_possible():
     from clblur.study.select import physical_bounds
 
     rng = np.random.default_rng(11)
-    scene = random_scene(rng, (24, 32), 3, low=0.2, high=0.35)
+    scene = random_scene(rng, (24, 32), 3, low=0.05, high=0.35)
     cam = Camera()
     g = pair_group(cam.capture(scene), cam.capture(scene, motion=(4.0, 0.0)), (4.0, 0.0))
     dark = min(int(cam.capture(scene).min()), int(g.target.min()))
+    assert 0 < dark < 0.3 * 255
     assert physical_bounds([g])["black"][1] == pytest.approx(dark / 255.0)
 
 

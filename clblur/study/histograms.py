@@ -78,22 +78,35 @@ def build_group(name: str, sources: list[np.ndarray], target: np.ndarray,
     base = collect(taps)
     alt = {eff: {key: collect(fn) for key, fn in d.items()} for eff, d in (variants or {}).items()}
     keep = np.flatnonzero(inside)
-    r2_src = np.tile(normalised_radius2((h, w)).ravel(), len(sources))
-    codes = np.stack([s.reshape(hw, nc) for s in sources]).reshape(total, nc)
-    onehot = [sp.csr_matrix((np.ones(total), (np.arange(total), codes[:, c].astype(np.intp))),
-                            shape=(total, CODES)) for c in range(nc)]
+    # only the source pixels some tap reads: a one-hot code matrix of every source pixel of
+    # an 8-frame 720p stack is 7 million rows, most never read when pixels are sampled
+    flag = np.zeros(total, bool)
+    for m in [*base.values(), *(m for d in alt.values() for ms in d.values()
+                                for m in ms.values())]:
+        flag[m.indices] = True
+    used = np.flatnonzero(flag)
+    r2_src = np.tile(normalised_radius2((h, w)).ravel(), len(sources))[used]
+    codes = np.stack([s.reshape(hw, nc) for s in sources]).reshape(total, nc)[used]
+    nu = used.size
+    onehot = [sp.csr_matrix((np.ones(nu), (np.arange(nu), codes[:, c].astype(np.intp))),
+                            shape=(nu, CODES)) for c in range(nc)]
+    remap = np.zeros(total, np.intp)
+    remap[used] = np.arange(nu)
+
+    def squeeze(m: sp.csr_matrix) -> sp.csr_matrix:
+        return sp.csr_matrix((m.data, remap[m.indices], m.indptr), shape=(m.shape[0], nu))
 
     def hists(mats):
         out = {}
         for i, m in mats.items():
-            m = m[keep]
+            m = squeeze(m)[keep]
             for k in (0, 1, 2) if vignetting else (0,):
                 mk = m if k == 0 else m @ sp.diags(r2_src ** k)
                 out[(i, k)] = [(mk @ oh).tocsr() for oh in onehot]
         return out
 
     hist = hists(base)
-    m0 = base[0][keep]
+    m0 = squeeze(base[0])[keep]
     hist_sq = [(m0.multiply(m0)).tocsr() @ oh for oh in onehot]
     rows, cols = rows[keep], cols[keep]
     tgt = target[rows, cols].astype(np.float64)
