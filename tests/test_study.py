@@ -199,7 +199,8 @@ def test_shared_data_manifests(shared_data, tmp_path):
     assert len(load_manifest(shared.memorial(tmp_path, shared_data)).images) == 16
     assert len(load_manifest(shared.levin(tmp_path, shared_data)).pairs) == 32
     paths = {p.stem: p for p in shared.gopro(tmp_path, shared_data)}
-    assert len(paths) == 6 * 15  # 3 averages x 2 storages x (14 windows + 1 pooled)
+    # 3 averages x 2 storages x (14 windows + 1 pooled), 4 real-null windows
+    assert len(paths) == 6 * 15 + 4
     stacks = load_manifest(paths["gopro240_code_round"]).stacks
     assert len(stacks) == 4 and all(len(s.frames) == shared.GOPRO_STACK for s in stacks)
     assert len(load_manifest(paths["gopro240_gamma22_trunc_w03"]).stacks) == 1

@@ -68,7 +68,9 @@ def average_frames(codes: np.ndarray, how: str, storage: str) -> np.ndarray:
     """8-bit long exposure from a stack of 8-bit frames (F x H x W x C), as a dataset
     generator would make it: the mean taken in code values (``code``), in gamma-2.2 linear
     values (``gamma22``, Nah et al. 2017) or in sRGB linear values (``srgb``), stored by
-    rounding (half to even) or by truncation (``trunc``, e.g. a C cast of the float mean)."""
+    rounding (half to even) or by truncation (``trunc``, e.g. a C cast of the float mean).
+    ``paper``: the paper's own Eq. 3 + Eq. 8 average, rounded: real frames, yet nothing but
+    the paper's model is true (null data for the study)."""
     v = codes.astype(np.float64) / 255.0
     if how == "code":
         mean = v.mean(axis=0)
@@ -76,8 +78,11 @@ def average_frames(codes: np.ndarray, how: str, storage: str) -> np.ndarray:
         mean = (v ** 2.2).mean(axis=0) ** (1 / 2.2)
     elif how == "srgb":
         mean = _linear_to_srgb(_srgb_to_linear(v).mean(axis=0))
+    elif how == "paper":  # Eq. 3 + Eq. 8 exactly (real null data); 255 as clblur.pixels
+        top = 1.0 - 1.0 / (4 * 255)
+        mean = -np.expm1(np.log1p(-np.minimum(v, top)).mean(axis=0))
     else:
-        raise ValueError(f"unknown average {how!r}; use {', '.join(GOPRO_AVERAGES)}")
+        raise ValueError(f"unknown average {how!r}; use code, gamma22, srgb or paper")
     # code values; 1e-9 so exact code-mean halves do not fall a hair under the integer
     x = np.clip(mean * 255.0, 0.0, 255.0)
     if storage == "round":
@@ -91,7 +96,9 @@ def gopro(out: Path, data: Path) -> list[Path]:
     """Frame-stack manifests from the 240 fps GoPro frames: for every average and storage,
     one manifest per 8-frame window (``gopro240_{how}_{storage}_wNN.json``, window start NN)
     and one pooling the windows that start every ``GOPRO_STEP`` frames
-    (``gopro240_{how}_{storage}.json``).  Long exposures are written as PNG into ``out``."""
+    (``gopro240_{how}_{storage}.json``), plus real null data: ``gopro240_paper_round_wNN``
+    (the paper's own average, every ``GOPRO_STEP`` frames).  Long exposures are written as
+    PNG into ``out``."""
     files = sorted((data / "gopro240" / "frames").glob("*.png"))
     if len(files) < GOPRO_STACK:
         raise ValueError(f"gopro240: {len(files)} frames, need at least {GOPRO_STACK}")
@@ -113,6 +120,13 @@ def gopro(out: Path, data: Path) -> list[Path]:
             write_manifest(path, {"kind": "frame-stack",
                                   "stacks": [stacks[s] for s in starts[::GOPRO_STEP]]})
             paths.append(path)
+    for s in starts[::GOPRO_STEP]:  # real null data: the paper's model built the long frame
+        long = out / f"gopro_paper_round_{s:02d}.png"
+        write_image(long, average_frames(frames[s:s + GOPRO_STACK], "paper", "round"))
+        path = out / f"gopro240_paper_round_w{s:02d}.json"
+        write_manifest(path, {"kind": "frame-stack", "stacks": [
+            {"frames": [str(f) for f in files[s:s + GOPRO_STACK]], "long": long.name}]})
+        paths.append(path)
     return paths
 
 
