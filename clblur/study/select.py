@@ -41,8 +41,11 @@ from clblur.study.variants import darkest_code, has_variant, pixel_nll, predict,
 
 # Least held-out gain (nats per pixel value) that counts as a finding: with hundreds of
 # thousands of values, deviations far below any visible effect (a gain of 1.0001) are
-# "significant"; this asks for a difference worth modelling as well.
-MIN_GAIN = 0.002
+# "significant"; this asks for a difference worth modelling as well.  0.01: 8-bit rounding
+# errors are a deterministic function of the value, not independent noise, and on real
+# frames whose long exposure the paper's model itself built (GoPro, rounded) they let a
+# gain of 1.0005 (0.003 codes of RMSE, 0.0097 nats) pass a threshold of 0.002.
+MIN_GAIN = 0.01
 
 
 @dataclass
