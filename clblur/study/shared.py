@@ -72,8 +72,8 @@ def average_frames(codes: np.ndarray, how: str, storage: str) -> np.ndarray:
     ``paper``: the paper's own Eq. 3 + Eq. 8 average, rounded: real frames, yet nothing but
     the paper's model is true (null data for the study)."""
     v = codes.astype(np.float64) / 255.0
-    if how == "code":
-        mean = v.mean(axis=0)
+    if how == "code":  # in code units, so exact halves stay halves (round half to even)
+        mean = codes.astype(np.float64).mean(axis=0) / 255.0
     elif how == "gamma22":
         mean = (v ** 2.2).mean(axis=0) ** (1 / 2.2)
     elif how == "srgb":
@@ -84,7 +84,8 @@ def average_frames(codes: np.ndarray, how: str, storage: str) -> np.ndarray:
     else:
         raise ValueError(f"unknown average {how!r}; use code, gamma22, srgb or paper")
     # code values; 1e-9 so exact code-mean halves do not fall a hair under the integer
-    x = np.clip(mean * 255.0, 0.0, 255.0)
+    x = np.clip(codes.astype(np.float64).mean(axis=0) if how == "code" else mean * 255.0,
+                0.0, 255.0)
     if storage == "round":
         return np.rint(x).astype(np.uint8)
     if storage == "trunc":
