@@ -21,7 +21,12 @@ Conventions
   added in the linear domain before clipping and the response; pixels at or above the full
   well are clipped and carry no noise.
 * The response maps ``y`` to a normalised value; a black level ``beta`` lifts it:
-  ``v = beta + (1 - beta) * I(y)``; then ``clblur.pixels.quantise`` (round half to even).
+  ``v = beta + (1 - beta) * I(y)``; then ``clblur.pixels.quantise`` (round half to even),
+  or, with ``storage="floor"``, truncation ``floor(v * full)`` (a -0.5 code bias), and with
+  ``code_offset`` a constant offset of that many codes added before quantising.
+* ``shift=(sx, sy)`` (``capture``): the sensor image is displaced by a sub-pixel amount after
+  the blur, ``y(p) <- y(p - s)`` (bilinear, edge clamped), i.e. a misregistration between
+  this capture and another.
 * Deterministic: all randomness comes from the ``rng`` passed in.
 """
 
@@ -48,9 +53,15 @@ class Camera:
     full_well: bool = False  # clip the linear exposure at 1
     vignetting: float = 0.0  # c = (half-diagonal / focal length)^2; 0 = none
     channel_gains: tuple[float, ...] | None = None  # white-balance gains before the response
+    storage: str = "round"  # integer outputs: "round" (half to even) or "floor" (truncation)
+    code_offset: float = 0.0  # codes added before quantising (a storage bias)
 
     def __post_init__(self):
         object.__setattr__(self, "response", response(self.response))
+        if self.storage not in ("round", "floor"):
+            raise ValueError(f"storage must be 'round' or 'floor', got {self.storage!r}")
+        if not (math.isfinite(self.code_offset) and abs(self.code_offset) <= 8):
+            raise ValueError(f"code_offset must be within +-8 codes, got {self.code_offset}")
         if not 0.0 <= self.black_level < 1.0:
             raise ValueError(f"black_level must be in [0, 1), got {self.black_level}")
         for name in ("noise_a", "noise_b", "vignetting"):
@@ -64,7 +75,8 @@ class Camera:
                 weights=None, anchor: str = "center", gain: float = 1.0,
                 channel_gains: tuple[float, ...] | None = None,
                 rng: np.random.Generator | None = None, dtype=np.uint8,
-                backend: str = "numpy") -> np.ndarray:
+                backend: str = "numpy", shift: tuple[float, float] | None = None
+                ) -> np.ndarray:
         """Render one capture of ``radiance``.
 
         ``motion``/``weights``/``anchor`` as in ``clblur.blur`` (None: a static capture).
@@ -83,6 +95,8 @@ class Camera:
             y = y * np.asarray(gains, dtype=np.float64)
         if motion is not None:
             y = blur(y, motion, "linear", anchor=anchor, weights=weights, backend=backend)
+        if shift is not None:
+            y = shift_image(y, float(shift[0]), float(shift[1]))
         y = y * vignette(y.shape[:2], self.vignetting)[..., None]
         clipped = y >= 1.0 if self.full_well else np.zeros(y.shape, bool)
         if self.noise_a > 0 or self.noise_b > 0:
@@ -93,8 +107,32 @@ class Camera:
             y = np.minimum(y, 1.0)
         v = self.response.forward(np.maximum(y, 0.0))
         v = self.black_level + (1.0 - self.black_level) * v
-        out = quantise(v, dtype)
+        out = self._store(v, dtype)
         return out[..., 0] if np.ndim(radiance) == 2 else out
+
+    def _store(self, v: np.ndarray, dtype) -> np.ndarray:
+        """Normalised values -> stored values (rounding or truncation, plus the offset)."""
+        dtype = np.dtype(dtype)
+        if dtype.kind == "f" or (self.storage == "round" and self.code_offset == 0.0):
+            return quantise(v, dtype)
+        full = float(np.iinfo(dtype).max)
+        x = np.clip(v, 0.0, 1.0) * full + self.code_offset
+        x = np.floor(x) if self.storage == "floor" else np.rint(x)
+        return np.clip(x, 0.0, full).astype(dtype)
+
+
+def shift_image(y: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """``out(p) = y(p - s)`` with bilinear interpolation and clamp to edge (H x W x C)."""
+    h, w = y.shape[:2]
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    x = np.clip(xx - sx, 0.0, w - 1.0)
+    r = np.clip(yy - sy, 0.0, h - 1.0)
+    x0 = np.minimum(np.floor(x).astype(np.intp), w - 1)
+    y0 = np.minimum(np.floor(r).astype(np.intp), h - 1)
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    fx, fy = (x - x0)[..., None], (r - y0)[..., None]
+    return ((1 - fy) * ((1 - fx) * y[y0, x0] + fx * y[y0, x1])
+            + fy * ((1 - fx) * y[y1, x0] + fx * y[y1, x1]))
 
 
 def _check_radiance(radiance) -> np.ndarray:

@@ -122,3 +122,20 @@ def test_opencl_backend_renders_the_same_blur(opencl, rng):
     ref = cam.capture(scene, motion=(7.0, 2.0), dtype=np.float64)
     got = cam.capture(scene, motion=(7.0, 2.0), dtype=np.float64, backend="opencl")
     np.testing.assert_allclose(got, ref, atol=1e-5)
+
+
+def test_storage_truncation_offset_and_shift(rng):
+    scene = random_scene(rng, (12, 16), 3, high=0.6)
+    v = Exp(3.0).forward(scene)
+    np.testing.assert_array_equal(Camera(storage="floor").capture(scene),
+                                  np.floor(v * 255).astype(np.uint8))
+    np.testing.assert_array_equal(Camera(code_offset=0.4).capture(scene),
+                                  np.rint(v * 255 + 0.4).astype(np.uint8))
+    # a whole-pixel shift moves the image: out(p) = in(p - s), edges clamped
+    lin = Camera(response=Linear())
+    got = lin.capture(scene, dtype=np.float64, shift=(1.0, 0.0))
+    np.testing.assert_allclose(got[:, 1:], scene[:, :-1], atol=1e-12)
+    half = lin.capture(scene, dtype=np.float64, shift=(0.0, 0.5))
+    np.testing.assert_allclose(half[1:], 0.5 * (scene[1:] + scene[:-1]), atol=1e-12)
+    with pytest.raises(ValueError, match="storage"):
+        Camera(storage="ceil")

@@ -19,6 +19,11 @@ nested model and can be tested against the simpler one.  Parameters (``PARAMS``)
   motion (``s`` = 0 start, 1 end), i.e. a non-uniform velocity.
 * ``na``, ``nb``: Poisson-Gaussian noise, variance ``na x + nb`` in the linear domain
   (in the model's exposure units).
+* ``qoff``: constant offset of the stored target codes (code values; -0.5 = truncation).
+* ``sx``, ``sy``: shift of the source relative to the target (pixels).
+* ``pscale``: factor on every motion displacement (PSF resampled).
+* ``flip:G``: 1 if group ``G``'s motion is turned by 180 degrees (discrete, per group).
+  (``clblur.study.variants`` for the last four.)
 """
 
 from __future__ import annotations
@@ -37,6 +42,10 @@ PARAMS: dict[str, tuple[float, float, float]] = {
     "t2": (0.0, -1.0, 1.0),
     "na": (0.0, 0.0, 0.1),
     "nb": (0.0, 0.0, 0.01),
+    "qoff": (0.0, -1.0, 1.0),
+    "sx": (0.0, -1.0, 1.0),
+    "sy": (0.0, -1.0, 1.0),
+    "pscale": (1.0, 0.8, 1.25),
 }
 for _c in (1, 2, 3):
     PARAMS[f"cg{_c}"] = (0.0, -0.5, 0.5)
@@ -61,6 +70,10 @@ _EFFECT_PARAMS = {
     "vignetting": ("vig",),
     "nonuniform_motion": ("t1", "t2"),
     "exposure_gain": ("gain",),
+    "quantisation": ("qoff",),
+    "misregistration": ("sx", "sy"),
+    "psf_orientation": ("flip",),  # discrete, one per group (select.fit)
+    "psf_scale": ("pscale",),
 }
 
 EFFECTS: dict[str, Effect] = {e.name: e for e in (
@@ -78,6 +91,13 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
     Effect("channel_gain", "per-channel (white-balance) gains differ between the two captures"),
     Effect("exposure_gain", "the exposure or gain of the two captures differs from the nominal "
            "ratio"),
+    Effect("quantisation", "the target was stored with a constant code offset (e.g. truncated "
+           "instead of rounded: -0.5 codes)"),
+    Effect("misregistration", "the source and target images are shifted against each other "
+           "by a fraction of a pixel"),
+    Effect("psf_orientation", "the motion/PSF is stored turned by 180 degrees (correlation "
+           "instead of convolution) for some pairs"),
+    Effect("psf_scale", "the motion/PSF is longer or shorter than stated (resampled)"),
 )}
 EFFECT_NAMES = tuple(EFFECTS)
 
@@ -104,6 +124,17 @@ def readable_estimate(effect: str, p: dict[str, float], channels: int) -> dict:
         return {"gain": math.exp(p["gain"])}
     if effect == "channel_gain":
         return {"gains": channel_gains(p, channels)}
+    if effect == "quantisation":
+        return {"offset_codes": p["qoff"]}
+    if effect == "misregistration":
+        return {"shift_x": p["sx"], "shift_y": p["sy"]}
+    if effect == "psf_scale":
+        return {"scale": p["pscale"]}
+    if effect == "psf_orientation":
+        flips = sorted((k for k in p if k.startswith("flip:")), key=lambda k: int(k[5:]))
+        return {"flipped_groups": [int(k[5:]) for k in flips if p[k] >= 0.5],
+                "flipped_fraction": (sum(p[k] >= 0.5 for k in flips) / len(flips)
+                                     if flips else 0.0)}
     raise ValueError(f"unknown effect {effect!r}")
 
 
@@ -133,5 +164,5 @@ def explain(effect: str, estimate: dict, significant: bool, gain_nll: float,
 
 def _fmt(v) -> str:
     if isinstance(v, list):
-        return "[" + ", ".join(f"{x:.3g}" for x in v) + "]"
+        return "[" + ", ".join(f"{x:.3g}" if isinstance(x, float) else str(x) for x in v) + "]"
     return f"{v:.3g}"

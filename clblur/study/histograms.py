@@ -43,38 +43,70 @@ def sample_grid(shape: tuple[int, int], max_pixels: int) -> tuple[np.ndarray, np
 def build_group(name: str, sources: list[np.ndarray], target: np.ndarray,
                 rows: np.ndarray, cols: np.ndarray,
                 taps: Callable[[np.ndarray, np.ndarray], Iterable[Taps]], ratio: float,
-                vignetting: bool, timed: bool) -> Group:
-    """Collapse the taps of pixels (rows, cols) into code histograms (see ``model``)."""
+                vignetting: bool, timed: bool,
+                variants: dict[str, dict] | None = None) -> Group:
+    """Collapse the taps of pixels (rows, cols) into code histograms (see ``model``).
+
+    ``variants`` (``{effect: {key: taps}}``) are alternative tap sets for the geometric
+    effects (``clblur.study.variants``): their histograms are built on the same pixels (a
+    pixel is kept only if every variant's taps stay inside the image) and attached to the
+    group.
+    """
     h, w, nc = target.shape
     hw = h * w
     yy, xx = rows.astype(np.float64), cols.astype(np.float64)
     inside = np.ones(rows.size, bool)
-    entries: dict[int, list] = {0: [], 1: [], 2: []}
-    for tap in taps(yy, xx):
-        x = xx - tap.dx
-        y = yy - tap.dy
-        inside &= (x >= -1e-9) & (x <= w - 1 + 1e-9) & (y >= -1e-9) & (y <= h - 1 + 1e-9)
-        for r, col, wt in _bilinear(x, y, h, w):
-            wt = wt * tap.w
-            entries[0].append((r, col + tap.src * hw, wt))
-            if timed and tap.s is not None:
-                s = np.broadcast_to(np.asarray(tap.s, dtype=np.float64), wt.shape)
-                entries[1].append((r, col + tap.src * hw, wt * (2 * s - 1)))
-                entries[2].append((r, col + tap.src * hw, wt * (6 * s * s - 6 * s + 1)))
-    keep = np.flatnonzero(inside)
     n = rows.size
     total = hw * len(sources)
-    mats = {i: _csr(e, n, total)[keep] for i, e in entries.items() if e}
-    r2_src = np.tile(normalised_radius2((h, w)).ravel(), len(sources))
-    codes = np.stack([s.reshape(hw, nc) for s in sources]).reshape(total, nc)
-    onehot = [sp.csr_matrix((np.ones(total), (np.arange(total), codes[:, c].astype(np.intp))),
-                            shape=(total, CODES)) for c in range(nc)]
-    hist = {}
-    for i, m in mats.items():
-        for k in (0, 1, 2) if vignetting else (0,):
-            mk = m if k == 0 else m @ sp.diags(r2_src ** k)
-            hist[(i, k)] = [(mk @ oh).tocsr() for oh in onehot]
-    m0 = mats[0]
+
+    def collect(tap_fn):
+        nonlocal inside
+        entries: dict[int, list] = {0: [], 1: [], 2: []}
+        for tap in tap_fn(yy, xx):
+            x = xx - tap.dx
+            y = yy - tap.dy
+            inside &= (x >= -1e-9) & (x <= w - 1 + 1e-9) & (y >= -1e-9) & (y <= h - 1 + 1e-9)
+            for r, col, wt in _bilinear(x, y, h, w):
+                wt = wt * tap.w
+                entries[0].append((r, col + tap.src * hw, wt))
+                if timed and tap.s is not None:
+                    s = np.broadcast_to(np.asarray(tap.s, dtype=np.float64), wt.shape)
+                    entries[1].append((r, col + tap.src * hw, wt * (2 * s - 1)))
+                    entries[2].append((r, col + tap.src * hw, wt * (6 * s * s - 6 * s + 1)))
+        return {i: _csr(e, n, total) for i, e in entries.items() if e}
+
+    base = collect(taps)
+    alt = {eff: {key: collect(fn) for key, fn in d.items()} for eff, d in (variants or {}).items()}
+    keep = np.flatnonzero(inside)
+    # only the source pixels some tap reads: a one-hot code matrix of every source pixel of
+    # an 8-frame 720p stack is 7 million rows, most never read when pixels are sampled
+    flag = np.zeros(total, bool)
+    for m in [*base.values(), *(m for d in alt.values() for ms in d.values()
+                                for m in ms.values())]:
+        flag[m.indices] = True
+    used = np.flatnonzero(flag)
+    r2_src = np.tile(normalised_radius2((h, w)).ravel(), len(sources))[used]
+    codes = np.stack([s.reshape(hw, nc) for s in sources]).reshape(total, nc)[used]
+    nu = used.size
+    onehot = [sp.csr_matrix((np.ones(nu), (np.arange(nu), codes[:, c].astype(np.intp))),
+                            shape=(nu, CODES)) for c in range(nc)]
+    remap = np.zeros(total, np.intp)
+    remap[used] = np.arange(nu)
+
+    def squeeze(m: sp.csr_matrix) -> sp.csr_matrix:
+        return sp.csr_matrix((m.data, remap[m.indices], m.indptr), shape=(m.shape[0], nu))
+
+    def hists(mats):
+        out = {}
+        for i, m in mats.items():
+            m = squeeze(m)[keep]
+            for k in (0, 1, 2) if vignetting else (0,):
+                mk = m if k == 0 else m @ sp.diags(r2_src ** k)
+                out[(i, k)] = [(mk @ oh).tocsr() for oh in onehot]
+        return out
+
+    hist = hists(base)
+    m0 = squeeze(base[0])[keep]
     hist_sq = [(m0.multiply(m0)).tocsr() @ oh for oh in onehot]
     rows, cols = rows[keep], cols[keep]
     tgt = target[rows, cols].astype(np.float64)
@@ -82,8 +114,21 @@ def build_group(name: str, sources: list[np.ndarray], target: np.ndarray,
     valid = (tgt > 0) & (tgt < full)
     r2 = normalised_radius2((h, w))[rows, cols]
     clipped = any(bool((s == 255).any()) for s in sources)
-    return Group(name, tgt, valid, rows, cols, (h, w), float(ratio), hist,
-                 [hq.tocsr() for hq in hist_sq], r2, source_clipped=clipped)
+    g = Group(name, tgt, valid, rows, cols, (h, w), float(ratio), hist,
+              [hq.tocsr() for hq in hist_sq], r2, source_clipped=clipped)
+    from clblur.study.variants import attach
+
+    attach(g, {eff: {key: hists(m) for key, m in d.items()} for eff, d in alt.items()},
+           min(int(s.min()) for s in sources))
+    return g
+
+
+def shifted(taps: Callable[[np.ndarray, np.ndarray], Iterable[Taps]], sx: float, sy: float):
+    """The same taps read ``(sx, sy)`` pixels further back: target ``p`` sees ``p - s``."""
+    def fn(yy, xx):
+        for t in taps(yy, xx):
+            yield Taps(t.src, t.dx + sx, t.dy + sy, t.w, t.s)
+    return fn
 
 
 def _csr(entries, n, total) -> sp.csr_matrix:

@@ -6,8 +6,9 @@ import numpy as np
 
 from clblur.blur import blur
 from clblur.motion import PSF, Field, Uniform, anchor_value, parse_motion, sample_counts
-from clblur.study.histograms import Taps, as_hwc, build_group, sample_grid
+from clblur.study.histograms import Taps, as_hwc, build_group, sample_grid, shifted
 from clblur.study.model import Group
+from clblur.study.variants import SCALES, SHIFTS
 
 
 def pair_group(static: np.ndarray, blurred: np.ndarray, motion, *, anchor: str = "center",
@@ -24,13 +25,42 @@ def pair_group(static: np.ndarray, blurred: np.ndarray, motion, *, anchor: str =
     if src.shape != tgt.shape:
         raise ValueError(f"static {src.shape} and blurred {tgt.shape} images differ in shape")
     m = parse_motion(motion, src.shape[:2])
-    if isinstance(m, PSF) and align_psf > 0:
-        m = PSF(shift_kernel(m.kernel, *best_shift(src, tgt, m.kernel, align_psf)))
+    flip = None
+    if isinstance(m, PSF):
+        # the rotated kernel (psf_orientation) is aligned on its own: a stored kernel in the
+        # other orientation is also off-centre by a different shift
+        k_flip = m.kernel[::-1, ::-1]
+        if align_psf > 0:
+            k_flip = shift_kernel(k_flip, *best_shift(src, tgt, k_flip, align_psf))
+            m = PSF(shift_kernel(m.kernel, *best_shift(src, tgt, m.kernel, align_psf)))
+        flip = PSF(k_flip)
     a = anchor_value(anchor)
+    if flip is None and a != 0.5:  # a path centred on the pixel is its own 180-degree turn
+        flip = m
+
+    def taps(y, x):
+        return _taps(m, a, y, x)
+
+    variants = {"misregistration": {sh: shifted(taps, *sh) for sh in SHIFTS},
+                "psf_scale": {s: _scaled(taps, s) for s in SCALES}}
+    if flip is not None:
+        f_m = flip
+        variants["psf_orientation"] = {
+            "flip": (lambda y, x: _taps(f_m, a, y, x)) if isinstance(f_m, PSF)
+            else _scaled(taps, -1.0)}
     rows, cols = sample_grid(src.shape[:2], max_pixels)
     timed = not isinstance(m, PSF)
-    return build_group(name, [src], tgt, rows, cols, lambda y, x: _taps(m, a, y, x),
-                       exposure_ratio, vignetting=True, timed=timed)
+    return build_group(name, [src], tgt, rows, cols, taps, exposure_ratio, vignetting=True,
+                       timed=timed, variants=variants)
+
+
+def _scaled(taps, factor: float):
+    """Taps with every displacement multiplied by ``factor`` (-1: the motion turned by 180
+    degrees; 1.25: a path 25 % longer), same weights and shutter times."""
+    def fn(yy, xx):
+        for t in taps(yy, xx):
+            yield Taps(t.src, t.dx * factor, t.dy * factor, t.w, t.s)
+    return fn
 
 
 def _taps(m, a: float, yy: np.ndarray, xx: np.ndarray):

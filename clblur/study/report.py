@@ -21,7 +21,7 @@ def build_report(kind: str, sel: Selection) -> dict:
     for e in EFFECT_NAMES:
         if e in sel.not_testable:
             findings.append({"effect": e, "significant": False, "statistic": None,
-                             "p_value": None, "estimate": None,
+                             "p_value": None, "estimate": None, "interval": None,
                              "explanation": f"{e}: not testable on this data: "
                                             f"{sel.not_testable[e]}."})
     model = " + ".join(["paper"] + sel.effects)
@@ -40,10 +40,15 @@ def build_report(kind: str, sel: Selection) -> dict:
 def _finding(f) -> dict:
     return {"effect": f.effect, "significant": bool(f.significant),
             "statistic": float(f.statistic), "p_value": float(f.p_value),
-            "estimate": _plain(f.estimate), "explanation": f.explanation}
+            "estimate": _plain(f.estimate), "interval": _plain(f.interval),
+            "explanation": f.explanation}
 
 
 def _plain(v):
+    if v is None:
+        return None
+    if isinstance(v, int) and not isinstance(v, bool):
+        return v
     if isinstance(v, dict):
         return {k: _plain(x) for k, x in v.items()}
     if isinstance(v, (list, tuple)):
@@ -59,14 +64,17 @@ def markdown(report: dict, title: str = "Study", figures: list[str] | None = Non
              f"| paper (baseline) | {b['heldout_rmse']:.3f} | {b['heldout_nll']:.3f} |",
              f"| {x['model']} | {x['heldout_rmse']:.3f} | {x['heldout_nll']:.3f} |", "",
              f"Gain: {report['gain']:.3f} code values of held-out RMSE.", "",
-             "| effect | significant | t | p | estimate |", "|---|---|---|---|---|"]
+             "| effect | significant | t | p | estimate | 95 % interval |",
+             "|---|---|---|---|---|---|"]
     for f in report["findings"]:
         t = "-" if f["statistic"] is None else f"{f['statistic']:.2f}"
         p = "-" if f["p_value"] is None else f"{f['p_value']:.2g}"
         est = "-" if f["estimate"] is None else ", ".join(
             f"{k}={_short(v)}" for k, v in f["estimate"].items())
+        ci = "-" if not f.get("interval") else ", ".join(
+            f"{k} [{a:.3g}, {b:.3g}]" for k, (a, b) in f["interval"].items())
         lines.append(f"| {f['effect']} | {'yes' if f['significant'] else 'no'} | {t} | {p} "
-                     f"| {est} |")
+                     f"| {est} | {ci} |")
     lines += ["", "Findings:", ""] + [f"- {f['explanation']}" for f in report["findings"]]
     if figures:
         lines += [""] + [f"![{Path(f).stem}]({f})" for f in figures]
@@ -75,7 +83,7 @@ def markdown(report: dict, title: str = "Study", figures: list[str] | None = Non
 
 def _short(v) -> str:
     if isinstance(v, list):
-        return "[" + ", ".join(f"{x:.3g}" for x in v) + "]"
+        return "[" + ", ".join(f"{x:.3g}" if isinstance(x, float) else str(x) for x in v) + "]"
     return f"{v:.3g}"
 
 

@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from clblur.study.histograms import Taps, as_hwc, build_group, sample_grid
+from clblur.study.histograms import Taps, as_hwc, build_group, sample_grid, shifted
 from clblur.study.model import Group
+from clblur.study.variants import SHIFTS
 
 
 def series_groups(images: list[np.ndarray], exposures: list[float],
@@ -35,5 +36,7 @@ def series_groups(images: list[np.ndarray], exposures: list[float],
             yield Taps(0, 0.0, 0.0, 1.0, None)
 
         groups.append(build_group(f"step{k:02d}", [src], tgt, rows, cols, taps,
-                                  h[k + 1] / h[k], vignetting=False, timed=False))
+                                  h[k + 1] / h[k], vignetting=False, timed=False,
+                                  variants={"misregistration": {sh: shifted(taps, *sh)
+                                                                for sh in SHIFTS}}))
     return groups

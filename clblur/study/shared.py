@@ -1,11 +1,13 @@
 """Manifests for the shared measured data (``clblur.io.data_dir()``), written outside it.
 
-``python -m clblur.study.shared OUTDIR`` writes ``memorial.json``, ``levin2009.json`` and
-the GoPro frame-stack manifests into ``OUTDIR``; image paths point into the data folder,
-which is never written to.  The GoPro set has no real long exposure, so the 30 fps "long"
-frames are built here from 8 consecutive 240 fps frames in two ways, each written as PNG into
-``OUTDIR``: the code-value mean (what simple dataset generators do) and the mean in the
-gamma-2.2 linear domain (Nah et al. 2017's synthesis).
+``python -m clblur.study.shared OUTDIR`` writes ``memorial.json``, ``levin2009.json``,
+``canon400d_road.json`` and the GoPro frame-stack manifests into ``OUTDIR``; image paths
+point into the data folder, which is never written to.  The GoPro set has no real long
+exposure, so the 30 fps "long" frames are built here from 8 consecutive 240 fps frames, as
+dataset generators do, in three spaces (code values; gamma-2.2 linear, Nah et al. 2017's
+synthesis; sRGB linear) and stored two ways (rounded; truncated), each written as PNG into
+``OUTDIR``, one manifest per window and one pooling every fourth window
+(``average_frames``, ``gopro``).
 """
 
 from __future__ import annotations
@@ -49,26 +51,96 @@ def levin(out: Path, data: Path) -> Path:
     return path
 
 
+GOPRO_AVERAGES = ("code", "gamma22", "srgb")  # space the frames are averaged in
+GOPRO_STORAGE = ("round", "trunc")  # how the mean is stored as 8 bits
+
+
+def _srgb_to_linear(v: np.ndarray) -> np.ndarray:
+    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+
+
+def _linear_to_srgb(x: np.ndarray) -> np.ndarray:
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def average_frames(codes: np.ndarray, how: str, storage: str) -> np.ndarray:
+    """8-bit long exposure from a stack of 8-bit frames (F x H x W x C), as a dataset
+    generator would make it: the mean taken in code values (``code``), in gamma-2.2 linear
+    values (``gamma22``, Nah et al. 2017) or in sRGB linear values (``srgb``), stored by
+    rounding (half to even) or by truncation (``trunc``, e.g. a C cast of the float mean).
+    ``paper``: the paper's own Eq. 3 + Eq. 8 average, rounded: real frames, yet nothing but
+    the paper's model is true (null data for the study)."""
+    v = codes.astype(np.float64) / 255.0
+    if how == "code":  # in code units, so exact halves stay halves (round half to even)
+        mean = codes.astype(np.float64).mean(axis=0) / 255.0
+    elif how == "gamma22":
+        mean = (v ** 2.2).mean(axis=0) ** (1 / 2.2)
+    elif how == "srgb":
+        mean = _linear_to_srgb(_srgb_to_linear(v).mean(axis=0))
+    elif how == "paper":  # Eq. 3 + Eq. 8 exactly (real null data); 255 as clblur.pixels
+        top = 1.0 - 1.0 / (4 * 255)
+        mean = -np.expm1(np.log1p(-np.minimum(v, top)).mean(axis=0))
+    else:
+        raise ValueError(f"unknown average {how!r}; use code, gamma22, srgb or paper")
+    # code values; 1e-9 so exact code-mean halves do not fall a hair under the integer
+    x = np.clip(codes.astype(np.float64).mean(axis=0) if how == "code" else mean * 255.0,
+                0.0, 255.0)
+    if storage == "round":
+        return np.rint(x).astype(np.uint8)
+    if storage == "trunc":
+        return np.floor(x + 1e-9).astype(np.uint8)
+    raise ValueError(f"unknown storage {storage!r}; use {', '.join(GOPRO_STORAGE)}")
+
+
 def gopro(out: Path, data: Path) -> list[Path]:
+    """Frame-stack manifests from the 240 fps GoPro frames: for every average and storage,
+    one manifest per 8-frame window (``gopro240_{how}_{storage}_wNN.json``, window start NN)
+    and one pooling the windows that start every ``GOPRO_STEP`` frames
+    (``gopro240_{how}_{storage}.json``), plus real null data: ``gopro240_paper_round_wNN``
+    (the paper's own average, every ``GOPRO_STEP`` frames).  Long exposures are written as
+    PNG into ``out``."""
     files = sorted((data / "gopro240" / "frames").glob("*.png"))
-    frames = [read_image(f) for f in files]
+    if len(files) < GOPRO_STACK:
+        raise ValueError(f"gopro240: {len(files)} frames, need at least {GOPRO_STACK}")
+    frames = np.stack([read_image(f) for f in files])
     paths = []
-    for how in ("code_mean", "gamma22_mean"):
-        stacks = []
-        for s in range(0, len(files) - GOPRO_STACK + 1, GOPRO_STEP):
-            codes = np.stack(frames[s:s + GOPRO_STACK]).astype(np.float64)
-            if how == "code_mean":  # in code units, so exact halves round half to even
-                mean = codes.mean(axis=0)
-            else:
-                mean = 255.0 * ((codes / 255.0) ** 2.2).mean(axis=0) ** (1 / 2.2)
-            long = out / f"gopro_{how}_{s:02d}.png"
-            write_image(long, np.rint(mean).astype(np.uint8))
-            stacks.append({"frames": [str(f) for f in files[s:s + GOPRO_STACK]],
-                           "long": long.name})
-        path = out / f"gopro240_{how}.json"
-        write_manifest(path, {"kind": "frame-stack", "stacks": stacks})
+    starts = range(0, len(files) - GOPRO_STACK + 1)
+    for how in GOPRO_AVERAGES:
+        for storage in GOPRO_STORAGE:
+            stacks = {}
+            for s in starts:
+                long = out / f"gopro_{how}_{storage}_{s:02d}.png"
+                write_image(long, average_frames(frames[s:s + GOPRO_STACK], how, storage))
+                stacks[s] = {"frames": [str(f) for f in files[s:s + GOPRO_STACK]],
+                             "long": long.name}
+                path = out / f"gopro240_{how}_{storage}_w{s:02d}.json"
+                write_manifest(path, {"kind": "frame-stack", "stacks": [stacks[s]]})
+                paths.append(path)
+            path = out / f"gopro240_{how}_{storage}.json"
+            write_manifest(path, {"kind": "frame-stack",
+                                  "stacks": [stacks[s] for s in starts[::GOPRO_STEP]]})
+            paths.append(path)
+    for s in starts[::GOPRO_STEP]:  # real null data: the paper's model built the long frame
+        long = out / f"gopro_paper_round_{s:02d}.png"
+        write_image(long, average_frames(frames[s:s + GOPRO_STACK], "paper", "round"))
+        path = out / f"gopro240_paper_round_w{s:02d}.json"
+        write_manifest(path, {"kind": "frame-stack", "stacks": [
+            {"frames": [str(f) for f in files[s:s + GOPRO_STACK]], "long": long.name}]})
         paths.append(path)
     return paths
+
+
+def canon(out: Path, data: Path) -> Path | None:
+    """The Canon 400D JPEG bracket (exposure = the file name, in seconds)."""
+    base = data / "canon400d_road"
+    files = sorted(base.glob("*.JPG"), key=lambda f: float(f.stem)) if base.is_dir() else []
+    if not files:
+        return None
+    path = out / "canon400d_road.json"
+    write_manifest(path, {"kind": "exposure-series",
+                          "images": [{"path": str(f), "exposure": float(f.stem)}
+                                     for f in files]})
+    return path
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -79,8 +151,10 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(argv[0])
     out.mkdir(parents=True, exist_ok=True)
     data = data_dir(required=True)
-    for p in [memorial(out, data), levin(out, data), *gopro(out, data)]:
-        print(p)
+    made = [memorial(out, data), levin(out, data), canon(out, data), *gopro(out, data)]
+    for p in made:
+        if p is not None:
+            print(p)
     return 0
 
 

@@ -8,8 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from clblur.study.histograms import Taps, as_hwc, build_group, sample_grid
+from clblur.study.histograms import Taps, as_hwc, build_group, sample_grid, shifted
 from clblur.study.model import Group
+from clblur.study.variants import SHIFTS
 
 
 def stack_group(frames: list[np.ndarray], long: np.ndarray, *, max_pixels: int = 60000,
@@ -28,4 +29,5 @@ def stack_group(frames: list[np.ndarray], long: np.ndarray, *, max_pixels: int =
         for t in range(nf):
             yield Taps(t, 0.0, 0.0, 1.0 / nf, t / (nf - 1))
 
-    return build_group(name, src, tgt, rows, cols, taps, 1.0, vignetting=False, timed=True)
+    return build_group(name, src, tgt, rows, cols, taps, 1.0, vignetting=False, timed=True,
+                       variants={"misregistration": {sh: shifted(taps, *sh) for sh in SHIFTS}})

@@ -13,6 +13,7 @@ centred on the pixel, so ``vignetting`` uses ``anchor="start"``.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -35,6 +36,10 @@ RANGES = {
     "nonuniform_motion": (2.0, 4.0),  # end / start speed (or its inverse)
     "channel_gain": (0.05, 0.15),  # |log| of the R and B gain change (G fixed)
     "exposure_gain": (0.08, 0.25),  # |log| of the gain change
+    "quantisation": (0.3, 0.7),  # |offset| of the stored blurred codes (negative: truncation)
+    "misregistration": (0.3, 0.8),  # length of the blurred image's shift, pixels
+    "psf_orientation": (1.0, 1.0),  # the blurred image made with the PSF turned by 180 deg
+    "psf_scale": (1.1, 1.25),  # true / stated motion length (or its inverse)
 }
 CLIP = 6.2 / 3.0  # exposure at which Exp(3) reaches code 255
 
@@ -47,9 +52,15 @@ class Scenario:
 
 
 def scenario(effects: dict[str, float | None], rng: np.random.Generator,
-             shape: tuple[int, int] = (48, 64)) -> Scenario:
+             shape: tuple[int, int] = (48, 64), psf: bool = False) -> Scenario:
     """Render data with the given hidden effects (``None`` magnitude: drawn from ``RANGES``);
-    an empty dict renders null data (the paper's model exactly true)."""
+    an empty dict renders null data (the paper's model exactly true).  ``psf``: a blur pair
+    with a random asymmetric PSF instead of a vector (always so for ``psf_orientation``).
+
+    ``quantisation`` stores the blurred image with an offset of ``-m`` codes (truncation of
+    ``v + 0.5 - m``) or ``+m`` (rounding of ``v + m``); ``misregistration`` shifts the blurred
+    image by ``m`` pixels in a random direction; ``psf_scale`` renders a motion ``m`` (or
+    ``1 / m``) times as long as the one the study is told."""
     unknown = set(effects) - set(RANGES)
     if unknown:
         raise ValueError(f"unknown effect(s) {sorted(unknown)}; use {', '.join(RANGES)}")
@@ -75,7 +86,23 @@ def scenario(effects: dict[str, float | None], rng: np.random.Generator,
     length = float(rng.uniform(12, 16) if "vignetting" in mag else rng.uniform(6, 12))
     angle = float(rng.uniform(-0.4, 0.4)) + (math.pi if rng.random() < 0.5 else 0.0)
     motion = (length * math.cos(angle), length * math.sin(angle))
+    told = motion
     kw: dict = {"anchor": "start" if "vignetting" in mag else "center"}
+    if (psf or "psf_orientation" in mag) and "psf_scale" not in mag:
+        told = random_psf(rng)
+        motion = told[::-1, ::-1] if "psf_orientation" in mag else told
+    if "psf_scale" in mag:
+        f = mag["psf_scale"] ** sign
+        motion = (told[0] * f, told[1] * f)  # a vector: the camera renders it exactly
+    target_cam = camera
+    if "quantisation" in mag:
+        q = mag["quantisation"]
+        target_cam = dataclasses.replace(
+            camera, storage="floor" if sign < 0 else "round",
+            code_offset=0.5 - q if sign < 0 else q)
+    if "misregistration" in mag:
+        a = float(rng.uniform(0, 2 * math.pi))
+        kw["shift"] = (mag["misregistration"] * math.cos(a), mag["misregistration"] * math.sin(a))
     if "nonuniform_motion" in mag:
         n = int(math.ceil(math.hypot(*motion))) + 1
         kw["weights"] = accelerating_weights(n, mag["nonuniform_motion"] ** sign)
@@ -85,14 +112,31 @@ def scenario(effects: dict[str, float | None], rng: np.random.Generator,
         lg = sign * mag["channel_gain"]
         kw["channel_gains"] = (math.exp(lg), 1.0, math.exp(-lg))
     static = camera.capture(scene, rng=rng)
-    blurred = camera.capture(scene, motion=motion, rng=rng, **kw)
-    return Scenario("blur-pair", [pair_group(static, blurred, motion, anchor=kw["anchor"])], mag)
+    blurred = target_cam.capture(scene, motion=motion, rng=rng, **kw)
+    return Scenario("blur-pair", [pair_group(static, blurred, told, anchor=kw["anchor"])], mag)
+
+
+def random_psf(rng: np.random.Generator, size: int = 11) -> np.ndarray:
+    """A camera-shake-like kernel: a random walk with momentum (asymmetric, unit sum)."""
+    k = np.zeros((size, size))
+    pos = np.array([size / 2.0, size / 2.0])
+    vel = rng.normal(0, 1, 2)
+    vel /= np.linalg.norm(vel)
+    for _ in range(40):
+        vel = vel + rng.normal(0, 0.35, 2)
+        vel /= np.linalg.norm(vel)
+        pos = np.clip(pos + 0.25 * vel, 0, size - 1)
+        k[int(round(pos[0])), int(round(pos[1]))] += rng.uniform(0.5, 1.5)
+    # a heavier tail at one end makes the 180-degree turn distinguishable
+    k[int(round(pos[0])), int(round(pos[1]))] += 6.0
+    return k / k.sum()
 
 
 def null_stack(rng: np.random.Generator, shape=(48, 64), frames: int = 6,
-               gamma: float | None = None) -> Scenario:
+               gamma: float | None = None, storage: str = "round") -> Scenario:
     """A frame stack of a moving scene: ``frames`` short captures and the long one spanning
-    them, rendered as the exact temporal Eq. 8 (``gamma``: a power-law camera instead).
+    them, rendered as the exact temporal Eq. 8 (``gamma``: a power-law camera instead;
+    ``storage="floor"``: the long one truncated, a -0.5 code bias).
 
     The long capture's total exposure equals the frames' mean exposure (as when frames are
     averaged into a longer exposure, or the long one is taken through an ND filter)."""
@@ -100,8 +144,10 @@ def null_stack(rng: np.random.Generator, shape=(48, 64), frames: int = 6,
     scene = random_scene(rng, (shape[0], shape[1] + 3 * frames), 3, low=0.03, high=0.35)
     shots = [scene[:, 3 * t:3 * t + shape[1]] for t in range(frames)]
     short = [camera.capture(s, rng=rng) for s in shots]
-    long = camera.capture(sum(shots) / frames, rng=rng)
+    long = dataclasses.replace(camera, storage=storage).capture(sum(shots) / frames, rng=rng)
     truth = {"response_shape": gamma} if gamma else {}
+    if storage == "floor":
+        truth["quantisation"] = 0.5
     return Scenario("frame-stack", [stack_group(short, long)], truth)
 
 

@@ -1,0 +1,136 @@
+"""Geometric and storage effects on top of the study's forward model (``model.predict``).
+
+Conventions
+-----------
+The paper's model reads each target pixel's source codes through fixed taps (``Group.hist``).
+Three effects change the taps, one changes how the target was stored:
+
+* ``misregistration`` (``sx``, ``sy``, pixels, each in [-1, 1]): target pixel ``p`` sees the
+  source at ``p - s``.  Histograms are built for the four unit shifts; a sub-pixel shift
+  mixes them, ``H(s) = H0 + |sx| (H(sign sx, 0) - H0) + |sy| (H(0, sign sy) - H0)``, which is
+  exactly bilinear interpolation along each axis (taps on whole pixels, as in stacks and
+  series) and its first-order form otherwise.
+* ``psf_orientation`` (``flip:G`` in {0, 1} per group ``G``): the motion is rotated by 180
+  degrees (a PSF ``h[::-1, ::-1]``, a flow or vector negated): correlation instead of
+  convolution.  Chosen per group (per pair), because a data set can mix both conventions.
+* ``psf_scale`` (``pscale`` in [0.8, 1.25]): the motion resampled by that factor (a PSF
+  zoomed about its centre, a vector or flow scaled).  Histograms are built at 0.8 and 1.25;
+  between them the mixture is piecewise linear in the factor (exact at 0.8, 1, 1.25).
+* ``quantisation`` (``qoff``, code values in [-1, 1]): a constant offset of the stored target
+  codes, e.g. -0.5 when values were truncated (floor) instead of rounded.
+
+All four are nested: at ``sx = sy = 0``, ``flip = 0``, ``pscale = 1``, ``qoff = 0`` the
+prediction is ``model.predict``'s.  Variant histograms combine additively (a flipped and
+shifted PSF uses the shift deltas of the unflipped one: a first-order approximation).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import scipy.sparse as sp
+
+from clblur.study.model import Group
+from clblur.study.model import predict as _model_predict
+
+__all__ = ["attach", "darkest_code", "has_variant", "pixel_nll", "predict", "subset"]
+
+_LOG2PI = float(np.log(2 * np.pi))
+SCALES = (0.8, 1.25)  # psf_scale histograms besides 1
+SHIFTS = ((1, 0), (-1, 0), (0, 1), (0, -1))  # misregistration histograms besides (0, 0)
+
+
+def attach(g: Group, variants: dict[str, dict], darkest: int) -> None:
+    """Store variant histograms (``{effect: {key: hist}}``) and the darkest source code."""
+    g.__dict__["variants"] = variants
+    g.__dict__["darkest"] = min(darkest, int(g.target.min()) if g.target.size else 255)
+
+
+def darkest_code(g: Group) -> int:
+    """Darkest code seen in the group's source images or target pixels."""
+    return int(g.__dict__.get("darkest", int(g.target.min()) if g.target.size else 0))
+
+
+def has_variant(groups: list[Group], effect: str) -> bool:
+    return any(effect in g.__dict__.get("variants", {}) for g in groups)
+
+
+def subset(g: Group, keep: np.ndarray) -> Group:
+    """``g.subset(keep)`` keeping the variant histograms, the group index and darkest code."""
+    out = g.subset(keep)
+    idx = np.flatnonzero(keep)
+    out.__dict__["variants"] = {
+        e: {k: {key: [h[idx] for h in hs] for key, hs in hist.items()} for k, hist in d.items()}
+        for e, d in g.__dict__.get("variants", {}).items()}
+    for k in ("darkest", "gid"):
+        if k in g.__dict__:
+            out.__dict__[k] = g.__dict__[k]
+    return out
+
+
+def _terms(g: Group, p: dict) -> list[tuple[float, tuple]]:
+    """(weight, variant key) pairs; the prediction uses H0 + sum w (H_v - H0)."""
+    var = g.__dict__.get("variants", {})
+    out = []
+    sx, sy = p.get("sx", 0.0), p.get("sy", 0.0)
+    if "misregistration" in var and (sx or sy):
+        if sx:
+            out.append((abs(sx), ("misregistration", (1 if sx > 0 else -1, 0))))
+        if sy:
+            out.append((abs(sy), ("misregistration", (0, 1 if sy > 0 else -1))))
+    s = p.get("pscale", 1.0)
+    if "psf_scale" in var and s != 1.0:
+        lo, hi = SCALES
+        if s > 1.0:
+            out.append(((s - 1.0) / (hi - 1.0), ("psf_scale", hi)))
+        else:
+            out.append(((1.0 - s) / (1.0 - lo), ("psf_scale", lo)))
+    flip = p.get(f"flip:{g.__dict__.get('gid', 0)}", 0.0)
+    if "psf_orientation" in var and flip:
+        out.append((flip, ("psf_orientation", "flip")))
+    return out
+
+
+class _Mix:
+    """``sum_v w_v H_v`` as far as ``model.predict`` uses a histogram (``@`` a code table,
+    row sums): products of the parts, never a new sparse matrix per evaluation."""
+
+    def __init__(self, parts: list[tuple[float, sp.csr_matrix]]):
+        self.parts = parts
+        self.shape = parts[0][1].shape
+
+    def __matmul__(self, t: np.ndarray) -> np.ndarray:
+        out = self.parts[0][0] * (self.parts[0][1] @ t)
+        for w, h in self.parts[1:]:
+            out = out + w * (h @ t)
+        return out
+
+    def sum(self, axis=None):
+        out = self.parts[0][0] * self.parts[0][1].sum(axis=axis)
+        for w, h in self.parts[1:]:
+            out = out + w * h.sum(axis=axis)
+        return out
+
+
+def predict(g: Group, p: dict) -> tuple[np.ndarray, np.ndarray]:
+    """``model.predict`` with the geometric variants mixed in and the storage offset added."""
+    terms = _terms(g, p)
+    if terms:
+        var = g.__dict__["variants"]
+        w0 = 1.0 - sum(w for w, _ in terms)
+        hist = {key: [_Mix([(w0, h)] + [(w, var[e][k][key][c]) for w, (e, k) in terms])
+                      for c, h in enumerate(hs)]
+                for key, hs in g.hist.items()}
+        g = dataclasses.replace(g, hist=hist)
+    pred, var_ = _model_predict(g, p)
+    q = p.get("qoff", 0.0)
+    return (pred + q if q else pred), var_
+
+
+def pixel_nll(g: Group, p: dict) -> np.ndarray:
+    """Gaussian negative log-likelihood per target pixel (summed over valid channels)."""
+    pred, var = predict(g, p)
+    r = g.target - pred
+    nll = 0.5 * (_LOG2PI + np.log(var) + r * r / var)
+    return np.where(g.valid, nll, 0.0).sum(axis=1)
