@@ -352,7 +352,10 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     def fill(k: int) -> np.ndarray:
         """The linear image with everything nearer than layer ``k`` reconstructed."""
         if k not in fills:
-            fills[k] = _inpaint(lin_c, labels >= k, band, behind_edt(k), needed(k))
+            # an intermediate layer extends MID_EXTEND_PX under what hides it, and a mixed
+            # pixel lies within 2 px of what is behind it: deeper, nothing reads the fill
+            depth = band if k == last else MID_EXTEND_PX + 2.0
+            fills[k] = _inpaint(lin_c, labels >= k, depth, behind_edt(k), needed(k))
         return fills[k]
 
     planes, vectors, present = [], [], []
