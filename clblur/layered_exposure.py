@@ -228,14 +228,14 @@ def _inpaint(lin: np.ndarray, known: np.ndarray, depth: float,
     return np.where(known[..., None], lin, out)
 
 
-# offsets within 2 px, nearest first (ties in a fixed order)
-_NEAR = sorted(((dy, dx) for dy in range(-2, 3) for dx in range(-2, 3) if dy or dx),
+# offsets within 3 px, nearest first (ties in a fixed order)
+_NEAR = sorted(((dy, dx) for dy in range(-3, 4) for dx in range(-3, 4) if dy or dx),
                key=lambda o: (o[0] * o[0] + o[1] * o[1], o))
 
 
 def _nearest_pixel(inside: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(rows, cols) of a nearest ``inside`` pixel to each ``at`` pixel (row-major order of
-    ``at``): looked up within 2 px, then by a distance transform for the rest (mixed pixels
+    ``at``): looked up within 3 px, then by a distance transform for the rest (mixed pixels
     lie next to their layer, so the lookup nearly always succeeds)."""
     from scipy.ndimage import distance_transform_edt
 
