@@ -257,7 +257,8 @@ def _nearest_pixel(inside: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.n
 
 
 def split_coverage(light: np.ndarray, front: np.ndarray, behind: np.ndarray) -> np.ndarray:
-    """Coverage of the nearer layer in mixed pixels, from their light (H x W, in [0, 1]).
+    """Coverage of the nearer layer in mixed pixels, from their light (in [0, 1]; ``light``,
+    ``front`` and ``behind`` are ... x C linear light, the result has their shape but C).
 
     A mixed pixel holds ``a F + (1 - a) B`` (``F``: the nearest unmixed pixel of the nearer
     layer, ``B``: what lies behind); ``a`` is the least-squares fit over the channels (the
