@@ -80,7 +80,7 @@ def write_inputs(workdir: Path, shape: tuple[int, int], max_motion: float,
     flow = np.lib.format.open_memmap(flow_path, mode="w+", dtype=np.float16, shape=(h, w, 2))
     flow_offset = flow.offset
     del flow
-    from clblur.tiling import MappedRaster
+    from clblur.io import MappedRaster
 
     img = MappedRaster(img_path, np.uint8, (h, w, 3), offset, writable=True)
     flow = MappedRaster(flow_path, np.float16, (h, w, 2), flow_offset, writable=True)

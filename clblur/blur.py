@@ -8,6 +8,7 @@ import warnings
 import numpy as np
 
 from clblur import pipeline
+from clblur.errors import InputError
 from clblur.plan import BlurPlan, make_plan
 
 __all__ = ["BACKENDS", "blur", "blur_plan", "check_backend", "resolve_backend", "stages"]
@@ -52,7 +53,9 @@ def blur(image: np.ndarray, motion, response="exp", *, anchor: str = "center",
     alpha : the last channel is coverage, not light (straight alpha for integer images,
         premultiplied for float images; see ``clblur.reference``).  Default False.
 
-    Returns the blurred image with the input's dtype and shape.
+    Returns the blurred image with the input's dtype and shape.  A ``pyopencl.array.Array``
+    image (and flow) stays on its device and the result is one too
+    (``clblur.opencl.blur_array``).
 
     Conventions
     -----------
@@ -60,9 +63,20 @@ def blur(image: np.ndarray, motion, response="exp", *, anchor: str = "center",
     ``clblur.pixels``; the pipeline order: ``clblur.pipeline``.
     """
     check_backend(backend)
+    if type(image).__module__.startswith("pyopencl"):
+        from clblur import opencl
+
+        if depth is not None or alpha or background is not None:
+            raise InputError("depth, alpha and background take numpy arrays, not device arrays")
+
+        return opencl.blur_array(image, motion, response, anchor=anchor, samples=samples,
+                                 weights=weights, saturation=saturation, device=device)
+    chosen = resolve_backend(backend, device)
     plan = make_plan(image, motion, response, anchor=anchor, samples=samples, weights=weights,
-                     saturation=saturation, depth=depth, alpha=alpha, background=background)
-    return blur_plan(plan, backend, device)
+                     saturation=saturation, depth=depth, alpha=alpha, background=background,
+                     # the layered path reads the flow on the host, so it is checked there
+                     check_flow=chosen == "numpy" or depth is not None)
+    return blur_plan(plan, chosen, device)
 
 
 def check_backend(backend: str) -> None:

@@ -8,14 +8,16 @@ in the photo-consistent blur the highlight stays bright and streaks, as in real 
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import numpy as np
 
 from clblur.blur import blur
-from clblur.commands import add_backend_options
+from clblur.errors import InputError
 from clblur.io import atomic_write, write_image
+
+__all__ = ["BALL_MOTION", "STEP_HIGH", "STEP_LOW", "STEP_MOTION", "ball_scene", "render",
+           "step_edge", "step_edge_closed_form"]
 
 STEP_LOW, STEP_HIGH = 30, 225  # uint8 levels of the step edge
 STEP_MOTION = 48
@@ -69,6 +71,9 @@ def render(out_dir: Path, backend: str = "auto", device: str | None = None) -> l
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"demo output {out_dir} exists and is not a folder")
     out_dir.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
     opts = dict(backend=backend, device=device)
@@ -148,19 +153,3 @@ def render(out_dir: Path, backend: str = "auto", device: str | None = None) -> l
 def _savefig(fig, path: Path) -> Path:
     atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
     return path
-
-
-def cmd_demo(args: argparse.Namespace) -> int:
-    for path in render(Path(args.out), backend=args.backend, device=args.device):
-        print(f"wrote {path}")
-    return 0
-
-
-def register(sub) -> None:
-    p = sub.add_parser("demo", help="render the paper's Figure 3 and a Figure-4-like scene",
-                       description="Render built-in scenes (no downloads) blurred "
-                                   "conventionally and photo-consistently.")
-    p.add_argument("--out", default="clblur-demo", metavar="DIR",
-                   help="output folder (default: ./clblur-demo)")
-    add_backend_options(p)
-    p.set_defaults(func=cmd_demo)

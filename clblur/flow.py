@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clblur.io import read_flow, write_flow
+from clblur.io import read_flow, resolve_inside, write_flow
 from clblur.pixels import quantise
 
 METHODS = ("dis", "farneback")
@@ -95,7 +95,8 @@ class FlowFolder:
         p = flow_path(self.path, direction, index)
         if p is None:
             return None
-        flow = read_flow(p)
+        # a flow in the folder must be a file in the folder, not a symlink leading out of it
+        flow = read_flow(resolve_inside(self.path, p.name, f"flow folder {self.path}: file"))
         if flow.shape[:2] != tuple(shape):
             raise ValueError(f"{p.name} has size {flow.shape[:2]}, the frame {tuple(shape)}")
         return flow
@@ -103,7 +104,9 @@ class FlowFolder:
 
 def save_flows(folder: str | os.PathLike, index: int, backward: np.ndarray | None,
                forward: np.ndarray | None) -> None:
-    """Write a frame's flows in the folder layout (``.npy``), e.g. to reuse them later."""
+    """Write a frame's flows in the folder layout (``.npy``), e.g. to reuse them later; the
+    folder is created if missing."""
+    Path(folder).mkdir(parents=True, exist_ok=True)
     for direction, flow in (("backward", backward), ("forward", forward)):
         if flow is not None:
             write_flow(Path(folder) / f"{direction}_{index:06d}.npy", flow)

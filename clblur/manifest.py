@@ -1,6 +1,9 @@
 """Measurement manifests shared by ``clblur calibrate`` and ``clblur study``.
 
-Three kinds, paths relative to the manifest file::
+Three kinds, paths relative to the manifest file.  Every path must resolve (symlinks followed)
+inside the manifest's folder or the measured-data folder (``clblur.data.data_dir``:
+``$CLBLUR_DATA``), so manifests written elsewhere may name the shared data; any other path
+(``..``, absolute or through a symlink) is refused::
 
     {"kind": "exposure-series",
      "images": [{"path": "e00.png", "exposure": 0.5, "f_number": 5.0}, ...]}
@@ -19,6 +22,12 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from clblur.errors import InputError
+from clblur.io.paths import resolve_inside
+
+__all__ = ["KINDS", "BlurPair", "Exposure", "FrameStack", "Manifest", "load_manifest",
+           "write_manifest"]
 
 KINDS = ("exposure-series", "blur-pair", "frame-stack")
 
@@ -60,72 +69,90 @@ def _positive(value, what: str) -> float:
     try:
         v = float(value)
     except (TypeError, ValueError):
-        raise ValueError(f"{what} must be a number, got {value!r}") from None
+        raise InputError(f"{what} must be a number, got {value!r}") from None
     if not math.isfinite(v) or v <= 0:
-        raise ValueError(f"{what} must be positive and finite, got {value!r}")
+        raise InputError(f"{what} must be positive and finite, got {value!r}")
     return v
 
 
 def _require(entry: dict, key: str, where: str):
     if not isinstance(entry, dict) or key not in entry:
-        raise ValueError(f"{where} lacks {key!r}")
+        raise InputError(f"{where} lacks {key!r}")
     return entry[key]
 
 
+def _entries(doc: dict, key: str, where: str) -> list:
+    entries = _require(doc, key, where)
+    if not isinstance(entries, list) or not entries:
+        raise InputError(f"{where}: {key!r} must be a non-empty list")
+    return entries
+
+
+def _path(roots: list[Path], value, where: str) -> Path:
+    if not isinstance(value, str):
+        raise InputError(f"{where} must be a path string, got {value!r}")
+    return resolve_inside(roots, value, where)
+
+
 def load_manifest(path: str | os.PathLike) -> Manifest:
-    """Parse and validate a manifest; raises ``ValueError`` naming the problem."""
+    """Parse and validate a manifest; raises ``InputError`` naming the problem."""
     path = Path(path)
     try:
         doc = json.loads(path.read_text())
     except FileNotFoundError:
-        raise ValueError(f"manifest not found: {path}") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise ValueError(f"cannot read manifest {path}: {e}") from None
+        raise InputError(f"manifest not found: {path}") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:
+        raise InputError(f"cannot read manifest {path}: {e}") from None
     if not isinstance(doc, dict) or doc.get("kind") not in KINDS:
-        raise ValueError(f"manifest {path}: 'kind' must be one of {', '.join(KINDS)}")
-    base = path.parent
+        raise InputError(f"manifest {path}: 'kind' must be one of {', '.join(KINDS)}")
+    from clblur.data import data_dir
+
+    shared = data_dir()
+    base = [path.parent] + ([shared] if shared is not None else [])  # the allowed roots
     kind = doc["kind"]
     if kind == "exposure-series":
-        entries = _require(doc, "images", f"manifest {path}")
+        entries = _entries(doc, "images", f"manifest {path}")
         images = []
         for i, e in enumerate(entries):
             where = f"manifest {path}, images[{i}]"
             fn = e.get("f_number") if isinstance(e, dict) else None
-            images.append(Exposure(base / _require(e, "path", where),
+            images.append(Exposure(_path(base, _require(e, "path", where), f"{where} path"),
                                    _positive(_require(e, "exposure", where), f"{where} exposure"),
                                    None if fn is None else _positive(fn, f"{where} f_number")))
         return Manifest(kind, path, images=tuple(images))
     if kind == "blur-pair":
         pairs = []
-        for i, p in enumerate(_require(doc, "pairs", f"manifest {path}")):
+        for i, p in enumerate(_entries(doc, "pairs", f"manifest {path}")):
             where = f"manifest {path}, pairs[{i}]"
             forms = [k for k in ("motion", "flow", "psf") if isinstance(p, dict) and k in p]
             if len(forms) != 1:
-                raise ValueError(f"{where} needs exactly one of motion, flow, psf")
+                raise InputError(f"{where} needs exactly one of motion, flow, psf")
             motion = None
             if "motion" in p:
                 m = p["motion"]
-                if not (isinstance(m, list) and len(m) == 2):
-                    raise ValueError(f"{where} motion must be [dx, dy]")
+                if not (isinstance(m, list) and len(m) == 2
+                        and all(isinstance(v, (int, float)) and math.isfinite(v) for v in m)):
+                    raise InputError(f"{where} motion must be [dx, dy], finite numbers")
                 motion = (float(m[0]), float(m[1]))
             pairs.append(BlurPair(
-                static=base / _require(p, "static", where),
-                blurred=base / _require(p, "blurred", where),
+                static=_path(base, _require(p, "static", where), f"{where} static"),
+                blurred=_path(base, _require(p, "blurred", where), f"{where} blurred"),
                 motion=motion,
-                flow=base / p["flow"] if "flow" in p else None,
-                psf=base / p["psf"] if "psf" in p else None,
+                flow=_path(base, p["flow"], f"{where} flow") if "flow" in p else None,
+                psf=_path(base, p["psf"], f"{where} psf") if "psf" in p else None,
                 anchor=p.get("anchor", "center"),
                 exposure_ratio=_positive(p.get("exposure_ratio", 1.0),
                                          f"{where} exposure_ratio")))
         return Manifest(kind, path, pairs=tuple(pairs))
     stacks = []
-    for i, s in enumerate(_require(doc, "stacks", f"manifest {path}")):
+    for i, s in enumerate(_entries(doc, "stacks", f"manifest {path}")):
         where = f"manifest {path}, stacks[{i}]"
         frames = _require(s, "frames", where)
         if not isinstance(frames, list) or len(frames) < 2:
-            raise ValueError(f"{where} needs at least 2 frames")
-        stacks.append(FrameStack(tuple(base / f for f in frames),
-                                 base / _require(s, "long", where)))
+            raise InputError(f"{where} needs at least 2 frames")
+        stacks.append(FrameStack(
+            tuple(_path(base, f, f"{where} frames[{k}]") for k, f in enumerate(frames)),
+            _path(base, _require(s, "long", where), f"{where} long")))
     return Manifest(kind, path, stacks=tuple(stacks))
 
 
@@ -134,5 +161,5 @@ def write_manifest(path: str | os.PathLike, doc: dict) -> None:
     from clblur.io import atomic_write_text
 
     if doc.get("kind") not in KINDS:
-        raise ValueError(f"manifest kind must be one of {', '.join(KINDS)}")
+        raise InputError(f"manifest kind must be one of {', '.join(KINDS)}")
     atomic_write_text(path, json.dumps(doc, indent=1) + "\n")

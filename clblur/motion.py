@@ -24,6 +24,9 @@ from dataclasses import dataclass
 import numpy as np
 
 ANCHORS = {"start": 0.0, "center": 0.5, "end": 1.0}
+# Largest flow component accepted, in px: far beyond any image, small enough that sample
+# positions keep 2^-8 px in float32 and the per-pixel sample count stays bounded.
+FLOW_LIMIT = 65536.0
 
 
 @dataclass(frozen=True)
@@ -36,7 +39,7 @@ class Uniform:
 
 @dataclass(frozen=True)
 class Field:
-    """A per-pixel displacement field, H x W x 2 float32 (dx, dy)."""
+    """A per-pixel displacement field, H x W x 2 float32 or float16 (dx, dy)."""
 
     flow: np.ndarray
 
@@ -68,11 +71,31 @@ def _finite_vector(values: np.ndarray, what: str) -> None:
         raise ValueError(f"{what} contains {int(bad.sum())} NaN or infinite value(s)")
 
 
-def parse_motion(motion, shape: tuple[int, int]) -> Motion:
+def flow_error(nonfinite: int, beyond: int) -> str:
+    """The refusal of a flow field with ``nonfinite`` / ``beyond``-limit components."""
+    if nonfinite:
+        return f"flow field contains {nonfinite} NaN or infinite value(s)"
+    return f"flow field contains {beyond} value(s) beyond +-{FLOW_LIMIT:g} px"
+
+
+def check_flow(flow: np.ndarray) -> None:
+    """Refuse non-finite components and components beyond ``FLOW_LIMIT`` (host pass; the
+    OpenCL backend counts the same on the device while it reads the flow)."""
+    finite = np.isfinite(flow)
+    nonfinite = int(flow.size - np.count_nonzero(finite))
+    beyond = 0 if flow.dtype == np.float16 else (  # finite halves never exceed 65504
+        int(np.count_nonzero(np.abs(np.where(finite, flow, 0)) > FLOW_LIMIT)))
+    if nonfinite or beyond:
+        raise ValueError(flow_error(nonfinite, beyond))
+
+
+def parse_motion(motion, shape: tuple[int, int], check: bool = True) -> Motion:
     """Validate ``motion`` for an image of ``shape`` (H, W).
 
     Accepts ``(dx, dy)``, an H x W x 2 array, a 2-D PSF array, or a ``Uniform``/``Field``/
-    ``PSF`` instance.
+    ``PSF`` instance.  A float16 flow stays float16 (every half is exactly a float32).
+    ``check=False`` leaves the flow's values to the backend (the OpenCL kernels count bad
+    values while they read them; ``check_flow`` gives the same refusal).
     """
     if isinstance(motion, Uniform):
         motion = (motion.dx, motion.dy)
@@ -94,8 +117,10 @@ def parse_motion(motion, shape: tuple[int, int]) -> Motion:
         if arr.shape != (h, w, 2):
             raise ValueError(f"flow field has shape {arr.shape}, expected ({h}, {w}, 2) to "
                              f"match the image")
-        flow = np.ascontiguousarray(arr, dtype=np.float32)
-        _finite_vector(flow, "flow field")
+        dtype = np.float16 if arr.dtype == np.float16 else np.float32
+        flow = np.ascontiguousarray(arr, dtype=dtype)
+        if check:
+            check_flow(flow)
         return Field(flow)
     if arr.ndim == 2:
         return psf(arr)

@@ -10,7 +10,7 @@ Conventions
 * The layered integrator is *sparse*: outside the pixels that ``boundary_mask`` flags, the
   result is the plain gather of the backend, bit for bit (the fused output); at flagged pixels
   the layers are built on the host (``clblur.layered_exposure.prepare``, shared with the
-  numpy reference), composited in float32 by ``kernels/layered.cl``, and finished on the host.
+  numpy reference), composited in float32 by ``clblur/opencl/layered.cl``, and finished on the host.
   Tolerance against the numpy reference: ``docs/tolerances.md`` ("Layered exposure").
 """
 
@@ -18,40 +18,32 @@ from __future__ import annotations
 
 from dataclasses import replace
 from importlib import resources
-from pathlib import Path
 
 import numpy as np
 
 from clblur import layered_exposure as layered
 from clblur import reference
-from clblur.opencl_device import pyopencl_module
+from clblur.opencl.constants import LAYERED_MAXK, build_defines
+from clblur.opencl.device import pyopencl_module
+from clblur.opencl.program import Program
 from clblur.plan import BlurPlan
 from clblur.responses import response
 
 __all__ = ["OpenCLStages", "composite", "integrator"]
 
-MAXC = 16  # channels + coverage a work-item holds in registers (kernels/layered.cl)
-MAXK = 8  # layers a work-item holds (kernels/layered.cl)
+MAXC = 16  # channels + coverage a work-item holds in registers (layered.cl)
 GROUP = 64
 
 
-def _source() -> str:
-    try:
-        return resources.files("clblur.kernels").joinpath("layered.cl").read_text()
-    except (ModuleNotFoundError, FileNotFoundError):
-        return (Path(__file__).resolve().parent.parent / "kernels" / "layered.cl").read_text()
-
-
-def _kernel(rt, channels: int):
-    """The compositing kernel for ``channels`` light channels, built once per runtime and
-    channel count (kept in the runtime's caches)."""
-    key = ("layered.cl", channels, "composite_layers")
-    if key not in rt.kernels:
-        cl = pyopencl_module()
-        program = cl.Program(rt.context, _source()).build(options=[f"-DCHANNELS={channels}"])
-        rt.programs[key[:2]] = program
-        rt.kernels[key] = cl.Kernel(program, key[2])
-    return rt.kernels[key]
+def _program(rt, channels: int) -> Program:
+    """The compositing program for ``channels`` light channels, built once per runtime and
+    channel count (kept in the runtime's program cache, keyed by its build options)."""
+    options = (*build_defines(), f"-DCHANNELS={channels}")
+    key = ("layered.cl", *options)
+    if key not in rt.programs:
+        source = resources.files("clblur.opencl").joinpath("layered.cl").read_text()
+        rt.programs[key] = Program(rt.context, source, options)
+    return rt.programs[key]
 
 
 class OpenCLStages:
@@ -106,8 +98,8 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
     channels = cp - 1
     if cp > MAXC:
         raise ValueError(f"layered exposure on OpenCL takes at most {MAXC - 1} channels")
-    if k > MAXK:
-        raise ValueError(f"layered exposure on OpenCL takes at most {MAXK} layers")
+    if k > LAYERED_MAXK:
+        raise ValueError(f"layered exposure on OpenCL takes at most {LAYERED_MAXK} layers")
     # the linear image padded to the planes' layout (one zero channel): one load per tap
     linear = np.zeros((h, w, cp), np.float32)
     linear[..., :channels] = layers.linear
@@ -122,18 +114,18 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
         return cl.Buffer(rt.context, mf.READ_ONLY | mf.COPY_HOST_PTR,
                          hostbuf=np.ascontiguousarray(a))
     with rt.lock:
-        kern = _kernel(rt, channels)
+        program = _program(rt, channels)
         out_buf = cl.Buffer(rt.context, mf.WRITE_ONLY, max(out.nbytes, 16))
         pix = np.stack([rows, cols], axis=1).astype(np.int32)
         fh, fw = full_shape
         r0, c0 = layers.origin
-        kern(rt.queue, (-(-n // GROUP) * GROUP,), (GROUP,),
-             buf(layers.planes.astype(np.float32)), buf(layers.vectors.astype(np.float32)),
-             buf(layers.flow.astype(np.float32)), buf(linear),
-             buf(layers.present.astype(np.uint8)), buf(pix), buf(counts), buf(wts),
-             np.int32(weighted), np.int32(n), np.int32(k), np.int32(h), np.int32(w),
-             np.int32(r0), np.int32(c0),
-             np.int32(fh), np.int32(fw), np.float32(anchor), out_buf)
+        program.run("composite_layers", rt.queue, (-(-n // GROUP) * GROUP,), (GROUP,),
+                    planes=buf(layers.planes.astype(np.float32)),
+                    vectors=buf(layers.vectors.astype(np.float32)),
+                    flow=buf(layers.flow.astype(np.float32)), linear=buf(linear),
+                    present=buf(layers.present.astype(np.uint8)), pix=buf(pix),
+                    counts=buf(counts), weights=buf(wts), weighted=weighted, n=n, layers=k,
+                    h=h, w=w, r0=r0, c0=c0, fh=fh, fw=fw, anchor=anchor, out=out_buf)
         cl.enqueue_copy(rt.queue, out, out_buf, is_blocking=True)
     return out
 

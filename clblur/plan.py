@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from clblur.motion import Field, Motion, anchor_value, parse_motion, time_weights
+from clblur.motion import FLOW_LIMIT, Field, Motion, anchor_value, parse_motion, time_weights
 from clblur.pixels import SUPPORTED_DTYPES, validate_saturation
 from clblur.responses import Response, per_channel
 
@@ -77,27 +77,58 @@ def check_image(image) -> np.ndarray:
 def make_plan(image, motion, response="exp", *, anchor: str = "center",
               samples: int | None = None, weights=None, saturation: float = 1.0,
               region: tuple[int, int, int, int] | None = None, depth=None,
-              alpha: bool = False, background=None) -> BlurPlan:
+              alpha: bool = False, background=None, check_flow: bool = True) -> BlurPlan:
     """Validate a request.  ``region = (row0, col0, full_h, full_w)`` marks ``image`` as a
     window of a larger image (used by tiling); the flow, if any, covers the window.
     ``depth``: occlusion ordering, H x W (see ``check_depth``); ``alpha``: the last channel is
     coverage; ``background``: a clean plate (what lies behind every layer), same shape and
-    dtype as ``image``, used with ``depth``."""
+    dtype as ``image``, used with ``depth``.  ``check_flow=False``: the OpenCL backend
+    validates the flow's values on the device."""
     img = check_image(image)
     h, w, c = img.shape
-    parsed = parse_motion(motion, (h, w))
     n, wts = time_weights(samples, weights)
+    a = anchor_value(anchor)
+    where = _region(region, (h, w))
+    if n is not None and isinstance(motion, np.ndarray) and motion.ndim == 3:
+        motion = bound_far_flow(motion, n, a, where.get("extent", (h, w)))
+    parsed = parse_motion(motion, (h, w), check=check_flow)
     if not isinstance(alpha, (bool, np.bool_)):
         raise TypeError(f"alpha must be True or False, got {alpha!r}")
     if alpha and c < 2:
         raise ValueError("alpha=True needs an image with at least 2 channels (colour + alpha), "
                          f"got {c}")
     return BlurPlan(image=img, squeeze=np.ndim(image) == 2, motion=parsed,
-                    responses=tuple(per_channel(response, c)), anchor=anchor_value(anchor),
+                    responses=tuple(per_channel(response, c)), anchor=a,
                     samples=n, weights=wts, saturation=validate_saturation(saturation),
                     alpha=bool(alpha), depth=check_depth(_speed(depth, parsed), (h, w)),
                     background=_check_background(background, image, depth),
-                    **_region(region, (h, w)))
+                    **where)
+
+
+def bound_far_flow(flow: np.ndarray, samples: int, anchor: float,
+                   full_shape: tuple[int, int]) -> np.ndarray:
+    """A flow whose components beyond ``FLOW_LIMIT`` are clipped to it, where that is exact.
+
+    With a fixed sample count ``N``, every sample but the anchor's lies at least
+    ``|v| * d_min`` px from its pixel (``d_min``: the smallest non-zero ``|s_j - a|``).  When
+    ``FLOW_LIMIT * d_min`` already exceeds the image, such a sample reads the clamped edge
+    whether the component is ``FLOW_LIMIT`` or ``1e9``, so clipping changes no output value
+    and keeps the kernels' float32 positions in range.  Otherwise (or with the per-pixel
+    default ``N = ceil(|v|) + 1``) the flow is returned as it is and the limit is enforced.
+    NaN and infinite values are left for the flow check to refuse.
+    """
+    if flow.dtype.kind != "f" or flow.dtype == np.float16:  # finite halves stay below 65504
+        return flow
+    beyond = np.abs(flow) > FLOW_LIMIT  # NaN compares False; inf counts and is refused later
+    if not beyond.any():
+        return flow
+    j = np.arange(samples, dtype=np.float64)
+    offsets = np.abs(j - anchor * (samples - 1)) / max(samples - 1, 1)
+    moving = offsets[offsets > 0]
+    if moving.size and FLOW_LIMIT * moving.min() < max(full_shape):
+        return flow
+    finite = np.isfinite(flow)
+    return np.where(beyond & finite, np.sign(flow) * FLOW_LIMIT, flow).astype(flow.dtype)
 
 
 def _check_background(background, image: np.ndarray, depth) -> np.ndarray | None:

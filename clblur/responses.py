@@ -26,7 +26,7 @@ import numpy as np
 
 FORMAT_VERSION = 1
 
-# Codes shared with kernels/response.cl; keep in step.
+# Response kind codes; the kernels get them as -D options (clblur/opencl/constants.py).
 KIND_CODES = {"linear": 0, "exp": 1, "gamma": 2, "srgb": 3, "table": 4}
 
 
@@ -46,7 +46,7 @@ class Response:
         return {}
 
     def device_params(self) -> tuple[float, ...]:
-        """Up to four float parameters the kernels read (see kernels/response.cl)."""
+        """Up to four float parameters the kernels read (see clblur/opencl/response.cl)."""
         return ()
 
     def to_dict(self) -> dict:
@@ -241,7 +241,7 @@ def load_response(path: str | os.PathLike) -> Response:
         doc = json.loads(Path(path).read_text())
     except FileNotFoundError:
         raise ValueError(f"response file not found: {path}") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:
         raise ValueError(f"cannot read response file {path}: {e}") from None
     return from_dict(doc)
 
@@ -297,7 +297,7 @@ def _channel_set(spec) -> list[Response] | None:
             and Path(spec).is_file():
         try:
             doc = json.loads(Path(spec).read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:
             raise ValueError(f"cannot read response file {spec}: {e}") from None
     if not (isinstance(doc, dict) and doc.get("kind") == CHANNEL_SET_KIND):
         return None

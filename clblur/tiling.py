@@ -13,14 +13,14 @@ Conventions
   at ``p - v (s - a)`` with ``s`` in [0, 1]; anchor ``a``), the kernel's extent from its centre
   for a PSF.  ``+1`` is the bilinear neighbour, ``+1`` a margin for sample positions that a
   float32 kernel rounds past the exact reach.
-* Sources and destinations are array-likes: anything with ``shape``, ``dtype`` and numpy-style
-  ``[rows, cols]`` slicing that returns (or accepts) numpy arrays -- numpy arrays, zarr arrays,
-  and ``MappedRaster`` (a raster in a file, e.g. an uncompressed BigTIFF).  Do not pass a
-  long-lived ``np.memmap``: every page it touches stays resident, so the memory would grow with
-  the image; ``as_array_like`` turns one into a ``MappedRaster``.
-* ``memory_budget`` (bytes) bounds one window's working set, estimated at ``window_bytes_per_px``
-  per window pixel; it sets the tile size.  Image files that cannot be read window by window
-  (PNG, JPEG, compressed TIFFs without tiles/strips zarr can index) are held whole in addition.
+  The halo is capped at the image size: a window never extends past the image, so a motion
+  of 1e9 px on a small image needs a window of the whole image, not of 1e9 px.
+* Sources and destinations are array-likes (``clblur.io.raster``): numpy arrays, zarr arrays,
+  and ``MappedRaster`` (a raster in a file, e.g. an uncompressed BigTIFF).
+* ``memory_budget`` (bytes) bounds the working set.  Image files that cannot be read window by
+  window (PNG, JPEG, ...) and non-TIFF outputs are held whole; ``blur_file`` counts them
+  against the budget (refusing before decoding when they alone exceed it) and gives the rest
+  to the windows, each estimated at ``window_bytes_per_px`` per window pixel.
 """
 
 from __future__ import annotations
@@ -34,12 +34,30 @@ from pathlib import Path
 import numpy as np
 
 from clblur.blur import blur_plan, resolve_backend
-from clblur.io import atomic_write, read_flow, read_image, refuse_overwrite, write_image
+from clblur.errors import InputError
+from clblur.io import (
+    IMAGE_FORMATS,
+    as_array_like,
+    atomic_write,
+    check_decodable,
+    check_output,
+    create_tiff,
+    is_tiff,
+    open_flow,
+    open_image,
+    write_image,
+)
 from clblur.motion import PSF, Field, Uniform, anchor_value, psf
 from clblur.plan import make_plan
 
+__all__ = ["DEFAULT_MEMORY_BUDGET", "TiledRun", "blur_file", "blur_tiled", "choose_tile",
+           "fixed_halo", "flow_halo", "halo_for_reach", "parse_size", "tiled_motion", "tiles",
+           "window_bytes_per_px"]
+
 DEFAULT_MEMORY_BUDGET = 512 * 2**20
 FLOW_BYTES_PER_PX = 8  # float32 (dx, dy)
+# longest motion run with the default ceil(|v|) + 1 samples (longer ones need samples=N)
+MAX_DEFAULT_LENGTH = 2**16
 
 
 def window_bytes_per_px(channels: int, itemsize: int, per_pixel_flow: bool) -> int:
@@ -53,58 +71,6 @@ def window_bytes_per_px(channels: int, itemsize: int, per_pixel_flow: bool) -> i
     """
     return 8 * (12 * channels + 20) + 2 * channels * itemsize + \
         (FLOW_BYTES_PER_PX if per_pixel_flow else 0)
-
-
-class MappedRaster:
-    """A C-ordered raster stored at ``offset`` in a file, mapped only while one window is read
-    or written, so resident memory follows the window instead of growing with every page ever
-    touched (a long-lived ``np.memmap`` keeps them all)."""
-
-    def __init__(self, path: str | os.PathLike, dtype, shape: tuple[int, ...], offset: int = 0,
-                 writable: bool = False):
-        self.path = Path(path)
-        self.dtype = np.dtype(dtype)
-        self.shape = tuple(int(s) for s in shape)
-        self.offset = int(offset)
-        self.writable = writable
-        need = self.offset + self.dtype.itemsize * math.prod(self.shape)
-        if not self.path.is_file() or self.path.stat().st_size < need:
-            raise ValueError(f"{self.path} is shorter than a {self.shape} {self.dtype} raster "
-                             f"at offset {self.offset}")
-
-    @property
-    def ndim(self) -> int:
-        return len(self.shape)
-
-    def _map(self, mode: str) -> np.memmap:
-        return np.memmap(self.path, dtype=self.dtype, mode=mode, offset=self.offset,
-                         shape=self.shape)
-
-    def __getitem__(self, key) -> np.ndarray:
-        m = self._map("r")
-        try:
-            return np.array(m[key])
-        finally:
-            del m
-
-    def __setitem__(self, key, value) -> None:
-        if not self.writable:
-            raise ValueError(f"{self.path} is opened read-only")
-        m = self._map("r+")
-        try:  # no flush: unmapping leaves the written pages to the kernel's writeback
-            m[key] = value
-        finally:
-            del m
-
-
-def as_array_like(array):
-    """A long-lived ``np.memmap`` becomes a ``MappedRaster`` of the same file; others pass."""
-    if isinstance(array, np.memmap) and getattr(array, "filename", None) \
-            and array.flags.c_contiguous and not isinstance(array.base, np.ndarray):
-        # (a slice of a memmap has the memmap as base and keeps its offset: not re-mappable)
-        return MappedRaster(array.filename, array.dtype, array.shape, array.offset,
-                            writable=array.mode in ("r+", "w+"))
-    return array
 
 
 # --------------------------------------------------------------------------- motion and halo
@@ -135,31 +101,13 @@ def tiled_motion(motion, shape: tuple[int, int]) -> TiledMotion:
     if len(motion.shape) == 3:
         h, w = shape
         if tuple(motion.shape) != (h, w, 2):
-            raise ValueError(f"flow field has shape {tuple(motion.shape)}, expected "
+            raise InputError(f"flow field has shape {tuple(motion.shape)}, expected "
                              f"({h}, {w}, 2) to match the image")
         if np.dtype(motion.dtype).kind not in "fiu":
             raise TypeError(f"flow field must be numeric, got dtype {motion.dtype}")
         return TiledMotion(flow=as_array_like(motion))
-    raise ValueError(f"motion has shape {tuple(motion.shape)}; expected (2,), (H, W, 2) or a "
+    raise InputError(f"motion has shape {tuple(motion.shape)}; expected (2,), (H, W, 2) or a "
                      "2-D PSF")
-
-
-def open_flow(path: str | os.PathLike):
-    """A flow file as an array-like: ``.npy`` mapped window by window, ``.flo`` read whole."""
-    path = Path(path)
-    if path.suffix.lower() != ".npy":
-        return read_flow(path)
-    if not path.is_file():
-        raise ValueError(f"flow file not found: {path}")
-    try:
-        m = np.load(path, mmap_mode="r", allow_pickle=False)
-    except Exception as e:
-        raise ValueError(f"cannot read flow {path}: {e}") from None
-    if m.ndim != 3 or m.shape[2] != 2:
-        raise ValueError(f"flow {path} has shape {m.shape}, expected H x W x 2")
-    if not m.flags.c_contiguous:  # Fortran-ordered .npy: rare; small enough to load
-        return np.ascontiguousarray(m, dtype=np.float32)
-    return MappedRaster(path, m.dtype, m.shape, m.offset)
 
 
 def halo_for_reach(reach: float) -> int:
@@ -189,7 +137,7 @@ def flow_halo(flow: np.ndarray, anchor: float) -> tuple[int, int]:
     amax = np.array([max(abs(float(v[:, k].max())), abs(float(v[:, k].min())))
                      for k in (0, 1)])
     if not np.isfinite(amax).all():
-        raise ValueError("flow field contains NaN or infinite values")
+        raise InputError("flow field contains NaN or infinite values")
     f = max(anchor, 1.0 - anchor)
     return halo_for_reach(amax[1] * f), halo_for_reach(amax[0] * f)
 
@@ -218,14 +166,14 @@ def parse_size(size: int | str | None) -> int:
         try:
             value = float(text[:len(text) - len(unit)]) * _UNITS[unit]
         except ValueError:
-            raise ValueError(f"memory budget must be bytes or a size like 500M or 2G, got "
+            raise InputError(f"memory budget must be bytes or a size like 500M or 2G, got "
                              f"{size!r}") from None
     elif isinstance(size, (int, float, np.integer)) and not isinstance(size, bool):
         value = float(size)
     else:
         raise TypeError(f"memory budget must be bytes or a size like '2G', got {size!r}")
     if not math.isfinite(value) or value <= 0:
-        raise ValueError(f"memory budget must be positive, got {size!r}")
+        raise InputError(f"memory budget must be positive, got {size!r}")
     return int(value)
 
 def choose_tile(shape: tuple[int, int], halo: tuple[int, int], bytes_per_px: int,
@@ -234,11 +182,11 @@ def choose_tile(shape: tuple[int, int], halo: tuple[int, int], bytes_per_px: int
     h, w = shape
     hy, hx = halo
 
-    def cost(t: int) -> int:
-        return (min(t, h) + 2 * hy) * (min(t, w) + 2 * hx) * bytes_per_px
+    def cost(t: int) -> int:  # windows are clipped to the image
+        return min(min(t, h) + 2 * hy, h) * min(min(t, w) + 2 * hx, w) * bytes_per_px
 
     if cost(1) > memory_budget:
-        raise ValueError(f"memory budget {memory_budget} B is too small for a halo of "
+        raise InputError(f"memory budget {memory_budget} B is too small for a halo of "
                          f"{hy} x {hx} px (one window needs at least {cost(1)} B); raise it")
     lo, hi = 1, max(h, w)
     while lo < hi:  # largest t with cost(t) <= budget
@@ -264,7 +212,7 @@ def _tile_shape(tile) -> tuple[int, int]:
     except (TypeError, ValueError):
         raise TypeError(f"tile must be an int or (rows, cols), got {tile!r}") from None
     if th < 1 or tw < 1:
-        raise ValueError(f"tile must be at least 1 x 1, got {tile!r}")
+        raise InputError(f"tile must be at least 1 x 1, got {tile!r}")
     return th, tw
 
 
@@ -285,9 +233,9 @@ def _check_arrays(src, dst) -> tuple[int, int, int]:
             raise TypeError(f"{name} must be an array-like with shape and dtype, "
                             f"got {type(a).__name__}")
     if len(src.shape) not in (2, 3):
-        raise ValueError(f"image must be H x W or H x W x C, got shape {tuple(src.shape)}")
+        raise InputError(f"image must be H x W or H x W x C, got shape {tuple(src.shape)}")
     if tuple(dst.shape) != tuple(src.shape) or np.dtype(dst.dtype) != np.dtype(src.dtype):
-        raise ValueError(f"destination {tuple(dst.shape)} {dst.dtype} does not match the source "
+        raise InputError(f"destination {tuple(dst.shape)} {dst.dtype} does not match the source "
                          f"{tuple(src.shape)} {src.dtype}")
     h, w = (int(s) for s in src.shape[:2])
     return h, w, int(src.shape[2]) if len(src.shape) == 3 else 1
@@ -317,6 +265,11 @@ def blur_tiled(src, dst, motion, response="exp", *, anchor: str = "center",
         halo = global_flow_halo(tm.flow, a, max(budget // (8 * band_bytes), 1))
     else:
         halo = fixed_halo(tm.fixed, a)
+    if samples is None and max(halo) - 2 > MAX_DEFAULT_LENGTH * max(a, 1.0 - a):
+        # the default ceil(|v|) + 1 samples per pixel would run for hours
+        raise InputError(f"motion longer than {MAX_DEFAULT_LENGTH} px needs that many samples "
+                         "per pixel by default; give a sample count (--samples N)")
+    halo = (min(halo[0], h), min(halo[1], w))  # a window never extends past the image
     if tile is None:
         tile = choose_tile((h, w), halo, per_px, budget)
     tile = _tile_shape(tile)
@@ -338,6 +291,7 @@ def blur_tiled(src, dst, motion, response="exp", *, anchor: str = "center",
                 big = np.asarray(tm.flow[gr0:min(r1 + hy, h), gc0:min(c1 + hx, w)],
                                  dtype=np.float32)
                 hy, hx = flow_halo(big[r0 - gr0:r1 - gr0, c0 - gc0:c1 - gc0], a)
+                hy, hx = min(hy, h), min(hx, w)
             used = (max(used[0], hy), max(used[1], hx))
             wr0, wr1 = max(r0 - hy, 0), min(r1 + hy, h)
             wc0, wc1 = max(c0 - hx, 0), min(c1 + hx, w)
@@ -358,63 +312,12 @@ def blur_tiled(src, dst, motion, response="exp", *, anchor: str = "center",
 def _progress(total: int, enabled: bool):
     from tqdm import tqdm
 
-    return tqdm(total=total, unit="tile", disable=not enabled, desc="blur", leave=False)
+    # disable=None: no bar when stderr is not a terminal (logs, pipes, captured errors)
+    return tqdm(total=total, unit="tile", disable=None if enabled else True, desc="blur",
+                leave=False)
 
 
 # --------------------------------------------------------------------------- files
-def is_tiff(path: str | os.PathLike) -> bool:
-    return Path(path).suffix.lower() in (".tif", ".tiff")
-
-
-def open_image(path: str | os.PathLike):
-    """An image file as an array-like, read window by window where the format allows:
-    uncompressed contiguous TIFF -> ``MappedRaster``; other TIFF -> zarr over tifffile's
-    store (reads only the strips/tiles a window touches); anything else read whole."""
-    path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"image file not found: {path}")
-    if not is_tiff(path):
-        return read_image(path)
-    import tifffile
-
-    try:
-        with tifffile.TiffFile(path) as tif:
-            axes = tif.series[0].axes
-    except Exception as e:  # tifffile raises many types for corrupt files
-        raise ValueError(f"cannot read image {path}: {e}") from None
-    if axes not in ("YX", "YXS"):  # e.g. planar RGB (SYX), stacks, pyramids' extra axes
-        raise ValueError(f"{path}: unsupported TIFF layout {axes!r}; expected rows x columns "
-                         "(x samples), i.e. YX or YXS")
-    try:
-        m = tifffile.memmap(path, mode="r")
-        raster = MappedRaster(path, m.dtype, m.shape, m.offset)
-        del m
-        return raster
-    except ValueError:  # compressed, tiled or otherwise not mappable
-        pass
-    except Exception as e:
-        raise ValueError(f"cannot read image {path}: {e}") from None
-    try:
-        import zarr
-
-        return zarr.open(tifffile.imread(path, aszarr=True), mode="r")
-    except Exception:
-        return read_image(path)
-
-
-def _create_tiff(path: Path, shape: tuple[int, ...], dtype: np.dtype) -> MappedRaster:
-    """An uncompressed TIFF (BigTIFF when large) whose pixels are written window by window."""
-    import tifffile
-
-    rgb = len(shape) == 3 and shape[2] in (3, 4)
-    nbytes = math.prod(shape) * np.dtype(dtype).itemsize
-    m = tifffile.memmap(path, shape=shape, dtype=dtype, bigtiff=nbytes >= 2**31,
-                        photometric="rgb" if rgb else "minisblack")
-    offset = m.offset
-    del m
-    return MappedRaster(path, dtype, shape, offset, writable=True)
-
-
 def blur_file(src: str | os.PathLike, dst: str | os.PathLike, motion, *, response="exp",
               anchor: str = "center", samples: int | None = None, weights=None,
               backend: str = "auto", saturation: float = 1.0, device: str | None = None,
@@ -428,19 +331,29 @@ def blur_file(src: str | os.PathLike, dst: str | os.PathLike, motion, *, respons
     ``dst`` is either absent, the previous file, or the finished result.  ``motion``: as for
     ``blur_tiled`` (a flow may be a ``.npy``/``.flo`` path).
     """
-    refuse_overwrite(dst, src, *([motion] if isinstance(motion, (str, os.PathLike)) else []))
-    dst = Path(dst)
+    dst = check_output(dst, src, *([motion] if isinstance(motion, (str, os.PathLike)) else []),
+                       suffixes=tuple(IMAGE_FORMATS))
+    budget = parse_size(memory_budget)
+    header = check_decodable(src)
+    whole = (0 if is_tiff(src) else header.nbytes) + (0 if is_tiff(dst) else header.nbytes)
+    if whole > budget:  # refused before anything is decoded
+        raise InputError(
+            f"{src} and {dst} are held whole ({header.width} x {header.height} x "
+            f"{header.channels}: {whole / 2**20:.0f} MiB), more than the memory budget "
+            f"({budget / 2**20:.0f} MiB); raise --memory-budget, or use TIFF input and output, "
+            "which are read and written window by window (convert with e.g. "
+            "`vips tiffsave IN OUT.tif --tile --bigtiff`)")
     image = open_image(src)
-    if not is_tiff(dst) and np.dtype(image.dtype).kind == "f":
-        raise ValueError(f"{dst.suffix} cannot hold float images; write .tif or .tiff instead")
+    if not is_tiff(dst) and dst.suffix.lower() != ".exr" and np.dtype(image.dtype).kind == "f":
+        raise InputError(f"{dst.suffix} cannot hold float images; write .tif or .tiff instead")
     options = dict(response=response, anchor=anchor, samples=samples, weights=weights,
                    backend=backend, saturation=saturation, device=device, tile=tile,
-                   memory_budget=memory_budget, progress=progress)
+                   memory_budget=max(budget - whole, 1), progress=progress)
     if is_tiff(dst):
         result: list[TiledRun] = []
 
         def write(tmp: Path) -> None:
-            out = _create_tiff(tmp, tuple(image.shape), np.dtype(image.dtype))
+            out = create_tiff(tmp, tuple(image.shape), np.dtype(image.dtype))
             result.append(blur_tiled(image, out, motion, **options))
 
         atomic_write(dst, write)

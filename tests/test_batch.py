@@ -3,14 +3,20 @@
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import subprocess
+import sys
+import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 import clblur
-from clblur import batch
+from clblur import batch, batch_state
+from clblur.cli import batch as batch_cli
 from clblur.io import read_image, write_flow, write_image
 
 
@@ -21,7 +27,7 @@ def _quiet(monkeypatch):
 
 def run_cli(*argv: str) -> int:
     parser = argparse.ArgumentParser()
-    batch.register(parser.add_subparsers())
+    batch_cli.register(parser.add_subparsers())
     args = parser.parse_args(["batch", *argv])
     return args.func(args)
 
@@ -68,7 +74,7 @@ def test_batch_blurs_reports_bad_file_and_resumes(folder, capsys):
     assert (out / "im0.png").stat().st_mtime_ns == stamp
 
     # partial work is redone: a missing marker, a truncated output, a stray temp file
-    (out / batch.MARKER_DIR / "im0.png.json").unlink()
+    (out / batch_state.MARKER_DIR / "im0.png.json").unlink()
     (out / "im1.png").write_bytes((out / "im1.png").read_bytes()[:50])
     (out / ".im2.png.abc123.part.png").write_bytes(b"half")
     (tmp_path / "in" / "broken.png").unlink()
@@ -165,7 +171,7 @@ def _worker_state() -> tuple[int, str | None, int | None]:
     cl = sys.modules.get("clblur.opencl")
     cache = os.environ.get("POCL_CACHE_DIR")
     return os.getpid(), cache if cache and Path(cache).is_dir() else None, \
-        None if cl is None else len(cl._runtimes)
+        None if cl is None else len(cl.runtimes())
 
 
 def test_two_worker_local_cluster(folder, capsys):
@@ -186,7 +192,7 @@ def test_workers_get_own_pocl_cache_and_lazy_opencl(folder):
     from clblur.distributed import client_for
 
     tmp_path, _ = folder
-    job = batch.Job(src=str(tmp_path / "in" / "im0.png"), dst=str(tmp_path / "im0.png"),
+    job = batch_state.Job(src=str(tmp_path / "in" / "im0.png"), dst=str(tmp_path / "im0.png"),
                     motion=(2.0, 1.0), backend="numpy")
     with client_for("local:2") as client:
         assert client.submit(batch.run_job, job, pure=False).result().ok
@@ -202,7 +208,7 @@ def test_workers_create_one_opencl_context_each(opencl, folder):
     from clblur.distributed import client_for
 
     tmp_path, images = folder
-    jobs = [batch.Job(src=str(tmp_path / "in" / n), dst=str(tmp_path / f"cl_{n}"),
+    jobs = [batch_state.Job(src=str(tmp_path / "in" / n), dst=str(tmp_path / f"cl_{n}"),
                       motion=(4.0, -1.0), backend="opencl") for n in images]
     with client_for("local:2") as client:
         results = client.gather([client.submit(batch.run_job, j, pure=False) for j in jobs])
@@ -235,3 +241,83 @@ def test_unreachable_scheduler_is_a_usage_error():
     with pytest.raises(ValueError, match="cannot reach"), \
             client_for("tcp://127.0.0.1:9", timeout="1s"):
         pass
+
+
+def test_editing_the_response_document_redoes_exactly_its_outputs(folder, capsys):
+    """The resume key covers the response document's content (issue 10, item 2)."""
+    tmp_path, images = folder
+    (tmp_path / "in" / "broken.png").unlink()
+    clblur.Gamma(1.8).save(tmp_path / "r.json")
+    clblur.Gamma(2.4).save(tmp_path / "other.json")
+    (tmp_path / "m.csv").write_text("image,response\nim0.png,r.json\nim1.png,other.json\n")
+    argv = [str(tmp_path / "in"), str(tmp_path / "out"), "--manifest", str(tmp_path / "m.csv"),
+            "--motion", "4,1", "--backend", "numpy", "--quiet"]
+    assert run_cli(*argv) == 0
+    assert "3 blurred, 0 already finished" in capsys.readouterr().out
+    stamps = {n: (tmp_path / "out" / n).stat().st_mtime_ns for n in images}
+    clblur.Gamma(1.3).save(tmp_path / "r.json")  # same path, new content
+    assert run_cli(*argv) == 0
+    assert "1 blurred, 2 already finished" in capsys.readouterr().out
+    np.testing.assert_array_equal(
+        read_image(tmp_path / "out" / "im0.png"),
+        clblur.blur(images["im0.png"], (4, 1), "gamma:1.3", backend="numpy"))
+    for n in ("im1.png", "im2.png"):
+        assert (tmp_path / "out" / n).stat().st_mtime_ns == stamps[n]
+
+
+def test_same_content_same_key_and_version_in_key(folder, monkeypatch):
+    tmp_path, _ = folder
+    job = batch_state.Job(src=str(tmp_path / "in" / "im0.png"), dst=str(tmp_path / "o.png"),
+                    motion=(1.0, 0.0))
+    key = batch_state.job_key(job)
+    assert batch_state.job_key(job) == key
+    assert batch_state.job_key(replace(job, samples=7)) != key
+    assert batch_state.job_key(replace(job, backend="opencl")) == key  # same pixels
+    monkeypatch.setattr(clblur, "__version__", "0.0.0-other")
+    assert batch_state.job_key(job) != key
+
+
+def test_claims_are_exclusive_and_stale_ones_are_taken_over(folder, monkeypatch):
+    tmp_path, _ = folder
+    (tmp_path / "out").mkdir()
+    job = batch_state.Job(src=str(tmp_path / "in" / "im0.png"),
+                          dst=str(tmp_path / "out" / "im0.png"), motion=(3.0, 0.0),
+                          backend="numpy")
+    held = batch_state.claim(job)
+    assert held is not None and batch_state.claim(job) is None  # a second claimant is refused
+    assert batch.run_job(job).status == "busy" and not Path(job.dst).exists()
+    held.release()
+    # a lock left by a dead process on this host is stale
+    import socket
+
+    batch_state.lock_path(job).write_text(json.dumps({"host": socket.gethostname(),
+                                                "pid": 2**22 + 12345, "time": 0}))
+    assert batch.run_job(job).ok and batch_state.is_finished(job)
+    assert not batch_state.lock_path(job).exists()
+    # a lock from another host is stale only when its heartbeat stopped
+    batch_state.lock_path(job).write_text(json.dumps({"host": "elsewhere", "pid": 1, "time": 0}))
+    assert batch_state.claim(job) is None
+    old = time.time() - batch_state.STALE_LOCK_S - 5
+    os.utime(batch_state.lock_path(job), (old, old))
+    held = batch_state.claim(job)
+    assert held is not None
+    held.release()
+
+
+def test_two_concurrent_batches_do_not_duplicate_work(folder):
+    """Two processes into one OUT_DIR: every image blurred exactly once, both exit 0."""
+    tmp_path, _ = folder
+    (tmp_path / "in" / "broken.png").unlink()
+    for i in range(3, 9):
+        write_image(tmp_path / "in" / f"im{i}.png",
+                    np.random.default_rng(i).integers(0, 256, (40, 60, 3), dtype=np.uint8))
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[1]), "CLBLUR_QUIET": "1"}
+    cmd = [sys.executable, "-m", "clblur.cli", "batch", str(tmp_path / "in"),
+           str(tmp_path / "out"), "--motion", "30,5", "--backend", "numpy", "--quiet"]
+    procs = [subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                              env=env) for _ in range(2)]
+    outs = [p.communicate(timeout=300) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], outs
+    blurred = [int(out.split(" blurred")[0].split()[-1]) for out, _ in outs]
+    assert sum(blurred) == 9, outs  # each of the 9 images done by exactly one batch
+    assert not list((tmp_path / "out" / batch_state.MARKER_DIR).glob("*.lock"))

@@ -124,7 +124,8 @@ def test_folder_errors(tmp_path):
         load_series(tmp_path / "nowhere")
     with pytest.raises(ValueError, match="times file not found"):
         load_series(tmp_path / "s", tmp_path / "missing.txt")
-    (tmp_path / "pairs.json").write_text(json.dumps({"kind": "frame-stack", "stacks": []}))
+    (tmp_path / "pairs.json").write_text(json.dumps(  # (an empty list is refused on its own)
+        {"kind": "frame-stack", "stacks": [{"frames": ["a.png", "b.png"], "long": "c.png"}]}))
     with pytest.raises(ValueError, match="expected 'exposure-series'"):
         load_series(tmp_path / "pairs.json")
 

@@ -120,3 +120,50 @@ def test_info_runs_as_a_script():
                        text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert "clblur" in r.stdout and "pyopencl" in r.stdout
+
+
+def test_huge_motion_on_a_small_image_matches_the_api(tmp_path, scene):
+    """Issue 10, item 3: the halo is capped at the image size in the tiled path."""
+    import clblur
+
+    src, img = scene
+    out = tmp_path / "o.png"
+    assert run("blur", src, out, "--motion=1e9,0", "--samples", "4", "--backend", "numpy",
+               "--memory-budget", "1M") == 0
+    np.testing.assert_array_equal(read_image(out),
+                                  clblur.blur(img, (1e9, 0), samples=4, backend="numpy"))
+
+
+def test_a_named_device_that_does_not_exist_is_an_error(tmp_path, scene, capsys):
+    src, _ = scene
+    assert run("blur", src, tmp_path / "o.png", "--motion=2,0", "--device", "9:9") == 2
+    err = capsys.readouterr().err
+    assert "9:9" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o.png").exists()
+
+
+def test_nan_columns_say_why():
+    from clblur.cli.calibrate import nan_reasons
+
+    lines = nan_reasons({"n_pairs": {1: 0, 4: 3, 2: 2}, "n_values": {1: 0, 4: 0, 2: 100}})
+    assert len(lines) == 2
+    assert "1-stop" in lines[0] and "no two exposures" in lines[0]
+    assert "4-stop" in lines[1] and "--eval-low" in lines[1]
+
+
+def test_library_never_imports_the_command_line():
+    """Issue 12: ``clblur.cli`` is the front; no library module imports it."""
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).parents[1] / "clblur"
+    offenders = []
+    for path in root.rglob("*.py"):
+        if "cli" in path.relative_to(root).parts[:1]:
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                [node.module or ""] if isinstance(node, ast.ImportFrom) else []
+            if any(n == "clblur.cli" or n.startswith("clblur.cli.") for n in names):
+                offenders.append(str(path.relative_to(root)))
+    assert offenders == []

@@ -335,9 +335,9 @@ def run_python(code: str, **env) -> subprocess.CompletedProcess:
 
 
 def test_import_creates_no_context():
-    res = run_python("import sys, clblur, clblur.opencl, clblur.opencl_device\n"
+    res = run_python("import sys, clblur, clblur.opencl, clblur.opencl.device\n"
                      "assert 'pyopencl' not in sys.modules, 'pyopencl imported'\n"
-                     "assert not clblur.opencl_device._runtimes\n"
+                     "assert not clblur.opencl.runtimes()\n"
                      "print('ok')")
     assert res.returncode == 0 and res.stdout.strip() == "ok", res.stderr
 

@@ -10,8 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from clblur import opencl_prep as prep
 from clblur import reference
+from clblur.opencl import half_float, quantisation, response_pack, taps
+from clblur.opencl.constants import QHEAD, RESP_STRIDE
 from clblur.pixels import imax, linearisation_table
 from clblur.plan import make_plan
 from clblur.responses import Gamma, Table, response
@@ -20,12 +21,12 @@ RESPONSES = ["linear", "exp", "exp:3", "gamma:2.2", "srgb",
              Table.from_response(Gamma(1.8), n=64)]
 
 
-def apply_taps(lin: np.ndarray, taps: prep.Taps) -> np.ndarray:
+def apply_taps(lin: np.ndarray, tap_set: taps.IntegerTaps) -> np.ndarray:
     """sum_t w_t L(clamp(p + d_t)) in float64: what integrate_taps computes."""
     h, w = lin.shape[:2]
     yy, xx = np.mgrid[0:h, 0:w]
     acc = np.zeros_like(lin)
-    for dx, dy, wt in zip(taps.dx, taps.dy, taps.w, strict=True):
+    for dx, dy, wt in zip(tap_set.dx, tap_set.dy, tap_set.w, strict=True):
         acc += wt * lin[np.clip(yy + dy, 0, h - 1), np.clip(xx + dx, 0, w - 1)]
     return acc
 
@@ -36,23 +37,23 @@ def apply_taps(lin: np.ndarray, taps: prep.Taps) -> np.ndarray:
 def test_rasterised_uniform_motion_equals_bilinear_sampling(rng, motion, anchor):
     lin = rng.random((23, 31, 2))
     plan = make_plan(lin, motion, "linear", anchor=anchor)
-    taps = prep.space_invariant_taps(plan)
-    np.testing.assert_allclose(apply_taps(lin, taps), reference.integrate(lin, plan),
+    tap_set = taps.space_invariant_taps(plan)
+    np.testing.assert_allclose(apply_taps(lin, tap_set), reference.integrate(lin, plan),
                                rtol=0, atol=1e-12)
-    assert np.isclose(taps.w.sum(), 1.0)
+    assert np.isclose(tap_set.w.sum(), 1.0)
 
 
 def test_psf_taps_read_f_of_p_minus_s(rng):
     lin = rng.random((19, 21, 1))
     kernel = rng.random((5, 3))
     plan = make_plan(lin, kernel, "linear")
-    np.testing.assert_allclose(apply_taps(lin, prep.space_invariant_taps(plan)),
+    np.testing.assert_allclose(apply_taps(lin, taps.space_invariant_taps(plan)),
                                reference.integrate(lin, plan), rtol=0, atol=1e-12)
 
 
 def test_box_detection():
     def taps_of(motion, **kw):
-        return prep.space_invariant_taps(make_plan(np.zeros((4, 4)), motion, **kw))
+        return taps.space_invariant_taps(make_plan(np.zeros((4, 4)), motion, **kw))
 
     assert taps_of((24.0, 0.0)).box() == (0, -12, 12)  # N = 25, centred, integer steps
     assert taps_of((0.0, -8.0), anchor="start").box() == (1, 0, 8)
@@ -77,19 +78,19 @@ def test_thresholds_and_buckets_quantise_like_rint(rng, spec, dtype):
     # boundaries are float32: 2^-24 relative, up to 0.004 codes of uint16 (1.5e-5 of uint8)
     margin = 1e-3 if dtype == np.uint8 else 1e-2
     away = np.abs(exact - np.floor(exact) - 0.5) > margin
-    t = prep.quantisation_thresholds([resp], dtype)
+    t = quantisation.quantisation_thresholds([resp], dtype)
     bits = 8 if dtype == np.uint8 else 16
-    assert t.shape == (1, (1 << bits) + prep.THRESHOLD_PAD)
+    assert t.shape == (1, (1 << bits) + quantisation.THRESHOLD_PAD)
     assert np.all(t[0, 1:] >= t[0, :-1]) and np.isposinf(t[0, int(full):]).all()
     by_search = np.searchsorted(t[0], e, side="left")  # count of boundaries below e
     assert np.array_equal(by_search[away], want[away])
-    # the kernel's search: bucket start, then `steps` halvings (kernels/response.cl)
-    b = prep.quantisation_buckets(t)
-    shift, base, nb, steps, stride = (int(v) for v in b[:prep.QHEAD])
-    assert stride == t.shape[1] and 1 <= steps <= max(prep.BUCKET_MAX_STEPS, bits)
+    # the kernel's search: bucket start, then `steps` halvings (clblur/opencl/response.cl)
+    b = quantisation.quantisation_buckets(t)
+    shift, base, nb, steps, stride = (int(v) for v in b[:QHEAD])
+    assert stride == t.shape[1] and 1 <= steps <= max(quantisation.BUCKET_MAX_STEPS, bits)
     assert nb > 1  # these responses are well-behaved enough to get real buckets
     idx = np.clip((e.view(np.uint32) >> shift).astype(np.int64) - base, 0, nb - 1)
-    q = b[prep.QHEAD:][idx].astype(np.int64)
+    q = b[QHEAD:][idx].astype(np.int64)
     step = 1 << (steps - 1)
     while step:
         q += np.where(t[0][q + step - 1] < e, step, 0)
@@ -99,48 +100,48 @@ def test_thresholds_and_buckets_quantise_like_rint(rng, spec, dtype):
 
 def test_plain_binary_search_when_buckets_do_not_pay():
     """No positive finite boundary: one bucket, a full binary search."""
-    t = np.full((2, 256 + prep.THRESHOLD_PAD), np.inf, np.float32)
+    t = np.full((2, 256 + quantisation.THRESHOLD_PAD), np.inf, np.float32)
     t[:, :100] = -np.inf
-    b = prep.quantisation_buckets(t)
-    assert b[:prep.QHEAD].tolist() == [31, 0, 1, 8, t.shape[1]]
+    b = quantisation.quantisation_buckets(t)
+    assert b[:QHEAD].tolist() == [31, 0, 1, 8, t.shape[1]]
 
 
 def test_thresholds_hold_table_ends():
     """A table flat below its first value and above its last: codes outside are constant."""
     flat = Table([0.0, 1.0, 2.0], [0.2, 0.5, 0.7])
-    t = prep.quantisation_thresholds([flat], np.uint8)[0]
+    t = quantisation.quantisation_thresholds([flat], np.uint8)[0]
     assert np.isneginf(t[:int(0.2 * 255 - 0.5)]).all()  # levels below 0.2: always exceeded
     assert np.isposinf(t[int(0.7 * 255 + 0.5):]).all()  # above 0.7: never reached
 
 
 def test_half_storage_only_where_the_bound_holds():
     exp_table = linearisation_table(response("exp"), np.uint8, 1.0)
-    assert prep.half_error_lsb(response("exp"), exp_table) < 0.1
+    assert half_float.half_error_lsb(response("exp"), exp_table) < 0.1
     # a curve reaching 0.99 within 1e-5 of exposure: half rounding moves codes
     steep = Table([0.0, 1e-5, 1.0], [0.0, 0.99, 1.0])
     steep_table = linearisation_table(steep, np.uint8, 1.0)
-    assert prep.half_error_lsb(steep, steep_table) > prep.HALF_MAX_LSB
+    assert half_float.half_error_lsb(steep, steep_table) > half_float.HALF_MAX_LSB
     huge = linearisation_table(response("linear"), np.uint8, 1e5)  # beyond half's range
-    assert prep.half_error_lsb(response("linear"), huge) == np.inf
+    assert half_float.half_error_lsb(response("linear"), huge) == np.inf
     img = np.zeros((3, 3, 1), np.uint8)
-    assert prep.half_storage_ok(make_plan(img, (1.0, 0.0), "exp"), exp_table[None])
-    assert not prep.half_storage_ok(make_plan(img.astype(np.uint16), (1.0, 0.0), "exp"),
+    assert half_float.half_storage_ok(make_plan(img, (1.0, 0.0), "exp"), exp_table[None])
+    assert not half_float.half_storage_ok(make_plan(img.astype(np.uint16), (1.0, 0.0), "exp"),
                                     exp_table[None])
 
 
 def test_fixed_point_scale_leaves_headroom():
     for top, count in ((6.93, 25), (1.0, 513), (1e4, 4096), (1e-6, 3)):
-        scale = prep.fixed_point_scale(top, count)
+        scale = taps.fixed_point_scale(top, count)
         assert top * scale * (count + 1) < 2.0**62
         assert top * scale * (count + 2) >= 2.0**58  # and keeps precision
 
 
 def test_four_channel_padding_and_response_params():
     group = [response("exp:2"), response("gamma:2.2"), Table([0, 1], [0, 1])]
-    padded = prep.four_channels(group)
+    padded = response_pack.four_channels(group)
     assert len(padded) == 4 and padded[3] is group[0]
-    params, tables = prep.response_params(group)
-    rows = params.reshape(4, prep.RESP_STRIDE)
+    params, tables = response_pack.response_params(group)
+    rows = params.reshape(4, RESP_STRIDE)
     assert rows[0].tolist() == [1, 2.0, 0, 0]
     assert rows[1][0] == 2 and np.isclose(rows[1][1], 1 / 2.2)
     assert rows[2].tolist() == [4, 0.0, 0, 2] and tables.tolist() == [0, 1, 0, 1]

@@ -224,3 +224,21 @@ def test_bad_motion_and_options():
         clblur.blur(img, (1, 0), backend="cuda")
     with pytest.raises(ValueError, match="PSF weights sum to zero"):
         blur(img, np.zeros((3, 3)))
+
+
+@pytest.mark.parametrize("backend", ["numpy", "opencl"])
+def test_far_flow_with_fixed_samples_reads_the_edge(backend, rng, request):
+    """A 1e9 px flow pixel with a fixed sample count equals any other vector that leaves the
+    image from every sample but the anchor's (so the limit clip is exact), on both backends."""
+    if backend == "opencl":
+        request.getfixturevalue("opencl")
+    img = rng.integers(0, 256, (24, 32, 3), dtype=np.uint8)
+    flow = rng.uniform(-3, 3, (24, 32, 2)).astype(np.float32)
+    flow[5, 7] = (1e9, -3e8)
+    far = flow.copy()
+    far[5, 7] = (5e4, -5e4)  # also beyond the image from every non-anchor sample
+    got = clblur.blur(img, flow, "srgb", samples=4, backend=backend)
+    want = clblur.blur(img, far, "srgb", samples=4, backend=backend)
+    np.testing.assert_array_equal(got, want)
+    with pytest.raises(ValueError, match="beyond"):  # default N = ceil(|v|) + 1: refused
+        clblur.blur(img, flow, "srgb", backend=backend)

@@ -130,7 +130,7 @@ def _manifest(tmp_path, rng):
 
 
 def test_cli_writes_report_markdown_and_figures(tmp_path, rng):
-    from clblur.study import cli
+    from clblur.cli import study as cli
 
     m = _manifest(tmp_path, rng)
     parser = argparse.ArgumentParser()

@@ -9,9 +9,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import clblur
-from clblur import tiling
-from clblur.io import read_image, write_flow, write_image
-from clblur.tiling import MappedRaster, blur_file, blur_tiled, choose_tile
+from clblur import io, tiling
+from clblur.io import MappedRaster, read_image, write_flow, write_image
+from clblur.tiling import blur_file, blur_tiled, choose_tile
 
 
 @pytest.fixture(autouse=True)
@@ -117,7 +117,7 @@ def test_memmap_flow_is_read_window_by_window(rng, tmp_path):
     flow = _cross_tile_flow(rng, 30, 20)
     np.save(tmp_path / "f.npy", flow.astype(np.float16))
     mapped = np.load(tmp_path / "f.npy", mmap_mode="r")
-    assert isinstance(tiling.as_array_like(mapped), MappedRaster)
+    assert isinstance(io.as_array_like(mapped), MappedRaster)
     out = np.zeros_like(img)
     blur_tiled(img, out, mapped, backend="numpy", tile=7)
     ref = clblur.blur(img, flow.astype(np.float16).astype(np.float32), backend="numpy")
@@ -149,7 +149,7 @@ def test_blur_file_bigtiff_streams_and_matches(rng, tmp_path):
     tifffile.imwrite(src, img, photometric="rgb")
     flow = _cross_tile_flow(rng, 45, 38)
     write_flow(tmp_path / "f.npy", flow)
-    assert isinstance(tiling.open_image(src), MappedRaster)
+    assert isinstance(io.open_image(src), MappedRaster)
     run = blur_file(src, tmp_path / "out.tif", str(tmp_path / "f.npy"), backend="numpy",
                     tile=16)
     assert run.tiles == 9

@@ -9,13 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from clblur import blur, video
+from clblur import blur
+from clblur.cli import video as video_cli
 from clblur.flow import FlowEstimator, FlowFolder, save_flows
 from clblur.io import read_image, write_image
+from clblur.io.video import VideoReadError
 from clblur.pixels import quantise
 from clblur.responses import response
 from clblur.video import blur_frame, blur_video, half_paths
-from clblur.video_io import VideoReadError
 
 av = pytest.importorskip("av")
 
@@ -385,7 +386,7 @@ def test_audio_the_container_cannot_hold_is_a_clear_error(tmp_path):
 
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="clblur")
-    video.register(p.add_subparsers(dest="command", required=True))
+    video_cli.register(p.add_subparsers(dest="command", required=True))
     return p
 
 

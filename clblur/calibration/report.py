@@ -196,7 +196,8 @@ def curve_table(series: ExposureSeries, fits: dict[str, ResponseFit]) -> str:
     for name, f in fits.items():
         for c, resp in enumerate(f.responses):
             def inv(code, r=resp):
-                return float(r.inverse(np.array(code / series.full_scale)))
+                # numpy scalars: a zero inverse gives inf under errstate, not ZeroDivisionError
+                return np.float64(r.inverse(np.array(code / series.full_scale)))
 
             with np.errstate(divide="ignore", invalid="ignore"):
                 span = np.log2(inv(hi) / inv(lo))

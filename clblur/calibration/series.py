@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clblur.io import read_image
+from clblur.io import read_image, resolve_inside
 from clblur.manifest import load_manifest
 from clblur.pixels import imax
 
@@ -202,7 +202,10 @@ def load_series(source: str | os.PathLike, times=None) -> ExposureSeries:
                                      [e.path.name for e in m.images])
     if not source.is_dir():
         raise ValueError(f"exposure series not found: {source} (give a manifest or a folder)")
+    # every image listed must lie in the folder (a symlink leading out of it is refused)
     files = sorted(p for p in source.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    for p in files:
+        resolve_inside(source, p.name, f"exposure series {source}: image")
     if not files:
         raise ValueError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in folder {source}")
     f_numbers = None

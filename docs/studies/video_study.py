@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from clblur import video
+from clblur.cli import video as video_cli
 from clblur.data import data_dir
 from clblur.flow import FlowFolder
 from clblur.io import read_image
@@ -51,7 +52,7 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
 def run_clblur_video(argv: list[str]) -> None:
     """Parse ``argv`` with the real ``clblur video`` parser and run it."""
     parser = argparse.ArgumentParser(prog="clblur")
-    video.register(parser.add_subparsers(dest="command", required=True))
+    video_cli.register(parser.add_subparsers(dest="command", required=True))
     args = parser.parse_args(["video", *argv])
     if args.func(args) != 0:
         raise RuntimeError(f"clblur video {' '.join(argv)} failed")

@@ -30,7 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
-from clblur.io import read_image, tmp_beside, write_image
+from clblur.io.atomic import tmp_beside
+from clblur.io.images import read_image, write_image
+from clblur.io.paths import resolve_inside
 from clblur.pixels import quantise
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp")
@@ -79,6 +81,8 @@ class ImageSequenceSource:
                             key=lambda f: _natural_key(f.name))
         if not self.files:
             raise VideoReadError(f"no image files ({', '.join(IMAGE_SUFFIXES)}) in {folder}")
+        for f in self.files:  # a frame symlink must not lead out of the folder
+            resolve_inside(self.path, f.name, f"image sequence {folder}: frame")
         self.fps = Fraction(fps).limit_denominator(1001000)
         self.declared_frames: int | None = len(self.files)
         self.audio_stream = None

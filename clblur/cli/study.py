@@ -3,6 +3,11 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
+
+from clblur.errors import InputError
+
+__all__ = ["register", "run"]
 
 
 def register(subparsers) -> None:
@@ -23,8 +28,15 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from clblur.io import check_output
     from clblur.study.run import DEFAULT_PIXELS, study
 
+    # every output checked before the study runs (it takes minutes)
+    check_output(args.report, args.manifest)
+    check_output(Path(args.report).with_suffix(".md"), args.manifest)
+    if args.figures is not None and Path(args.figures).exists() \
+            and not Path(args.figures).is_dir():
+        raise InputError(f"--figures {args.figures} exists and is not a folder")
     result = study(args.manifest, report=args.report, figures_dir=args.figures,
                    max_pixels=args.max_pixels or DEFAULT_PIXELS, alpha=args.alpha,
                    progress=not args.quiet)

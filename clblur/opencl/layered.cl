@@ -27,8 +27,8 @@
 #ifndef CHANNELS
 #define CHANNELS 3
 #endif
+/* MAXK (layers a work-item holds) comes from clblur.opencl.constants as a -D option. */
 #define CP (CHANNELS + 1)
-#define MAXK 8
 
 /* Bilinear taps at full-image (x, y), clamped to the image, then to the crop. */
 typedef struct {

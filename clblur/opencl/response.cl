@@ -1,9 +1,10 @@
 /* Forward camera responses and output quantisation (clblur.responses, clblur.pixels).
  *
  * Conventions
+ * - Shared constants (RESP_STRIDE, QHEAD, KIND_*, OUT_*, IN_*, LANES, GROUP) come from the
+ *   host as -D build options (clblur/opencl/constants.py); this file never spells them.
  * - A channel's response is RESP_STRIDE floats in a __constant array:
- *   [kind, parameter, table offset, table length].  Kind codes are
- *   clblur.responses.KIND_CODES; keep them in step.
+ *   [kind, parameter, table offset, table length], kind codes KIND_* (clblur.responses).
  *   exp: parameter = k;  gamma: parameter = 1/gamma (precomputed on the host);
  *   table: `tables[offset .. offset+len)` holds exposures, the next `len` floats the values.
  * - Quantisation: integer outputs are rint(clamp(v, 0, 1) * Imax) (clblur.pixels), found by
@@ -12,16 +13,15 @@
  *   in float32 and are stored unrounded.
  */
 
-#define KIND_LINEAR 0
-#define KIND_EXP 1
-#define KIND_GAMMA 2
-#define KIND_SRGB 3
-#define KIND_TABLE 4
-#define RESP_STRIDE 4
+/* The parameters every integrating kernel ends with: packed responses, quantisation tables
+ * and the output (kind, channel count, first channel and size of this pass's group). */
+#define STORE_PARAMS                                                                      \
+    __constant const float *resp, __global const float *tables,                            \
+    __global const float *thresholds, __global const int *buckets,                         \
+    __global uchar *restrict out, int out_kind, int channels, int cbase, int cg
 
-#define OUT_U8 0
-#define OUT_U16 1
-#define OUT_F32 2
+/* Their names, to hand them on to the store helpers. */
+#define STORE_ARGS resp, tables, thresholds, buckets, out, out_kind, channels, cbase, cg
 
 /* np.interp on a strictly increasing table: hold the end values outside. */
 static float table_forward(float x, __global const float *xs, __global const float *vs, int n)
@@ -54,7 +54,7 @@ static float forward_response(float x, __constant const float *resp, __global co
         int off = (int)resp[2], n = (int)resp[3];
         return table_forward(x, tables + off, tables + off + n, n);
     }
-    default:
+    default:  /* KIND_LINEAR */
         return x;
     }
 }
@@ -70,7 +70,6 @@ static float forward_response(float x, __constant const float *resp, __global co
  * the table length is a plain binary search).  Header buckets[0..4]: shift, base, bucket
  * count nb, steps, threshold row stride; channel k's counts start at QHEAD + k nb, its
  * thresholds at k stride.  Rows are padded with +inf so no probe leaves its row. */
-#define QHEAD 5
 
 static int quantise(float e, __global const float *thresholds, __global const int *buckets,
                     int k)
@@ -123,7 +122,7 @@ static void store_codes(int4 q, __global uchar *restrict out, int out_kind, size
         if (cg > 1) out[base + 1] = (uchar)q.y;
         if (cg > 2) out[base + 2] = (uchar)q.z;
         if (cg > 3) out[base + 3] = (uchar)q.w;
-    } else {
+    } else {  /* OUT_U16 */
         __global ushort *o = (__global ushort *)out;
         o[base] = (ushort)q.x;
         if (cg > 1) o[base + 1] = (ushort)q.y;
@@ -135,10 +134,7 @@ static void store_codes(int4 q, __global uchar *restrict out, int out_kind, size
 /* Forward-map and quantise the accumulated exposures of one pixel's channel group: integer
  * outputs by the threshold search (four channels at once), float32 outputs by evaluating
  * the response (channels spelled out, no private array, so they stay in registers). */
-static void store_pixel(float4 acc, __global uchar *restrict out, int out_kind, size_t pixel,
-                        int channels, int cbase, int cg, __constant const float *resp,
-                        __global const float *tables, __global const float *thresholds,
-                        __global const int *buckets)
+static void store_pixel(float4 acc, size_t pixel, STORE_PARAMS)
 {
     if (out_kind != OUT_F32) {
         int4 q = (int4)(quantise(acc.x, thresholds, buckets, 0),

@@ -1,4 +1,4 @@
-"""OpenCL devices for the backend: selection, per-process contexts, programs, buffers.
+"""OpenCL devices: selection, per-process contexts and queues, programs, reusable buffers.
 
 Conventions
 -----------
@@ -9,6 +9,9 @@ Conventions
   builds one context and queue per selector on first use (a forked worker notices the new
   pid and builds its own); programs are cached by build options, device buffers are reused
   between calls.  No OpenCL object leaves this module's state, so nothing needs pickling.
+* Devices that do not share host memory (GPUs) get two in-order queues (bands of an image
+  overlap upload, kernel and download across them) and pinned (``ALLOC_HOST_PTR``) staging
+  buffers, reused across calls; CPU devices read the caller's arrays in place.
 """
 
 from __future__ import annotations
@@ -17,13 +20,16 @@ import os
 import re
 import threading
 from dataclasses import dataclass, field
-from importlib import resources
-from pathlib import Path
 
 import numpy as np
 
+from clblur.opencl.constants import build_defines
+from clblur.opencl.program import Program, kernel_source
+
+__all__ = ["ENV_DEVICE", "DeviceNotFound", "OpenCLUnavailable", "Runtime", "current_device",
+           "devices", "pyopencl_module", "runtime", "runtimes", "usable"]
+
 ENV_DEVICE = "CLBLUR_DEVICE"
-KERNEL_FILES = ("response.cl", "integrate.cl")
 _PROBE_SOURCE = "__kernel void probe(__global float *x) { x[get_global_id(0)] += 1.5f; }"
 
 
@@ -86,16 +92,6 @@ def _pick(selector: str):
     raise DeviceNotFound(f"no OpenCL device matches {selector!r} (available: {names})")
 
 
-def _kernel_source() -> str:
-    try:
-        root = resources.files("clblur.kernels")
-        return "\n".join(root.joinpath(name).read_text() for name in KERNEL_FILES)
-    except (ModuleNotFoundError, FileNotFoundError):
-        # Source tree: kernels/ sits next to the package and is only a package once installed.
-        root = Path(__file__).resolve().parent.parent / "kernels"
-        return "\n".join((root / name).read_text() for name in KERNEL_FILES)
-
-
 @dataclass
 class Runtime:
     """One device's context, queue, programs and reusable buffers (per process)."""
@@ -107,35 +103,39 @@ class Runtime:
     queue: object
     fp64: bool
     unified: bool  # device memory is host memory (CPU devices)
+    gpu: bool  # pick the GPU kernel variants (work-group tiles, no 8-lane unroll)
+    queues: tuple = ()  # extra in-order queues for overlapping bands (devices with own memory)
     pid: int = field(default_factory=os.getpid)
     lock: threading.Lock = field(default_factory=threading.Lock)
     programs: dict = field(default_factory=dict)
-    kernels: dict = field(default_factory=dict)
     buffers: dict = field(default_factory=dict)
+    pinned: dict = field(default_factory=dict)
 
-    def build_options(self, half: bool) -> tuple[str, ...]:
-        """Options for the kernels/*.cl program; ``half``: half-float intermediate."""
+    def build_options(self, half: bool, gpu: bool | None = None) -> tuple[str, ...]:
+        """Build options: the shared constants, ``half`` (half-float intermediate), the GPU
+        kernel variants (default: this device's type) and the device's capabilities."""
         cl = pyopencl_module()
-        opts = []
+        opts = list(build_defines())
         if self.device.single_fp_config & cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT:
             opts.append("-cl-fp32-correctly-rounded-divide-sqrt")  # v / (N-1) exact if integer
         if half:
             opts.append("-DSTORE_HALF")
         if self.fp64:
             opts.append("-DHAVE_FP64")
+        if self.gpu if gpu is None else gpu:
+            opts.append("-DGPU_VARIANT")
         return tuple(opts)
 
-    def kernel(self, half: bool, name: str):
-        """Kernel ``name`` of the program built for ``half`` (built once, then cached)."""
-        opts = self.build_options(half)
+    def program(self, half: bool, gpu: bool | None = None) -> Program:
+        """The program built with ``build_options(half, gpu)`` (built once, then cached)."""
+        opts = self.build_options(half, gpu)
         if opts not in self.programs:
-            cl = pyopencl_module()
-            self.programs[opts] = cl.Program(self.context, _kernel_source()).build(
-                options=list(opts))
-        key = (opts, name)
-        if key not in self.kernels:
-            self.kernels[key] = getattr(self.programs[opts], name)
-        return self.kernels[key]
+            self.programs[opts] = Program(self.context, kernel_source(), opts)
+        return self.programs[opts]
+
+    def all_queues(self) -> tuple:
+        """The main queue first, then the extra ones."""
+        return (self.queue, *self.queues)
 
     def buffer(self, role: str, nbytes: int):
         """A device buffer of at least ``nbytes`` for ``role``, reused across calls."""
@@ -148,11 +148,30 @@ class Runtime:
         return old
 
     def upload(self, role: str, array: np.ndarray):
-        """Copy ``array`` into the reused ``role`` buffer (blocking) and return the buffer."""
+        """Copy ``array`` into the reused ``role`` buffer and return the buffer.  On devices
+        with one in-order queue (CPUs) the copy is queued (pyopencl keeps ``array`` alive
+        until it is done) and later commands see it; elsewhere it completes before return,
+        so kernels on any queue may read it."""
         array = np.ascontiguousarray(array)
         buf = self.buffer(role, array.nbytes)
-        pyopencl_module().enqueue_copy(self.queue, buf, array, is_blocking=True)
+        pyopencl_module().enqueue_copy(self.queue, buf, array, is_blocking=not self.unified)
         return buf
+
+    def staging(self, role: str, nbytes: int) -> np.ndarray:
+        """A pinned host array (``ALLOC_HOST_PTR``, mapped) of at least ``nbytes`` bytes for
+        ``role``, reused across calls: copies from it run at the bus's full speed."""
+        nbytes = max(int(nbytes), 16)
+        old = self.pinned.get(role)
+        if old is None or old[1].nbytes < nbytes:
+            cl = pyopencl_module()
+            buf = cl.Buffer(self.context, cl.mem_flags.READ_WRITE | cl.mem_flags.ALLOC_HOST_PTR,
+                            nbytes)
+            host, _ = cl.enqueue_map_buffer(self.queue, buf, cl.map_flags.READ |
+                                            cl.map_flags.WRITE, 0, (nbytes,), np.uint8,
+                                            is_blocking=True)
+            old = (buf, host)  # the buffer stays mapped for the runtime's life
+            self.pinned[role] = old
+        return old[1]
 
     def share(self, role: str, array: np.ndarray):
         """A read-only view of a large input: the host array itself on devices that share
@@ -165,6 +184,13 @@ class Runtime:
 
 
 _runtimes: dict[str, Runtime] = {}
+
+
+def runtimes() -> dict[str, Runtime]:
+    """The runtimes this process has created so far, by selector (a copy)."""
+    return dict(_runtimes)
+
+
 _usable: dict[str, tuple[bool, str]] = {}
 _registry_lock = threading.Lock()
 
@@ -181,12 +207,14 @@ def runtime(device: str | None = None) -> Runtime:
         try:
             ctx = cl.Context([dev])
             queue = cl.CommandQueue(ctx)
+            unified = dev.type == cl.device_type.CPU and bool(dev.host_unified_memory)
+            extra = () if unified else (cl.CommandQueue(ctx),)
         except cl.Error as e:
             raise OpenCLUnavailable(f"cannot create a context on {_label(platform, dev)}: "
                                     f"{e}") from None
         rt = Runtime(label=_label(platform, dev), index=f"{pi}:{di}", device=dev, context=ctx,
-                      queue=queue, fp64=bool(dev.double_fp_config),
-                      unified=dev.type == cl.device_type.CPU and bool(dev.host_unified_memory))
+                      queue=queue, fp64=bool(dev.double_fp_config), unified=unified,
+                      gpu=bool(dev.type & cl.device_type.GPU), queues=extra)
         _runtimes[sel] = rt
         return rt
 

@@ -12,9 +12,13 @@ from __future__ import annotations
 import argparse
 import shlex
 import sys
+from pathlib import Path
 
 from clblur.calibration.evaluate import EVAL_LOW, FLAT_TOLERANCE
 from clblur.calibration.models import MODELS
+from clblur.errors import InputError
+
+__all__ = ["register", "run"]
 
 
 def register(subparsers) -> None:
@@ -71,12 +75,39 @@ def _tolerance(text: str) -> float | None:
         raise argparse.ArgumentTypeError(f"expected a number or 'none', got {text!r}") from None
 
 
-def run(args) -> int:
+def check_outputs(args: argparse.Namespace) -> None:
+    """Every output path must be writable before the fitting starts (it takes minutes)."""
+    from clblur.io import check_output
+
+    check_output(args.output, args.source, args.times)
+    if args.report is not None:
+        report = Path(args.report)
+        if report.exists() and not report.is_dir():
+            raise InputError(f"--report {report} exists and is not a folder")
+        if not report.parent.is_dir():  # the report folder is created, its parent must exist
+            raise InputError(f"--report {report}: folder {report.parent} does not exist")
+
+
+def nan_reasons(evaluation: dict) -> list[str]:
+    """One line per gap whose RMSE is nan, saying why (no pair that far apart, or no pixel
+    that passed the scoring filters)."""
+    lines = []
+    for g, n_pairs in evaluation["n_pairs"].items():
+        if not n_pairs:
+            lines.append(f"nan at {g}-stop: no two exposures of this series are {g} stop(s) "
+                         "apart (within 1/4 stop), so that gap cannot be scored; choose "
+                         "--gaps the series has")
+        elif not evaluation["n_values"].get(g):
+            lines.append(f"nan at {g}-stop: {n_pairs} pair(s) are {g} stop(s) apart but no "
+                         "pixel passed --eval-low / --flat-tolerance")
+    return lines
+
+
+def run(args: argparse.Namespace) -> int:
     from clblur.calibration.compare import calibrate
-    from clblur.io import refuse_overwrite
     from clblur.responses import save_channel_set
 
-    refuse_overwrite(args.output, args.source, args.times)
+    check_outputs(args)
     result = calibrate(args.source, args.model, times=args.times, shared=args.shared,
                        refine_times=args.refine_times, n_samples=args.samples,
                        patch=args.patch, seed=args.seed, fit_low=args.fit_low,
@@ -91,6 +122,8 @@ def run(args) -> int:
         cells = "".join(f"{e['rmse_darker'][g]:8.2f}{e['rmse_brighter'][g]:7.2f}"
                         f"{e['rmse'][g]:7.2f}" for g in gaps)
         print(f"{n:<14}{cells}  {e['aic']:10.0f}" + ("   <- best" if n == best else ""))
+    for line in nan_reasons(evaluations[best]):  # say why a column is nan
+        print(line)
     chosen = result.fits[best]
     if args.shared or len(chosen.responses) == 1:
         chosen.responses[0].save(args.output)

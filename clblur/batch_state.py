@@ -1,0 +1,212 @@
+"""The state a batch keeps in ``OUT_DIR/.clblur-batch/``: the job, its key, completion
+markers and claims (conventions in ``clblur.batch``).
+
+Conventions
+-----------
+* ``job_key``: SHA-256 over the content (and size and mtime) of the input, flow, PSF and
+  response document, every option that changes pixels, and the clblur version.
+* ``<output name>.json``: the completion marker (key and output size); ``<output name>.lock``:
+  a claim, created with ``O_EXCL`` and refreshed every ``HEARTBEAT_S`` while its job runs;
+  stale when its process is gone (same host) or not refreshed for ``STALE_LOCK_S``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import socket
+import threading
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+__all__ = ["HEARTBEAT_S", "MARKER_DIR", "STALE_LOCK_S", "Claim", "Job", "Result", "claim",
+           "is_finished", "job_key", "lock_path", "marker_path", "remove_partials",
+           "response_file"]
+
+MARKER_DIR = ".clblur-batch"
+STALE_LOCK_S = 120.0  # a claim not refreshed for this long belongs to a dead worker
+HEARTBEAT_S = 15.0
+BUILTIN_RESPONSES = ("linear", "exp", "gamma", "srgb")
+
+
+@dataclass(frozen=True)
+class Job:
+    """One image to blur: only paths and plain options, so it pickles to any worker."""
+
+    src: str
+    dst: str
+    motion: tuple[float, float] | None = None
+    flow: str | None = None
+    psf: str | None = None
+    response: str = "exp"
+    anchor: str = "center"
+    samples: int | None = None
+    saturation: float = 1.0
+    backend: str = "auto"
+    device: str | None = None
+    memory_budget: str | None = None
+    problem: str | None = None  # known before running (e.g. no motion): reported as failed
+
+    @property
+    def name(self) -> str:
+        return Path(self.src).name
+
+
+@dataclass(frozen=True)
+class Result:
+    """What happened to one job: ``status`` is ``done``, ``failed``, ``finished`` (already
+    done, found after claiming) or ``busy`` (another live batch holds it)."""
+
+    name: str
+    ok: bool
+    seconds: float = 0.0
+    backend: str | None = None
+    error: str | None = None
+    status: str = "done"
+
+
+# --------------------------------------------------------------------------- the job key
+_digests: dict[tuple, str] = {}
+
+
+def _file_digest(path: str) -> list | None:
+    """[size, mtime_ns, sha256] of a file (cached per process on size, mtime and inode)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    ident = (path, st.st_size, st.st_mtime_ns, st.st_ino)
+    if ident not in _digests:
+        h = hashlib.sha256()
+        with open(path, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+        _digests[ident] = h.hexdigest()
+    return [st.st_size, st.st_mtime_ns, _digests[ident]]
+
+
+def response_file(spec: str) -> str | None:
+    """The file a response spec names, or None for a built-in curve (``exp:2``, ``srgb``)."""
+    if spec.split(":", 1)[0] in BUILTIN_RESPONSES:
+        return None
+    return spec
+
+
+def job_key(job: Job) -> str:
+    """SHA-256 over everything that decides the output's pixels (see the conventions)."""
+    import clblur
+
+    d = asdict(job)
+    for key in ("backend", "device", "memory_budget", "problem"):  # same pixels either way
+        d.pop(key)
+    files = {"src": job.src, "flow": job.flow, "psf": job.psf,
+             "response": response_file(job.response)}
+    d["content"] = {k: _file_digest(p) for k, p in files.items() if p}
+    d["clblur"] = clblur.__version__
+    return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()
+
+
+def marker_path(job: Job) -> Path:
+    dst = Path(job.dst)
+    return dst.parent / MARKER_DIR / f"{dst.name}.json"
+
+
+def lock_path(job: Job) -> Path:
+    dst = Path(job.dst)
+    return dst.parent / MARKER_DIR / f"{dst.name}.lock"
+
+
+def is_finished(job: Job) -> bool:
+    """Output present and its marker records this very job (see module conventions)."""
+    dst = Path(job.dst)
+    try:
+        marker = json.loads(marker_path(job).read_text())
+        return dst.is_file() and marker["key"] == job_key(job) and \
+            marker["output_bytes"] == dst.stat().st_size
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+
+
+# --------------------------------------------------------------------------- claims
+def _lock_is_stale(path: Path) -> bool:
+    try:
+        info = json.loads(path.read_text())
+        age = time.time() - path.stat().st_mtime
+    except FileNotFoundError:
+        return False  # released meanwhile: try to claim again
+    except (OSError, ValueError):
+        return True  # unreadable: a crash while writing it
+    if info.get("host") == socket.gethostname():
+        try:
+            os.kill(int(info["pid"]), 0)
+        except ProcessLookupError:
+            return True
+        except (PermissionError, KeyError, ValueError, TypeError):
+            pass
+    return age > STALE_LOCK_S
+
+
+class Claim:
+    """An exclusive claim on one job (a lock file refreshed by a heartbeat thread)."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._beat, daemon=True)
+        self._thread.start()
+
+    def _beat(self) -> None:
+        while not self._stop.wait(HEARTBEAT_S):
+            try:
+                os.utime(self.path)
+            except OSError:
+                return
+
+    def release(self) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.path.unlink(missing_ok=True)
+
+
+def claim(job: Job) -> Claim | None:
+    """Claim ``job`` atomically; None when another live batch holds it."""
+    path = lock_path(job)
+    path.parent.mkdir(exist_ok=True)
+    body = json.dumps({"host": socket.gethostname(), "pid": os.getpid(), "time": time.time()})
+    for _ in range(2):
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            if not _lock_is_stale(path):
+                return None
+            # take the stale lock over: rename it away (atomic, so one taker wins), then retry
+            try:
+                os.replace(path, path.with_name(f".{path.name}.{os.getpid()}.stale"))
+                path.with_name(f".{path.name}.{os.getpid()}.stale").unlink(missing_ok=True)
+            except OSError:
+                pass
+            continue
+        with os.fdopen(fd, "w") as f:
+            f.write(body)
+        return Claim(path)
+    return None
+
+
+def _live_claims(out_dir: Path) -> list[str]:
+    """Output names that a live batch holds."""
+    locks = (out_dir / MARKER_DIR).glob("*.lock") if (out_dir / MARKER_DIR).is_dir() else []
+    return [p.name.removesuffix(".lock") for p in locks if not _lock_is_stale(p)]
+
+
+def remove_partials(out_dir: Path) -> int:
+    """Delete temporary files that interrupted runs left (``atomic_write`` names), except
+    those of images a live batch holds."""
+    held = _live_claims(out_dir)
+    stale = [p for d in (out_dir, out_dir / MARKER_DIR) if d.is_dir()
+             for p in d.glob(".*.part*") if p.is_file()
+             and not any(p.name.startswith(f".{n}.") for n in held)]
+    for p in stale:
+        p.unlink(missing_ok=True)
+    return len(stale)

@@ -1,0 +1,7 @@
+"""``python -m clblur.cli``."""
+
+import sys
+
+from clblur.cli import main
+
+sys.exit(main())

@@ -1,0 +1,83 @@
+"""``clblur blur IN OUT``: one image along a motion, flow field or PSF."""
+
+from __future__ import annotations
+
+import argparse
+
+from clblur.cli.options import (
+    add_blur_options,
+    add_memory_option,
+    add_motion_options,
+    blur_options,
+    check_device,
+    check_response,
+    motion_from_args,
+)
+from clblur.errors import InputError
+
+__all__ = ["register", "run"]
+
+
+def register(sub) -> None:
+    p = sub.add_parser("blur", help="blur an image along a motion, flow field or PSF",
+                       description="Photo-consistent motion blur of one image. Large TIFF "
+                                   "images are processed in tiles within --memory-budget.")
+    p.add_argument("input")
+    p.add_argument("output")
+    add_motion_options(p, required=True)
+    add_blur_options(p)
+    add_memory_option(p, "bound memory use")
+    p.add_argument("--vectors", choices=["clblur", "blender", "nuke"], default="clblur",
+                   help="convention of --flow: clblur (displacement over the exposure, "
+                        "default), blender (Vector pass X,Y,Z,W) or nuke (forward/backward "
+                        "u,v); see docs/model.md")
+    p.add_argument("--vector-shutter", type=float, default=0.5, metavar="FRAMES",
+                   help="with --vectors blender|nuke: centred shutter in frames (default 0.5, "
+                        "i.e. 180 degrees)")
+    p.add_argument("--depth", default=None, metavar="FILE",
+                   help="occlusion order, H x W .npy or EXR depth (FILE.exr[:CHANNEL]; smaller "
+                        "= nearer; integers: layer IDs): layered exposure, moving objects "
+                        "smear over what is behind them")
+    p.add_argument("--alpha", choices=("auto", "yes", "no"), default="auto",
+                   help="the last channel is coverage, blurred linearly with colour "
+                        "premultiplied in linear light (auto: 2- and 4-channel images)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from clblur.io import IMAGE_FORMATS, check_output, probe_image
+    from clblur.tiling import blur_file, parse_size
+
+    depth_file = None if args.depth is None else args.depth.split(".exr:")[0]
+    check_output(args.output, args.input, args.flow, args.psf, depth_file,
+                 suffixes=tuple(IMAGE_FORMATS))
+    parse_size(args.memory_budget)
+    check_response(args.response)
+    check_device(args)
+    channels = probe_image(args.input).channels  # the header only: nothing decoded yet
+    alpha = args.alpha == "yes" or (args.alpha == "auto" and channels in (2, 4))
+    if args.depth is not None or alpha:
+        _blur_whole(args, alpha)  # layered exposure and alpha need the whole image
+    else:
+        blur_file(args.input, args.output, motion_from_args(args), **blur_options(args),
+                  memory_budget=args.memory_budget, progress=True)
+    print(f"wrote {args.output}")
+    return 0
+
+
+def _blur_whole(args: argparse.Namespace, alpha: bool) -> None:
+    """Layered exposure and alpha: the whole image in memory, written atomically."""
+    import clblur
+    from clblur.io import read_depth, read_flow, read_image, write_image
+
+    motion = motion_from_args(args)
+    if isinstance(motion, str):
+        motion = read_flow(motion)
+    depth = read_depth(args.depth) if args.depth is not None else None
+    from clblur.tiling import parse_size
+
+    image = read_image(args.input, max_bytes=parse_size(args.memory_budget))
+    if image.dtype.kind == "f" and not args.output.lower().endswith((".tif", ".tiff", ".exr")):
+        raise InputError(f"{args.output} cannot hold float images; write .tif, .tiff or .exr")
+    out = clblur.blur(image, motion, **blur_options(args), depth=depth, alpha=alpha)
+    write_image(args.output, out)

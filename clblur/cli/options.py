@@ -1,0 +1,125 @@
+"""Options shared by several commands, and their conversion to library arguments.
+
+Every option declaration a command shares lives here; a command's own options sit in its
+module's ``register``.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from clblur.blur import BACKENDS
+from clblur.errors import InputError
+from clblur.motion import ANCHORS
+
+__all__ = ["add_backend_options", "add_blur_options", "add_memory_option",
+           "add_motion_options", "blur_options", "check_device", "check_response",
+           "motion_from_args", "parse_vector"]
+
+
+def parse_vector(text: str, option: str = "--motion") -> tuple[float, float]:
+    """``"DX,DY"`` -> (dx, dy), finite."""
+    parts = text.split(",")
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        v = float(parts[0]), float(parts[1])
+    except ValueError:
+        raise InputError(f"{option} must be DX,DY in pixels (e.g. 12,-3), got {text!r}") from None
+    if not all(map(_finite, v)):
+        raise InputError(f"{option} must be finite, got {text!r}")
+    return v
+
+
+def _finite(x: float) -> bool:
+    return x == x and abs(x) != float("inf")
+
+
+def add_blur_options(p: argparse.ArgumentParser) -> None:
+    """Options shared by every command that blurs (blur, batch)."""
+    p.add_argument("--response", default="exp", metavar="SPEC",
+                   help="linear, exp, exp:K, gamma:G, srgb, or a response JSON file "
+                        "(default: exp, the paper's Eq. 3)")
+    p.add_argument("--anchor", choices=list(ANCHORS), default="center",
+                   help="shutter time the static image shows (default: center)")
+    p.add_argument("--samples", type=int, default=None, metavar="N",
+                   help="samples per pixel (default: ceil(|v|)+1 per pixel)")
+    p.add_argument("--saturation", type=float, default=1.0, metavar="S",
+                   help="exposure of clipped pixels, in units of the least saturating "
+                        "exposure (>= 1, default 1)")
+    add_backend_options(p)
+
+
+def add_backend_options(p: argparse.ArgumentParser) -> None:
+    """--backend and --device, for every command that runs the blur kernels."""
+    p.add_argument("--backend", choices=list(BACKENDS), default="auto",
+                   help="auto: OpenCL when a device works, else numpy (default: auto)")
+    p.add_argument("--device", default=None,
+                   help="OpenCL device: 'P:D' indices or a name substring (default: "
+                        "$CLBLUR_DEVICE, else the first usable device); a named device that "
+                        "does not work is an error")
+
+
+def add_memory_option(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--memory-budget", default=None, metavar="SIZE",
+                   help=f"{what}, e.g. 2G or 500M (default 512M; TIFFs are tiled, other "
+                        "formats must fit whole)")
+
+
+def add_motion_options(p: argparse.ArgumentParser, required: bool) -> None:
+    g = p.add_mutually_exclusive_group(required=required)
+    g.add_argument("--motion", metavar="DX,DY",
+                   help="one displacement in pixels, x right, y down (negative values: "
+                        "--motion=-5,2)")
+    g.add_argument("--flow", metavar="FILE", help="per-pixel motion: .npy (H x W x 2) or .flo")
+    g.add_argument("--psf", metavar="FILE", help="blur kernel image or .npy (normalised)")
+
+
+def motion_from_args(args: argparse.Namespace) -> object:
+    """The motion a blur command asked for; a flow stays a path so big ones can be mapped."""
+    from clblur.io import read_psf
+
+    if args.motion is not None:
+        return parse_vector(args.motion)
+    if args.flow is not None:
+        if getattr(args, "vectors", "clblur") != "clblur":  # a renderer's vector pass
+            from clblur.vectors import load_flow
+
+            return load_flow(args.flow, args.vectors, args.vector_shutter)
+        return args.flow
+    return read_psf(args.psf)
+
+
+def check_device(args: argparse.Namespace) -> None:
+    """An explicitly named device (``--device``) must exist and work: no silent fallback."""
+    device = getattr(args, "device", None)
+    if device is None or getattr(args, "backend", "auto") == "numpy":
+        return
+    try:
+        from clblur import opencl
+    except ImportError as e:
+        raise InputError(f"--device {device}: the OpenCL backend is unavailable ({e})") from None
+    ok, why = opencl.usable(device)
+    if not ok:
+        raise InputError(f"--device {device}: {why} (`clblur info` lists the devices)")
+
+
+def check_response(spec: str, option: str = "--response") -> None:
+    """Parse a response spec before any work, naming the option in the message."""
+    from clblur.responses import per_channel
+
+    first = None
+    for channels in (1, 3, 4):  # a per-channel document fits only its own channel count
+        try:
+            per_channel(spec, channels)
+            return
+        except (ValueError, TypeError) as e:
+            first = first or e
+    text = " ".join(str(first).split())
+    raise InputError(text if spec in text else f"{option} {spec}: {text}")
+
+
+def blur_options(args: argparse.Namespace) -> dict:
+    """The library keyword arguments of the shared blur options."""
+    return dict(response=args.response, anchor=args.anchor, samples=args.samples,
+                backend=args.backend, saturation=args.saturation, device=args.device)

@@ -1,0 +1,36 @@
+"""All file input and output: images (with header probing and decode limits), rasters read
+window by window (TIFF, ``.npy``), flows, PSFs, video, atomic writes and the rules on where
+paths may point.
+
+===================  ==============================================================
+module               holds
+===================  ==============================================================
+``io.images``        ``read_image``/``write_image`` (dispatch by ``image_format``),
+                     ``probe_image``/``check_decodable`` (header only, bomb check)
+``io.raster``        ``MappedRaster``, ``open_image`` (window by window), ``create_tiff``
+``io.flows``         ``.npy``/``.flo`` flows (``read_flow``, ``open_flow``), ``read_psf``
+``io.atomic``        ``atomic_write`` (temp file + rename)
+``io.paths``         ``resolve_inside``, ``check_output``, ``refuse_overwrite``
+``io.video``         video files and image sequences, frame by frame (PyAV; imported on
+                     use, not by ``clblur.io``)
+===================  ==============================================================
+"""
+
+from clblur.io.atomic import atomic_write, atomic_write_text, tmp_beside
+from clblur.io.flows import FLO_MAGIC, open_flow, read_depth, read_flow, read_psf, write_flow
+from clblur.io.images import (
+    IMAGE_FORMATS,
+    check_decodable,
+    image_format,
+    probe_image,
+    read_image,
+    write_image,
+)
+from clblur.io.paths import check_output, refuse_overwrite, resolve_inside
+from clblur.io.raster import MappedRaster, as_array_like, create_tiff, is_tiff, open_image
+
+__all__ = ["FLO_MAGIC", "IMAGE_FORMATS", "MappedRaster", "as_array_like", "atomic_write",
+           "atomic_write_text", "check_decodable", "check_output", "create_tiff",
+           "image_format", "is_tiff", "open_flow", "open_image", "probe_image", "read_flow",
+           "read_depth", "read_image", "read_psf", "refuse_overwrite", "resolve_inside",
+           "tmp_beside", "write_flow", "write_image"]

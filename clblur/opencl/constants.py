@@ -1,0 +1,53 @@
+"""Every constant the host code and the kernels share, defined once, here.
+
+The kernels (``*.cl`` beside this module) never spell these numbers: ``build_defines`` turns
+them into ``-D`` build options, so a change here reaches both sides.
+
+Conventions
+-----------
+* ``LANES``: consecutive pixels of a row per work-item of the CPU kernels (vector lanes).
+* ``GROUP``: channels per kernel pass (the RGBA-interleaved intermediate).
+* ``RESP_STRIDE``: floats per channel in the packed forward-response array
+  (``[kind, parameter, table offset, table length]``); kind codes are
+  ``clblur.responses.KIND_CODES``.
+* ``QHEAD``: header length of the quantisation bucket table
+  (``[shift, base, bucket count, steps, threshold row stride]``).
+* Input kinds (what the image buffer holds) and output kinds (what the store writes).
+* ``FLOW_LIMIT`` (``clblur.motion``): the largest flow component the kernels accept.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from clblur.motion import FLOW_LIMIT
+from clblur.responses import KIND_CODES
+
+__all__ = ["GROUP", "IN_F32", "IN_KINDS", "IN_U8", "IN_U16", "LANES", "LAYERED_MAXK", "OUT_F32",
+           "OUT_KINDS", "OUT_U8", "OUT_U16", "QHEAD", "RESP_STRIDE", "build_defines"]
+
+LANES = 8
+# layers one work-item of the layered compositor (layered.cl) holds in registers
+LAYERED_MAXK = 8
+GROUP = 4
+RESP_STRIDE = 4
+QHEAD = 5
+
+IN_U8, IN_U16, IN_F32 = 0, 1, 2
+IN_KINDS = {np.dtype(np.uint8): IN_U8, np.dtype(np.uint16): IN_U16}  # float inputs: IN_F32
+
+OUT_U8, OUT_U16, OUT_F32 = 0, 1, 2
+# float64 outputs are computed in float32 and widened on the host
+OUT_KINDS = {np.dtype(np.uint8): OUT_U8, np.dtype(np.uint16): OUT_U16,
+             np.dtype(np.float32): OUT_F32, np.dtype(np.float64): OUT_F32}
+
+
+def build_defines() -> tuple[str, ...]:
+    """``-DNAME=value`` options for every shared constant (sorted: a stable cache key)."""
+    values = {"LANES": LANES, "GROUP": GROUP, "RESP_STRIDE": RESP_STRIDE, "QHEAD": QHEAD,
+              "MAXK": LAYERED_MAXK,
+              "IN_U8": IN_U8, "IN_U16": IN_U16, "IN_F32": IN_F32,
+              "OUT_U8": OUT_U8, "OUT_U16": OUT_U16, "OUT_F32": OUT_F32}
+    values.update({f"KIND_{name.upper()}": code for name, code in KIND_CODES.items()})
+    values["FLOW_LIMIT"] = f"{FLOW_LIMIT!r}f"
+    return tuple(f"-D{k}={v}" for k, v in sorted(values.items()))

@@ -1,0 +1,58 @@
+"""When half-float storage of the linear intermediate is safe: a propagated error bound.
+
+Conventions
+-----------
+* Half storage is used only for uint8 outputs and only when the bound on the output error it
+  causes stays at or below ``HALF_MAX_LSB`` code steps (``docs/tolerances.md``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from clblur.plan import BlurPlan
+from clblur.responses import Response, Table
+
+__all__ = ["HALF_MAX_LSB", "half_error_lsb", "half_storage_ok"]
+
+HALF_MAX_LSB = 0.25  # largest allowed output error from half storage, in uint8 code steps
+HALF_UNIT_ROUNDOFF = 2.0**-11
+HALF_SUBNORMAL_HALF_STEP = 2.0**-25
+HALF_LARGEST = 65504.0
+
+
+def half_error_lsb(resp: Response, exposures: np.ndarray) -> float:
+    """Bound on the uint8 output error (code steps) caused by storing exposures in half.
+
+    A weighted mean of half-rounded values ``E_t (1 + e_t) + d_t`` (``|e_t| <= 2^-11``,
+    ``|d_t| <= 2^-25`` in the subnormal range) is off by at most ``E u + d`` from the exact
+    mean ``E``; the output moves by at most ``max |f(E +- (E u + d)) - f(E)|`` over the
+    exposures the blur can produce, i.e. ``[0, max LUT entry]``.
+    """
+    top = float(np.max(exposures))
+    if not math.isfinite(top) or top * (1 + HALF_UNIT_ROUNDOFF) >= HALF_LARGEST:
+        return math.inf
+    if float(np.min(exposures)) < 0:
+        return math.inf
+    grid = np.unique(np.concatenate([
+        np.linspace(0.0, top, 4097), np.geomspace(1e-9, max(top, 2e-9), 4097),
+        np.asarray(exposures, dtype=np.float64),
+        resp.exposure if isinstance(resp, Table) else np.zeros(0)]))
+    grid = grid[grid <= top]
+    slack = grid * HALF_UNIT_ROUNDOFF + HALF_SUBNORMAL_HALF_STEP
+    f = resp.forward(grid)
+    err = np.maximum(np.abs(resp.forward(grid + slack) - f),
+                     np.abs(f - resp.forward(np.maximum(grid - slack, 0.0))))
+    return float(np.max(err) * 255.0)
+
+
+def half_storage_ok(plan: BlurPlan, luts: np.ndarray | None) -> bool:
+    """Half storage only for uint8 images whose propagated error bound is small enough."""
+    if plan.dtype != np.uint8 or luts is None:
+        return False
+    return all(half_error_lsb(r, luts[c]) <= HALF_MAX_LSB
+               for c, r in enumerate(plan.responses))
+
+

@@ -1,0 +1,644 @@
+/* Linearise and integrate along the motion path (the pipeline of clblur/reference.py).
+ *
+ * Conventions
+ * - Build options: -DSTORE_HALF (linear intermediate as half, else float), -DHAVE_FP64
+ *   when the device has doubles, -DGPU_VARIANT for GPU work shapes, and the shared constants
+ *   (clblur/opencl/constants.py).  This file is appended to response.cl.
+ * - The kernels see a window (h x w) that lies inside the full image (a tile with its halo).
+ * - The linear intermediate holds one group of up to 4 channels, RGBA-interleaved, padded to
+ *   (h + 1) x (w + 1) pixels by repeating the last column and row: both horizontal
+ *   neighbours of a bilinear sample come from one 8-value load, clamped or not.
+ * - Clamp-to-edge is a clamp to the window: the window lies inside the image, so clamping
+ *   to the image and then to the window (the reference's guard) is the same; a tile with a
+ *   sufficient halo therefore computes exactly what the untiled image does.
+ * - Work-items handle LANES consecutive pixels of a row (the box kernel: LANES neighbouring
+ *   lines).  Per-pixel results never depend on the grouping: a lane whose taps are done adds
+ *   fma(0, v, acc), which leaves acc unchanged bit for bit (v is finite, acc never -0), and
+ *   box sums are exact integers, so tiles reproduce the untiled output bit for bit.
+ * - Floating-point contraction is off: every a*b+c is rounded as written (or is an explicit
+ *   fma), so results do not depend on how the compiler vectorises.
+ */
+#pragma OPENCL FP_CONTRACT OFF
+
+#if GROUP != 4
+#error "the kernels hold a channel group in a float4"
+#endif
+
+#ifdef HAVE_FP64
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#endif
+
+#ifdef STORE_HALF
+#define STORE_T half
+#define LOAD4(i) vload_half4((i), lin)
+#define LOAD8(i) vload_half8(0, lin + 4 * (size_t)(i))     /* pixels i and i + 1 */
+#define LOAD16(i) vload_half16(0, lin + 4 * (size_t)(i))   /* pixels i .. i + 3 */
+#define STORE4(v, i) vstore_half4_rte((v), (i), lin)
+#else
+#define STORE_T float
+#define LOAD4(i) vload4((i), lin)
+#define LOAD8(i) vload8(0, lin + 4 * (size_t)(i))
+#define LOAD16(i) vload16(0, lin + 4 * (size_t)(i))
+#define STORE4(v, i) vstore4((v), (i), lin)
+#endif
+
+/* Linearise one channel group into the padded intermediate (global size (w + 1, h + 1)):
+ * integer codes through per-channel tables (lut[k * lut_len + code]); float32 input is
+ * already linear (the host applied the inverse response in float64). */
+static float linear_channel(__global const uchar *image, int in_kind, size_t index, int k,
+                            __global const float *lut, int lut_len)
+{
+    if (in_kind == IN_U8)
+        return lut[k * lut_len + image[index]];
+    if (in_kind == IN_U16)
+        return lut[k * lut_len + ((__global const ushort *)image)[index]];
+    return ((__global const float *)image)[index];  /* IN_F32 */
+}
+
+__kernel void linearise(__global const uchar *image, int in_kind, int channels, int cbase,
+                        int cg, __global const float *lut, int lut_len, __global STORE_T *lin,
+                        int w, int h)
+{
+    int col = get_global_id(0), row = get_global_id(1);
+    if (col > w || row > h) return;
+    size_t base = ((size_t)min(row, h - 1) * w + min(col, w - 1)) * channels + cbase;
+    float4 e = (float4)(0.0f);
+    e.x = linear_channel(image, in_kind, base, 0, lut, lut_len);
+    if (cg > 1) e.y = linear_channel(image, in_kind, base + 1, 1, lut, lut_len);
+    if (cg > 2) e.z = linear_channel(image, in_kind, base + 2, 2, lut, lut_len);
+    if (cg > 3) e.w = linear_channel(image, in_kind, base + 3, 3, lut, lut_len);
+    STORE4(e, (size_t)row * (w + 1) + col);
+}
+
+/* Flow vector of pixel i (float32 or half pairs).  A component that is not finite or lies
+ * beyond +-FLOW_LIMIT px is counted (bad[0], bad[1]; only when `count`: a lane that repeats
+ * the last pixel does not count twice) and read as 0, so a bad flow can never make the tap
+ * loop unbounded; the host refuses the whole request when a count is not zero. */
+static float2 read_flow(__global const uchar *flow, int flow_half, size_t i,
+                        __global int *bad_flow, bool count)
+{
+    float2 v = flow_half ? vload_half2(i, (__global const half *)flow)
+                         : vload2(i, (__global const float *)flow);
+    int nonfinite = !isfinite(v.x) + !isfinite(v.y);
+    int beyond = (isfinite(v.x) && fabs(v.x) > FLOW_LIMIT) +
+                 (isfinite(v.y) && fabs(v.y) > FLOW_LIMIT);
+    if (nonfinite + beyond) {
+        if (count) {
+            if (nonfinite) atomic_add(bad_flow, nonfinite);
+            if (beyond) atomic_add(bad_flow + 1, beyond);
+        }
+        return (float2)(0.0f);
+    }
+    return v;
+}
+
+#ifdef HAVE_FP64
+/* clblur.motion.sample_counts: exact ceil(|v|) + 1 from float64 squares of the float32
+ * vector, corrected with exact integer-square comparisons (contraction is off). */
+static int sample_count(float vx, float vy)
+{
+    double x = vx, y = vy;
+    double l2 = x * x + y * y;
+    double m = ceil(sqrt(l2));
+    m = m * m < l2 ? m + 1.0 : m;
+    m = m > 0.0 && (m - 1.0) * (m - 1.0) >= l2 ? m - 1.0 : m;
+    return (int)m + 1;
+}
+#endif
+
+#ifdef HAVE_FP64
+/* sample_count for LANES vectors, exact: a float32 candidate m = ceil(sqrt(l2)) is accepted
+ * when (m - 1)^2 and m^2 (exact integers below 2^24) clear the float32 l2 by a relative
+ * margin of 1e-6, far more than its rounding error (< 2e-7 relative), so the float64 l2 of
+ * the reference lies strictly between them too; other lanes (near-integer lengths, tiny or
+ * huge vectors) take the float64 route.  Zero vectors are exact either way. */
+static int8 sample_counts8(float8 vx, float8 vy)
+{
+    float8 l2 = vx * vx + vy * vy;
+    float8 root = sqrt(l2);
+    float8 m = convert_float8(convert_int8(root));  /* ceil (root >= 0) without the call */
+    m = select(m, m + 1.0f, m < root);
+    float8 below = (m - 1.0f) * (m - 1.0f), above = m * m;
+    int8 zero = vx == 0.0f && vy == 0.0f;
+    int8 clear = l2 > 1e-20f && m < 4096.0f && above > l2 * (1.0f + 1e-6f) &&
+                 (m == 1.0f || below < l2 * (1.0f - 1e-6f));
+    int8 fast = convert_int8(m) + 1;
+    fast = select(fast, (int8)(1), zero);
+    if (all(clear | zero))
+        return fast;
+    int c[LANES], f[LANES];
+    float xs[LANES], ys[LANES];
+    vstore8(clear | zero, 0, c);
+    vstore8(fast, 0, f);
+    vstore8(vx, 0, xs);
+    vstore8(vy, 0, ys);
+    for (int l = 0; l < LANES; ++l)
+        if (!c[l]) f[l] = sample_count(xs[l], ys[l]);
+    return vload8(0, f);
+}
+#endif
+
+/* The flow parameters of a kernel that integrates a per-pixel field. */
+#define FIELD_PARAMS                                                                      \
+    __global const uchar *flow, int flow_half, __global int *bad_flow,                     \
+    __global const int *counts, int host_counts, int fixed_n, __global const float *time_w, \
+    int weighted, float anchor
+
+/* N of pixel i: host counts (devices without fp64), the fixed N, or computed here. */
+static int pixel_count(float2 v, size_t i, __global const int *counts, int host_counts,
+                       int fixed_n)
+{
+    if (host_counts) return counts[i];
+#ifdef HAVE_FP64
+    if (fixed_n <= 0) {
+        /* the float32 candidate of sample_counts8, float64 only when it is not clear
+         * (float64 is slow on many GPUs) */
+        float l2 = v.x * v.x + v.y * v.y;
+        float m = ceil(sqrt(l2));
+        if (v.x == 0.0f && v.y == 0.0f) return 1;
+        if (l2 > 1e-20f && m < 4096.0f && m * m > l2 * (1.0f + 1e-6f) &&
+            (m == 1.0f || (m - 1.0f) * (m - 1.0f) < l2 * (1.0f - 1e-6f)))
+            return (int)m + 1;
+        return sample_count(v.x, v.y);
+    }
+#endif
+    return fixed_n;
+}
+
+/* floor() of offsets without the library call (slow on some CPU drivers): truncate, then
+ * step down where truncation went up (negative non-integers; true vector compares are -1). */
+static int8 floor_int8(float8 v)
+{
+    int8 t = convert_int8(v);
+    return t + (convert_float8(t) > v);
+}
+
+static int floor_int(float v)
+{
+    int t = convert_int(v);
+    return convert_float(t) > v ? t - 1 : t;
+}
+
+/* Store LANES consecutive pixels of a row (the first `valid` of them), starting at `pixel`,
+ * from two vectors of four pixels x four channels; integer outputs are quantised 16 values
+ * at a time. */
+static void store_row8(float16 lo, float16 hi, size_t pixel, int valid, STORE_PARAMS)
+{
+    if (out_kind != OUT_F32 && valid >= LANES) {
+        int16 q_lo = quantise16(lo, thresholds, buckets);
+        int16 q_hi = quantise16(hi, thresholds, buckets);
+        store_codes(q_lo.s0123, out, out_kind, pixel, channels, cbase, cg);
+        store_codes(q_lo.s4567, out, out_kind, pixel + 1, channels, cbase, cg);
+        store_codes(q_lo.s89ab, out, out_kind, pixel + 2, channels, cbase, cg);
+        store_codes(q_lo.scdef, out, out_kind, pixel + 3, channels, cbase, cg);
+        store_codes(q_hi.s0123, out, out_kind, pixel + 4, channels, cbase, cg);
+        store_codes(q_hi.s4567, out, out_kind, pixel + 5, channels, cbase, cg);
+        store_codes(q_hi.s89ab, out, out_kind, pixel + 6, channels, cbase, cg);
+        store_codes(q_hi.scdef, out, out_kind, pixel + 7, channels, cbase, cg);
+        return;
+    }
+    float4 a[LANES] = {lo.s0123, lo.s4567, lo.s89ab, lo.scdef,
+                       hi.s0123, hi.s4567, hi.s89ab, hi.scdef};
+    for (int l = 0; l < LANES && l < valid; ++l)
+        store_pixel(a[l], pixel + l, STORE_ARGS);
+}
+
+/* Per-pixel motion field.  Sample j of pixel p lies at p + o, o = -(v / (N-1)) (j - a (N-1))
+ * (the reference's p - v (j - a (N-1)) / (N-1), exact whenever the step v / (N-1) is an
+ * integer).  o is split into integer and fraction before it meets p, so the fraction keeps
+ * the precision of |o| rather than that of the pixel coordinate.  Every pixel sums, per tap,
+ * left += fma(top-left, w_tl), left += fma(bottom-left, w_bl), right likewise with the right
+ * neighbours, and ends with (left + right) / N (or without the division for time weights):
+ * both variants below do exactly this, so they agree bit for bit. */
+#ifndef GPU_VARIANT
+
+/* Spread one weight per pixel (float8) to its four channels, pixels 0-3 or 4-7. */
+#define SPREAD_LO(v) shuffle((v), (uint16)(0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3))
+#define SPREAD_HI(v) shuffle((v), (uint16)(4, 4, 4, 4, 5, 5, 5, 5, 6, 6, 6, 6, 7, 7, 7, 7))
+
+/* One tap of the CPU field kernel for its 8 lanes, given base, fx, upper and lower. */
+#define FIELD_TAP                                                                         \
+    {                                                                                     \
+        float8 w_tl = (1.0f - fx) * upper, w_tr = fx * upper;                             \
+        float8 w_bl = (1.0f - fx) * lower, w_br = fx * lower;                             \
+        float16 tl_lo, tl_hi, tr_lo, tr_hi, bl_lo, bl_hi, br_lo, br_hi;                   \
+        if (all(base == (int8)(base.s0) + lane)) {                                        \
+            /* base.s0 .. base.s0 + 8 lie in one padded row (w + 1 > w columns) */        \
+            size_t b = base.s0;                                                           \
+            tl_lo = LOAD16(b); tl_hi = LOAD16(b + 4);                                     \
+            tr_lo = LOAD16(b + 1); tr_hi = LOAD16(b + 5);                                 \
+            bl_lo = LOAD16(b + ws); bl_hi = LOAD16(b + ws + 4);                           \
+            br_lo = LOAD16(b + ws + 1); br_hi = LOAD16(b + ws + 5);                       \
+        } else {                                                                          \
+            float8 t0 = LOAD8(base.s0), t1 = LOAD8(base.s1), t2 = LOAD8(base.s2);         \
+            float8 t3 = LOAD8(base.s3), t4 = LOAD8(base.s4), t5 = LOAD8(base.s5);         \
+            float8 t6 = LOAD8(base.s6), t7 = LOAD8(base.s7);                              \
+            tl_lo = (float16)(t0.lo, t1.lo, t2.lo, t3.lo);                                \
+            tl_hi = (float16)(t4.lo, t5.lo, t6.lo, t7.lo);                                \
+            tr_lo = (float16)(t0.hi, t1.hi, t2.hi, t3.hi);                                \
+            tr_hi = (float16)(t4.hi, t5.hi, t6.hi, t7.hi);                                \
+            t0 = LOAD8(base.s0 + ws); t1 = LOAD8(base.s1 + ws);                           \
+            t2 = LOAD8(base.s2 + ws); t3 = LOAD8(base.s3 + ws);                           \
+            t4 = LOAD8(base.s4 + ws); t5 = LOAD8(base.s5 + ws);                           \
+            t6 = LOAD8(base.s6 + ws); t7 = LOAD8(base.s7 + ws);                           \
+            bl_lo = (float16)(t0.lo, t1.lo, t2.lo, t3.lo);                                \
+            bl_hi = (float16)(t4.lo, t5.lo, t6.lo, t7.lo);                                \
+            br_lo = (float16)(t0.hi, t1.hi, t2.hi, t3.hi);                                \
+            br_hi = (float16)(t4.hi, t5.hi, t6.hi, t7.hi);                                \
+        }                                                                                 \
+        left_lo = fma(tl_lo, SPREAD_LO(w_tl), left_lo);                                   \
+        left_lo = fma(bl_lo, SPREAD_LO(w_bl), left_lo);                                   \
+        left_hi = fma(tl_hi, SPREAD_HI(w_tl), left_hi);                                   \
+        left_hi = fma(bl_hi, SPREAD_HI(w_bl), left_hi);                                   \
+        right_lo = fma(tr_lo, SPREAD_LO(w_tr), right_lo);                                 \
+        right_lo = fma(br_lo, SPREAD_LO(w_br), right_lo);                                 \
+        right_hi = fma(tr_hi, SPREAD_HI(w_tr), right_hi);                                 \
+        right_hi = fma(br_hi, SPREAD_HI(w_br), right_hi);                                 \
+    }
+
+/* CPU variant: LANES consecutive pixels of a row per work-item, as vector lanes; the tap loop
+ * runs to the largest N among them (a lane whose taps are done gets weight 0, and
+ * fma(0, v, acc) leaves acc unchanged bit for bit: v is finite, acc never -0).  When the 8
+ * lanes' samples are 8 consecutive pixels (most taps of a smooth flow) the neighbours come
+ * from four contiguous loads per row; otherwise each lane loads its own pair. */
+__kernel void integrate_field(__global const STORE_T *lin, FIELD_PARAMS, int w, int h,
+                              STORE_PARAMS)
+{
+    int row = get_global_id(1);
+    int col0 = get_global_id(0) * LANES;
+    if (row >= h || col0 >= w) return;
+    int ws = w + 1;
+    float8 vx, vy;
+    int8 n = (int8)(fixed_n);
+    size_t i0 = (size_t)row * w + col0;
+    bool whole = col0 + LANES <= w;
+    if (whole) {  /* one vector load; bad values take the per-lane path below */
+        float16 f = flow_half ? vload_half16(0, (__global const half *)flow + 2 * i0)
+                              : vload16(0, (__global const float *)flow + 2 * i0);
+        vx = f.even;
+        vy = f.odd;
+        whole = all(isfinite(vx) && isfinite(vy) && fabs(vx) <= FLOW_LIMIT &&
+                    fabs(vy) <= FLOW_LIMIT);
+        if (host_counts) n = vload8(0, counts + i0);
+    }
+    if (!whole) {
+        float vxs[LANES], vys[LANES];
+        int ns[LANES];
+        for (int l = 0; l < LANES; ++l) {
+            size_t i = (size_t)row * w + min(col0 + l, w - 1);
+            float2 v = read_flow(flow, flow_half, i, bad_flow, col0 + l < w);
+            vxs[l] = v.x;
+            vys[l] = v.y;
+            ns[l] = host_counts ? counts[i] : fixed_n;
+        }
+        vx = vload8(0, vxs);
+        vy = vload8(0, vys);
+        n = vload8(0, ns);
+    }
+#ifdef HAVE_FP64
+    if (!host_counts && fixed_n <= 0)
+        n = sample_counts8(vx, vy);
+#endif
+    int nmax = max(max(max(n.s0, n.s1), max(n.s2, n.s3)), max(max(n.s4, n.s5), max(n.s6, n.s7)));
+    float8 n1 = convert_float8(n - 1);
+    float8 den = fmax(n1, 1.0f);
+    float8 sx = vx / den, sy = vy / den;
+    float8 a_n1 = anchor * n1;
+    const int8 lane = (int8)(0, 1, 2, 3, 4, 5, 6, 7);
+    int8 px = (int8)(col0) + lane;
+    float16 left_lo = 0.0f, left_hi = 0.0f, right_lo = 0.0f, right_hi = 0.0f;
+    /* Samples move monotonically with j, so the first and the last tap bound every lane's
+     * positions.  When all of them (and their right/lower neighbours, which the padding
+     * holds) lie inside the window and the lanes share N without time weights, the clamps,
+     * the edge selects and the per-lane weight vanish from the loop: the same values. */
+    int nmin = min(min(min(n.s0, n.s1), min(n.s2, n.s3)), min(min(n.s4, n.s5), min(n.s6, n.s7)));
+    float8 t_end = (float8)((float)(nmax - 1)) - a_n1;
+    int8 x_a = px + floor_int8(-(sx * -a_n1)), x_b = px + floor_int8(-(sx * t_end));
+    int8 y_a = (int8)(row) + floor_int8(-(sy * -a_n1));
+    int8 y_b = (int8)(row) + floor_int8(-(sy * t_end));
+    bool inside = all(min(x_a, x_b) >= 0) && all(max(x_a, x_b) <= w - 1) &&
+                  all(min(y_a, y_b) >= 0) && all(max(y_a, y_b) <= h - 1);
+    if (inside && nmin == nmax && !weighted) {
+        for (int j = 0; j < nmax; ++j) {
+            float8 t = (float8)((float)j) - a_n1;
+            float8 ox = -(sx * t), oy = -(sy * t);
+            int8 ix = floor_int8(ox), iy = floor_int8(oy);
+            float8 fx = ox - convert_float8(ix), fy = oy - convert_float8(iy);
+            int8 base = ((int8)(row) + iy) * ws + px + ix;
+            float8 upper = 1.0f - fy, lower = fy;  /* (1 - fy) * 1 and fy * 1, exactly */
+            FIELD_TAP
+        }
+    } else {
+        for (int j = 0; j < nmax; ++j) {
+            float8 t = (float8)((float)j) - a_n1;
+            float8 ox = -(sx * t), oy = -(sy * t);
+            int8 ix = floor_int8(ox), iy = floor_int8(oy);
+            float8 fx = ox - convert_float8(ix), fy = oy - convert_float8(iy);
+            int8 xi = px + ix, yi = (int8)(row) + iy;
+            /* Before the first pixel the sample is the first pixel; past the last, the
+             * padding repeats the last, so the fraction does not matter there. */
+            fx = select(fx, (float8)(0.0f), xi < 0);
+            fy = select(fy, (float8)(0.0f), yi < 0);
+            int8 base = clamp(yi, 0, h - 1) * ws + clamp(xi, 0, w - 1);
+            float8 wj = select((float8)(0.0f), (float8)(weighted ? time_w[j] : 1.0f),
+                               (int8)(j) < n);
+            float8 upper = (1.0f - fy) * wj, lower = fy * wj;
+            FIELD_TAP
+        }
+    }
+    float16 sum_lo = left_lo + right_lo, sum_hi = left_hi + right_hi;
+    if (!weighted) {
+        float8 nf = convert_float8(n);
+        sum_lo = sum_lo / SPREAD_LO(nf);
+        sum_hi = sum_hi / SPREAD_HI(nf);
+    }
+    store_row8(sum_lo, sum_hi, (size_t)row * w + col0, w - col0, STORE_ARGS);
+}
+
+#else
+
+/* GPU variant: one pixel per work-item (no 8-lane unroll: GPUs vectorise across work-items),
+ * launched in 2-D work-groups so that a group's samples stay in a compact patch. */
+__kernel void integrate_field(__global const STORE_T *lin, FIELD_PARAMS, int w, int h,
+                              STORE_PARAMS)
+{
+    int col = get_global_id(0), row = get_global_id(1);
+    if (row >= h || col >= w) return;
+    int ws = w + 1;
+    size_t i = (size_t)row * w + col;
+    float2 v = read_flow(flow, flow_half, i, bad_flow, true);
+    int n = pixel_count(v, i, counts, host_counts, fixed_n);
+    float n1 = (float)(n - 1);
+    float den = fmax(n1, 1.0f);
+    float sx = v.x / den, sy = v.y / den;
+    float a_n1 = anchor * n1;
+    float4 left = 0.0f, right = 0.0f;
+    for (int j = 0; j < n; ++j) {
+        float t = (float)j - a_n1;
+        float ox = -(sx * t), oy = -(sy * t);
+        int ix = floor_int(ox), iy = floor_int(oy);
+        float fx = ox - (float)ix, fy = oy - (float)iy;
+        int xi = col + ix, yi = row + iy;
+        fx = xi < 0 ? 0.0f : fx;
+        fy = yi < 0 ? 0.0f : fy;
+        size_t base = (size_t)clamp(yi, 0, h - 1) * ws + clamp(xi, 0, w - 1);
+        float wj = weighted ? time_w[j] : 1.0f;
+        float upper = (1.0f - fy) * wj, lower = fy * wj;
+        float8 top = LOAD8(base), bottom = LOAD8(base + ws);
+        left = fma(top.lo, (float4)((1.0f - fx) * upper), left);
+        left = fma(bottom.lo, (float4)((1.0f - fx) * lower), left);
+        right = fma(top.hi, (float4)(fx * upper), right);
+        right = fma(bottom.hi, (float4)(fx * lower), right);
+    }
+    float4 sum = left + right;
+    if (!weighted) sum = sum / (float)n;
+    store_pixel(sum, i, STORE_ARGS);
+}
+
+#endif
+
+/* Space-invariant integer taps: g(p) = sum_t w_t L(clamp(p + d_t)), accumulated in tap order
+ * with one fma each.  Serves PSFs and uniform motion (whose bilinear samples share their
+ * fractional parts and so rasterise exactly).  Per pixel the arithmetic is the same in every
+ * path and variant, so they agree bit for bit. */
+#ifndef GPU_VARIANT
+
+/* CPU variant: LANES pixels of a row per work-item.  Work-items whose pixels read only inside
+ * the window load them as contiguous vectors; others clamp per pixel. */
+__kernel void integrate_taps(__global const STORE_T *lin, __global const int *tap_dx,
+                             __global const int *tap_dy, __global const float *tap_w, int ntaps,
+                             int dx_min, int dx_max, int dy_min, int dy_max, int w, int h,
+                             STORE_PARAMS)
+{
+    int row = get_global_id(1);
+    int col0 = get_global_id(0) * LANES;
+    if (row >= h || col0 >= w) return;
+    int ws = w + 1;
+    float16 lo = 0.0f, hi = 0.0f;  /* pixels col0 .. col0 + 3 and col0 + 4 .. col0 + 7 */
+    if (col0 + dx_min >= 0 && col0 + LANES - 1 + dx_max <= w - 1 && row + dy_min >= 0 &&
+        row + dy_max <= h - 1) {
+        size_t origin = (size_t)row * ws + col0;
+        for (int t = 0; t < ntaps; ++t) {
+            size_t src = origin + tap_dy[t] * ws + tap_dx[t];
+            float16 wt = (float16)(tap_w[t]);
+            lo = fma(wt, LOAD16(src), lo);
+            hi = fma(wt, LOAD16(src + 4), hi);
+        }
+    } else {
+        float4 acc[LANES];
+        for (int l = 0; l < LANES; ++l) {
+            int col = min(col0 + l, w - 1);
+            acc[l] = 0.0f;
+            for (int t = 0; t < ntaps; ++t) {
+                int x = clamp(col + tap_dx[t], 0, w - 1), y = clamp(row + tap_dy[t], 0, h - 1);
+                acc[l] = fma((float4)(tap_w[t]), LOAD4((size_t)y * ws + x), acc[l]);
+            }
+        }
+        lo = (float16)(acc[0], acc[1], acc[2], acc[3]);
+        hi = (float16)(acc[4], acc[5], acc[6], acc[7]);
+    }
+    store_row8(lo, hi, (size_t)row * w + col0, w - col0, STORE_ARGS);
+}
+
+#else
+
+/* GPU variant: one pixel per work-item in 2-D work-groups; the group first copies the patch
+ * its taps read (its own pixels plus the taps' extent, clamped) into local memory, when it
+ * fits, so each input pixel is read from global memory once per group. */
+#define TILE_LIMIT 2048  /* float4 entries of local memory per group (32 KiB) */
+
+__kernel void integrate_taps(__global const STORE_T *lin, __global const int *tap_dx,
+                             __global const int *tap_dy, __global const float *tap_w, int ntaps,
+                             int dx_min, int dx_max, int dy_min, int dy_max, int w, int h,
+                             STORE_PARAMS)
+{
+    __local float4 tile[TILE_LIMIT];
+    int col = get_global_id(0), row = get_global_id(1);
+    int gx = get_group_id(0) * get_local_size(0) + get_global_offset(0);
+    int gy = get_group_id(1) * get_local_size(1) + get_global_offset(1);
+    int tw = (int)get_local_size(0) + dx_max - dx_min, th = (int)get_local_size(1) + dy_max - dy_min;
+    bool tiled = tw * th <= TILE_LIMIT;  /* the same for the whole group */
+    int ws = w + 1;
+    if (tiled) {
+        int lid = get_local_id(1) * get_local_size(0) + get_local_id(0);
+        int lsize = get_local_size(0) * get_local_size(1);
+        for (int k = lid; k < tw * th; k += lsize) {
+            int x = clamp(gx + dx_min + k % tw, 0, w - 1), y = clamp(gy + dy_min + k / tw, 0, h - 1);
+            tile[k] = LOAD4((size_t)y * ws + x);
+        }
+        barrier(CLK_LOCAL_MEM_FENCE);
+    }
+    if (row >= h || col >= w) return;
+    float4 acc = 0.0f;
+    for (int t = 0; t < ntaps; ++t) {
+        float4 v;
+        if (tiled) {
+            v = tile[(row + tap_dy[t] - gy - dy_min) * tw + (col + tap_dx[t] - gx - dx_min)];
+        } else {
+            int x = clamp(col + tap_dx[t], 0, w - 1), y = clamp(row + tap_dy[t], 0, h - 1);
+            v = LOAD4((size_t)y * ws + x);
+        }
+        acc = fma((float4)(tap_w[t]), v, acc);
+    }
+    store_pixel(acc, (size_t)row * w + col, STORE_ARGS);
+}
+
+#endif
+
+/* Linearise one channel group into a float4 "plane" for the box kernel: plane row k,
+ * column x holds window pixel (row k, col x), or (row x, col k) when `transposed`, so the box
+ * always slides along plane rows' index k and its lanes are contiguous.  Columns from
+ * `across` up to the stride `ps` repeat the last one (whole-vector loads stay in bounds). */
+__kernel void linearise_plane(__global const uchar *image, int in_kind, int channels, int cbase,
+                              int cg, __global const float *lut, int lut_len,
+                              __global float *plane, int ps, int across, int len, int transposed,
+                              int w)
+{
+    int x = get_global_id(0), k = get_global_id(1);
+    if (x >= ps || k >= len) return;
+    int a = min(x, across - 1);
+    size_t pix = transposed ? (size_t)a * w + k : (size_t)k * w + a;
+    size_t base = pix * channels + cbase;
+    float4 e = (float4)(0.0f);
+    e.x = linear_channel(image, in_kind, base, 0, lut, lut_len);
+    if (cg > 1) e.y = linear_channel(image, in_kind, base + 1, 1, lut, lut_len);
+    if (cg > 2) e.z = linear_channel(image, in_kind, base + 2, 2, lut, lut_len);
+    if (cg > 3) e.w = linear_channel(image, in_kind, base + 3, 3, lut, lut_len);
+    vstore4(e, (size_t)k * ps + x, plane);
+}
+
+/* Fixed-point image of LANES pixels (4 channels each): exact integers, so running sums
+ * neither drift nor depend on where a line (or a tile) starts. */
+static long16 fixed_lo(__global const float *plane, size_t at, float scale)
+{
+    return convert_long16_rte(vload16(0, plane + 4 * at) * scale);
+}
+
+static long16 fixed_hi(__global const float *plane, size_t at, float scale)
+{
+    return convert_long16_rte(vload16(0, plane + 4 * (at + 4)) * scale);
+}
+
+#define BOX_STORE(L, S)                                                                   \
+    if (x0 + L < across)                                                                   \
+        store_pixel(S, transposed ? (size_t)(x0 + L) * w + k : (size_t)k * w + x0 + L,     \
+                    STORE_ARGS);
+
+#define BOX_CODES(L, Q)                                                                   \
+    if (x0 + L < across)                                                                   \
+        store_codes(Q, out, out_kind,                                                      \
+                    transposed ? (size_t)(x0 + L) * w + k : (size_t)k * w + x0 + L,         \
+                    channels, cbase, cg);
+
+/* Box of taps d = lo..hi along plane index k with equal weights, as running sums: the cost
+ * per pixel does not grow with the box length.  LANES neighbouring lines run as vector lanes.
+ * Taps clamp to the window (which lies inside the image: the same as clamping to the image
+ * and then to the window).  mean = sum / (count * scale). */
+__kernel void integrate_box(__global const float *plane, int ps, int across, int len,
+                            int transposed, int lo, int hi, float scale, int w, STORE_PARAMS)
+{
+    int x0 = get_global_id(0) * LANES;
+    if (x0 >= across) return;
+    float norm = 1.0f / ((float)(hi - lo + 1) * scale);
+    bool codes = out_kind != OUT_F32;
+    long16 sum_lo = (long16)(0), sum_hi = (long16)(0);
+    for (int d = lo; d <= hi; ++d) {
+        size_t at = (size_t)clamp(d, 0, len - 1) * ps + x0;
+        sum_lo += fixed_lo(plane, at, scale);
+        sum_hi += fixed_hi(plane, at, scale);
+    }
+    for (int k = 0; k < len; ++k) {
+        float16 m_lo = convert_float16(sum_lo) * norm, m_hi = convert_float16(sum_hi) * norm;
+        if (codes) {
+            int16 q_lo = quantise16(m_lo, thresholds, buckets);
+            int16 q_hi = quantise16(m_hi, thresholds, buckets);
+            BOX_CODES(0, q_lo.s0123) BOX_CODES(1, q_lo.s4567)
+            BOX_CODES(2, q_lo.s89ab) BOX_CODES(3, q_lo.scdef)
+            BOX_CODES(4, q_hi.s0123) BOX_CODES(5, q_hi.s4567)
+            BOX_CODES(6, q_hi.s89ab) BOX_CODES(7, q_hi.scdef)
+        } else {
+            BOX_STORE(0, m_lo.s0123) BOX_STORE(1, m_lo.s4567)
+            BOX_STORE(2, m_lo.s89ab) BOX_STORE(3, m_lo.scdef)
+            BOX_STORE(4, m_hi.s0123) BOX_STORE(5, m_hi.s4567)
+            BOX_STORE(6, m_hi.s89ab) BOX_STORE(7, m_hi.scdef)
+        }
+        size_t enter = (size_t)clamp(k + hi + 1, 0, len - 1) * ps + x0;
+        size_t leave = (size_t)clamp(k + lo, 0, len - 1) * ps + x0;
+        sum_lo += fixed_lo(plane, enter, scale) - fixed_lo(plane, leave, scale);
+        sum_hi += fixed_hi(plane, enter, scale) - fixed_hi(plane, leave, scale);
+    }
+}
+
+/* Fixed-point exposures of one pixel's channel group straight from its integer codes:
+ * lutq[k * lut_len + code] is the host's rint(float32 table entry * scale), exactly the
+ * integer fixed_lo/fixed_hi make of the same entry (scale is a power of two, so the product
+ * is exact and both round half to even).  No intermediate plane is written or read. */
+static long4 fixed_codes(__global const uchar *image, int in_kind, __global const long *lutq,
+                         int lut_len, size_t pix, int channels, int cbase, int cg)
+{
+    size_t base = pix * channels + cbase;
+    long4 v = (long4)(0);
+    if (in_kind == IN_U8) {
+        v.x = lutq[image[base]];
+        if (cg > 1) v.y = lutq[lut_len + image[base + 1]];
+        if (cg > 2) v.z = lutq[2 * lut_len + image[base + 2]];
+        if (cg > 3) v.w = lutq[3 * lut_len + image[base + 3]];
+    } else {  /* IN_U16 */
+        __global const ushort *im = (__global const ushort *)image;
+        v.x = lutq[im[base]];
+        if (cg > 1) v.y = lutq[lut_len + im[base + 1]];
+        if (cg > 2) v.z = lutq[2 * lut_len + im[base + 2]];
+        if (cg > 3) v.w = lutq[3 * lut_len + im[base + 3]];
+    }
+    return v;
+}
+
+/* Window pixel of line x0 + L (clamped to the last line) at position k along the box. */
+#define BOX_PIXEL(L, k)                                                                   \
+    (transposed ? (size_t)min(x0 + (L), across - 1) * w + (k)                              \
+                : (size_t)(k) * w + min(x0 + (L), across - 1))
+#define CODES4(L0, k)                                                                     \
+    (long16)(fixed_codes(image, in_kind, lutq, lut_len, BOX_PIXEL(L0, k), channels, cbase, cg), \
+             fixed_codes(image, in_kind, lutq, lut_len, BOX_PIXEL(L0 + 1, k), channels,    \
+                         cbase, cg),                                                       \
+             fixed_codes(image, in_kind, lutq, lut_len, BOX_PIXEL(L0 + 2, k), channels,    \
+                         cbase, cg),                                                       \
+             fixed_codes(image, in_kind, lutq, lut_len, BOX_PIXEL(L0 + 3, k), channels,    \
+                         cbase, cg))
+
+/* integrate_box for integer images, read from the codes (same sums, same results). */
+__kernel void integrate_box_codes(__global const uchar *image, int in_kind,
+                                  __global const long *lutq, int lut_len, int across, int len,
+                                  int transposed, int lo, int hi, float scale, int w,
+                                  STORE_PARAMS)
+{
+    int x0 = get_global_id(0) * LANES;
+    if (x0 >= across) return;
+    float norm = 1.0f / ((float)(hi - lo + 1) * scale);
+    bool codes = out_kind != OUT_F32;
+    long16 sum_lo = (long16)(0), sum_hi = (long16)(0);
+    for (int d = lo; d <= hi; ++d) {
+        int at = clamp(d, 0, len - 1);
+        sum_lo += CODES4(0, at);
+        sum_hi += CODES4(4, at);
+    }
+    for (int k = 0; k < len; ++k) {
+        float16 m_lo = convert_float16(sum_lo) * norm, m_hi = convert_float16(sum_hi) * norm;
+        if (codes) {
+            int16 q_lo = quantise16(m_lo, thresholds, buckets);
+            int16 q_hi = quantise16(m_hi, thresholds, buckets);
+            BOX_CODES(0, q_lo.s0123) BOX_CODES(1, q_lo.s4567)
+            BOX_CODES(2, q_lo.s89ab) BOX_CODES(3, q_lo.scdef)
+            BOX_CODES(4, q_hi.s0123) BOX_CODES(5, q_hi.s4567)
+            BOX_CODES(6, q_hi.s89ab) BOX_CODES(7, q_hi.scdef)
+        } else {
+            BOX_STORE(0, m_lo.s0123) BOX_STORE(1, m_lo.s4567)
+            BOX_STORE(2, m_lo.s89ab) BOX_STORE(3, m_lo.scdef)
+            BOX_STORE(4, m_hi.s0123) BOX_STORE(5, m_hi.s4567)
+            BOX_STORE(6, m_hi.s89ab) BOX_STORE(7, m_hi.scdef)
+        }
+        int enter = clamp(k + hi + 1, 0, len - 1), leave = clamp(k + lo, 0, len - 1);
+        sum_lo += CODES4(0, enter) - CODES4(0, leave);
+        sum_hi += CODES4(4, enter) - CODES4(4, leave);
+    }
+}

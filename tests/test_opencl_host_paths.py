@@ -1,0 +1,281 @@
+"""The OpenCL package's host paths: named launches, generated constants, the GPU kernel
+variants and GPU transfer paths (forced on the CPU device), device-side flow validation,
+float16 flows, device-resident arrays, pinned host arrays, and the packaged kernel sources.
+
+The GPU paths are exercised on whatever device the suite runs on (PoCL in CI): the variant
+kernels are built with ``-DGPU_VARIANT`` and the banded, pinned, two-queue transfers are
+forced by treating the device as one with its own memory.  Each is checked against the numpy
+reference (``tests/test_opencl.py``'s tolerance) and against the default path, bit for bit.
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_opencl import (
+    assert_matches_reference,
+    discontinuous_flow,
+    near_integer_flow,
+    random_image,
+    smooth_flow,
+)
+
+from clblur.opencl.constants import build_defines
+from clblur.opencl.program import KERNEL_FILES, kernel_signatures, kernel_source
+from clblur.plan import make_plan
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+# --- constants and signatures (no device needed) ---------------------------------------------
+
+def test_shared_constants_are_only_defined_in_python():
+    source = kernel_source()
+    for option in build_defines():
+        name = option[2:].split("=")[0]
+        assert re.search(rf"\b{name}\b", source), f"{name} is never used by the kernels"
+        assert not re.search(rf"#\s*define\s+{name}\b", source), f"{name} defined in C too"
+
+
+def test_signatures_parse_with_macros_expanded():
+    sig = kernel_signatures(kernel_source())
+    names = [a.name for a in sig["integrate_taps"]]
+    assert names[:5] == ["lin", "tap_dx", "tap_dy", "tap_w", "ntaps"]
+    assert names[-9:] == ["resp", "tables", "thresholds", "buckets", "out", "out_kind",
+                          "channels", "cbase", "cg"]  # STORE_PARAMS, expanded
+    assert not {"r0", "c0", "fw", "fh"} & set(names)  # dead arguments removed
+    field = {a.name: a.dtype for a in sig["integrate_field"]}
+    assert field["anchor"] is np.float32 and field["fixed_n"] is np.int32
+    assert field["flow"] is None  # a buffer
+
+
+# --- named launches --------------------------------------------------------------------------
+
+@pytest.mark.opencl
+def test_named_launch_checks_names_and_matches_the_drivers_argument_info(opencl):
+    cl = opencl.pyopencl_module()
+    rt = opencl.runtime(None)
+    prog = rt.program(half=False)
+    with pytest.raises(TypeError, match="unknown argument.*'nope'.*missing"):
+        prog.run("linearise", rt.queue, (64, 1), (64, 1), nope=1)
+    # the driver's own view of the parameters, where it offers one
+    built = cl.Program(rt.context, kernel_source()).build(
+        options=[*prog.options, "-cl-kernel-arg-info"])
+    for name, params in prog.signatures.items():
+        kernel = getattr(built, name)
+        try:
+            got = [kernel.get_arg_info(i, cl.kernel_arg_info.NAME)
+                   for i in range(kernel.num_args)]
+        except cl.Error:
+            pytest.skip("the driver gives no kernel argument names")
+        assert got == [a.name for a in params], name
+
+
+# --- the GPU variants and transfer paths, forced on this device --------------------------------
+
+def _cases(rng):
+    yield make_plan(random_image(rng, np.uint8, 3), smooth_flow(rng), "exp")
+    yield make_plan(random_image(rng, np.uint16, 5), discontinuous_flow(rng), "gamma:2.2",
+                    anchor="start")
+    yield make_plan(random_image(rng, np.float32, 3), smooth_flow(rng), "srgb", samples=7)
+    yield make_plan(random_image(rng, np.uint8, 4), smooth_flow(rng), "exp",
+                    weights=[1, 3, 2, 1])
+    yield make_plan(random_image(rng, np.uint8, 3), (4.6, -2.3), "exp")
+    yield make_plan(random_image(rng, np.uint8, 3), rng.random((5, 7)), "srgb")
+    yield make_plan(random_image(rng, np.uint16, 3), (40.5, 3.0), "exp")  # wider than a tile
+    yield make_plan(random_image(rng, np.float32, 3), near_integer_flow(rng), "exp")
+
+
+@pytest.mark.opencl
+def test_gpu_kernel_variants_match_the_reference_and_the_cpu_variants(opencl, rng):
+    rt = opencl.runtime(None)
+    for plan in _cases(rng):
+        for half in (False, True):
+            with rt.lock:
+                gpu = opencl.run_plan(rt, plan, gpu=True, half=half)
+                cpu = opencl.run_plan(rt, plan, gpu=False, half=half)
+            assert np.array_equal(gpu, cpu)
+            assert_matches_reference(_Fixed(gpu), plan)
+
+
+@pytest.mark.opencl
+@pytest.mark.parametrize("name", ["linear", "exp", "exp3", "gamma", "srgb", "table"])
+def test_half_storage_of_the_gpu_variants_keeps_the_tolerance(opencl, rng, name):
+    """GPU variants store uint8 exposures as half floats where the bound allows: the same
+    sweep as test_opencl.test_every_response, saturation 1 and 2.5."""
+    from test_opencl import RESPONSES
+
+    rt = opencl.runtime(None)
+    img = random_image(rng, np.uint8, 3)
+    for motion in (smooth_flow(rng), discontinuous_flow(rng), (4.6, -2.3), rng.random((5, 7))):
+        for sat in (1.0, 2.5):
+            plan = make_plan(img, motion, RESPONSES[name], saturation=sat)
+            with rt.lock:
+                got = opencl.run_plan(rt, plan, gpu=True)
+            assert_matches_reference(_Fixed(got), plan)
+
+
+class _Fixed:
+    """A 'backend' that returns a precomputed result (for assert_matches_reference)."""
+
+    def __init__(self, out):
+        self.out = out
+
+    def blur(self, plan):
+        return self.out
+
+
+@pytest.mark.opencl
+def test_banded_pinned_transfers_on_two_queues_equal_the_shared_path(opencl, rng,
+                                                                      monkeypatch):
+    from clblur.opencl import transfers
+
+    rt = opencl.runtime(None)
+    monkeypatch.setattr(transfers, "MIN_BAND_ROWS", 8)  # 37 rows -> 4 bands
+    shape = (37, 53)
+    plans = [make_plan(random_image(rng, np.uint8, 3, shape), smooth_flow(rng, shape), "exp"),
+             make_plan(random_image(rng, np.float32, 5, shape), (3.5, 1.0), "exp"),
+             make_plan(random_image(rng, np.uint16, 3, shape), (12.0, 0.0), "exp")]
+    shared = [opencl.blur(p) for p in plans]
+    cl = opencl.pyopencl_module()
+    monkeypatch.setattr(rt, "unified", False)
+    monkeypatch.setattr(rt, "queues", (cl.CommandQueue(rt.context),))
+    pinned = opencl.pinned_empty(plans[0].image.shape, np.uint8)
+    pinned[...] = plans[0].image
+    plans.append(make_plan(pinned, plans[0].motion, "exp"))  # uploaded without staging
+    shared.append(shared[0])
+    for plan, want in zip(plans, shared, strict=True):
+        for gpu in (False, True):
+            with rt.lock:
+                got = opencl.run_plan(rt, plan, gpu=gpu, half=False)
+            assert np.array_equal(got, want)
+    assert "image" in rt.pinned and "flow" in rt.pinned  # staging kept for the next call
+
+
+# --- flow validation on the device, float16 flows ---------------------------------------------
+
+@pytest.mark.opencl
+@pytest.mark.parametrize("backend", ["opencl", "numpy"])
+def test_bad_flows_are_refused_with_the_same_message(opencl, rng, backend):
+    import clblur
+
+    img = random_image(rng, np.uint8, 3)
+    flow = smooth_flow(rng)
+    flow[3, 4, 0], flow[7, 52, 1], flow[36, 0] = np.nan, np.inf, (-np.inf, np.nan)
+    with pytest.raises(ValueError, match=r"^flow field contains 4 NaN or infinite value\(s\)$"):
+        clblur.blur(img, flow, backend=backend)
+    flow = smooth_flow(rng)
+    flow[0, 0, 1] = 1e6
+    with pytest.raises(ValueError, match=r"contains 1 value\(s\) beyond \+-65536 px"):
+        clblur.blur(img, flow, backend=backend)
+
+
+@pytest.mark.opencl
+def test_float16_flow_is_read_as_given(opencl, rng):
+    import clblur
+
+    img = random_image(rng, np.uint8, 3)
+    flow16 = smooth_flow(rng, scale=9.0).astype(np.float16)
+    plan = make_plan(img, flow16, "exp")
+    assert plan.motion.flow.dtype == np.float16  # no host conversion
+    got = clblur.blur(img, flow16, backend="opencl")
+    assert np.array_equal(got, clblur.blur(img, flow16.astype(np.float32), backend="opencl"))
+    assert_matches_reference(opencl, plan)
+
+
+@pytest.mark.opencl
+def test_device_sample_counts_equal_the_hosts_for_tiny_and_huge_vectors(opencl, rng,
+                                                                         monkeypatch):
+    from clblur.motion import sample_counts
+
+    shape = (16, 40)
+    flow = np.zeros(shape + (2,), np.float32)
+    flow[0, :8] = [(1e-30, 0), (0, -1e-42), (3e-20, 4e-20), (4095.5, 0), (5000.25, 3.0),
+                   (0.6, 0.8), (-3.0, 4.0), (1e-3, 0)]
+    flow[1:] = rng.normal(0, 30, (shape[0] - 1, shape[1], 2))
+    n = sample_counts(flow[..., 0], flow[..., 1])
+    img = random_image(rng, np.float32, 1, shape)
+    rt = opencl.runtime(None)
+    if not rt.fp64:
+        pytest.skip("device has no fp64: counts always come from the host")
+    plan = make_plan(img, flow, "linear", anchor="start")
+    on_device = opencl.blur(plan)
+    monkeypatch.setattr(rt, "fp64", False)  # routes counts through the host buffer
+    assert np.array_equal(opencl.blur(plan), on_device)
+    monkeypatch.undo()
+    assert n[0, 0] == n[0, 1] == n[0, 2] == 2 and n[0, 3] == 4097 and n[0, 4] == 5002
+    # positions carry |offset| 2^-23 px of error, so compare the short vectors only
+    short = np.tile(flow[:1, [0, 1, 2, 5, 6, 7]], (16, 7, 1))[:, :40]
+    small = make_plan(img, short, "linear", anchor="start")
+    assert_matches_reference(opencl, small)
+
+
+# --- device-resident arrays and pinned host arrays -------------------------------------------
+
+@pytest.mark.opencl
+def test_device_arrays_in_and_out(opencl, rng):
+    import pyopencl.array as cla
+
+    import clblur
+
+    rt = opencl.runtime(None)
+    img = random_image(rng, np.uint8, 3)
+    flow = smooth_flow(rng)
+    want = clblur.blur(img, flow, backend="opencl")
+    got = clblur.blur(cla.to_device(rt.queue, img), cla.to_device(rt.queue, flow))
+    assert isinstance(got, cla.Array) and got.dtype == np.uint8
+    assert np.array_equal(got.get(), want)
+    gray = img[..., 0].copy()
+    got = clblur.blur(cla.to_device(rt.queue, gray), (5.5, 2.0))
+    assert np.array_equal(got.get(), clblur.blur(gray, (5.5, 2.0), backend="opencl"))
+    bad = flow.copy()
+    bad[1, 1, 0] = np.nan
+    with pytest.raises(ValueError, match="1 NaN or infinite"):
+        clblur.blur(cla.to_device(rt.queue, img), cla.to_device(rt.queue, bad))
+
+
+@pytest.mark.opencl
+def test_pinned_empty_is_an_ordinary_array(opencl, rng):
+    import clblur
+
+    arr = opencl.pinned_empty((37, 53, 3), np.uint8)
+    img = random_image(rng, np.uint8, 3)
+    arr[...] = img
+    assert np.array_equal(clblur.blur(arr, (3.0, 1.0), backend="opencl"),
+                          clblur.blur(img, (3.0, 1.0), backend="opencl"))
+
+
+# --- packaging ---------------------------------------------------------------------------------
+
+def test_wheel_ships_the_kernel_sources(tmp_path):
+    """A non-editable install finds the .cl files: build the wheel, load them from it."""
+    src = tmp_path / "src"  # a copy: building in place would leave build/ in the checkout
+    shutil.copytree(REPO / "clblur", src / "clblur",
+                    ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(REPO / name, src / name)
+    res = subprocess.run([sys.executable, "-m", "pip", "wheel", str(src), "--no-deps",
+                          "--no-build-isolation", "-q", "-w", str(tmp_path)],
+                         capture_output=True, text=True, timeout=300)
+    if res.returncode != 0 and "No module named" in res.stderr:
+        pytest.skip(f"cannot build a wheel here: {res.stderr.strip()[-200:]}")
+    assert res.returncode == 0, res.stderr
+    wheel = next(tmp_path.glob("clblur-*.whl"))
+    with zipfile.ZipFile(wheel) as z:
+        names = set(z.namelist())
+        assert {f"clblur/opencl/{f}" for f in KERNEL_FILES} <= names
+        z.extractall(tmp_path / "site")
+    site = str(tmp_path / "site")
+    code = (f"import clblur.opencl.program as p; assert p.__file__.startswith({site!r}); "
+            "print(len(p.kernel_source()))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         cwd=tmp_path, env={"PYTHONPATH": str(tmp_path / "site")}, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert int(out.stdout) == len(kernel_source())
