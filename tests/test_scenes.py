@@ -166,10 +166,6 @@ def test_layer_ids_put_the_fast_object_behind_where_speed_cannot():
 
 
 @needs_depth
-@pytest.mark.xfail(strict=True, reason="known: float depth is cut into layers at gaps wider "
-                   "than 5 % of the whole depth range, so a far background (depth 1000) "
-                   "merges two discs at depths 1 and 2 into one layer (docs/studies/"
-                   "occlusion.md); remove this marker when the layering is fixed")
 def test_float_depth_orders_near_objects_in_front_of_a_far_background():
     """A renderer's Z pass: objects at depth 1 and 2 over a background at 1000.  The float
     depth must order them as their ranks do."""
