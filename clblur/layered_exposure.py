@@ -256,11 +256,18 @@ def order_components(depth: np.ndarray, comp: np.ndarray, n: int) -> tuple[list[
         starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
         for s, e in zip(starts, np.r_[starts[1:], key.size], strict=True):
             pairs.setdefault((int(key[s] // n), int(key[s] % n)), []).append(sign[s:e])
-    keys = []
-    for c in range(n):
-        at = (comp == c) & border
-        vals = logz[at] if at.any() else logz[comp == c]
-        keys.append(float(np.median(vals)))
+    # median log-depth of each component's boundary pixels (of all its pixels if it has none)
+    at = border if np.bincount(comp[border], minlength=n).all() else \
+        border | ~np.isin(comp, np.unique(comp[border]))
+    c_at, z_at = comp[at], logz[at]
+    srt = np.lexsort((z_at, c_at))
+    c_at, z_at = c_at[srt], z_at[srt]
+    start = np.searchsorted(c_at, np.arange(n))
+    end = np.searchsorted(c_at, np.arange(n), side="right")
+    lo_i, hi_i = (start + end - 1) // 2, (start + end) // 2
+    with np.errstate(invalid="ignore"):
+        keys = [float(x) for x in np.where(z_at[lo_i] == z_at[hi_i], z_at[lo_i],
+                                           0.5 * (z_at[lo_i] + z_at[hi_i]))]
     after: list[set[int]] = [set() for _ in range(n)]
     indeg = np.zeros(n, np.int64)
     for (lo, hi), parts in pairs.items():
