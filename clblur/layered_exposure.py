@@ -10,10 +10,15 @@ Conventions
 -----------
 * Ordering signal, H x W: a float **depth** (smaller = nearer), integer **layer IDs** (smaller =
   nearer), or **speed** (``depth="speed"``: faster = nearer, the default of
-  ``clblur video --layers``).  Layers are the runs of the sorted depth values that are
-  separated by gaps wider than ``GAP_FRACTION`` of the depth range where the motion varies
-  (each distinct integer ID is its own layer); at most ``MAX_LAYERS`` (the widest gaps win).
-  Within a layer there is no ordering: a layer is one surface.
+  ``clblur video --layers``).  Each distinct integer ID is its own layer.  A float depth is
+  a distance (``> 0``; ``+inf`` is the sky; NaN, ``-inf`` and ``<= 0`` are refused) and is
+  cut into continuous surfaces at depth discontinuities between neighbouring pixels: a jump in
+  inverse depth beyond ``DEPTH_TAU`` of the smaller one, after the step a slanted plane's
+  slope predicts (:func:`depth_components`; scale-invariant), the surfaces ordered front to
+  back by their depth where they touch (:func:`order_components`).  Speed is cut where its
+  sorted values jump by more than ``GAP_FRACTION`` of their range.  At most ``MAX_LAYERS``
+  layers (the least separated neighbours in the order merge).  Within a layer there is no
+  ordering: a layer is one surface.
 * Culling (tile-max / neighbour-max velocity, after McGuire et al., "A reconstruction filter
   for plausible motion blur", I3D 2012, and Guertin et al., "A fast and stable feature-aware
   motion blur filter", HPG 2014): the image is cut into ``TILE`` x ``TILE`` tiles; a tile needs
@@ -63,8 +68,13 @@ __all__ = ["DEPTH_TAU", "GAP_FRACTION", "MAX_LAYERS", "SPLIT_PRIOR", "SPREAD_PX"
            "integrate", "integrator", "layer_labels", "layered_half", "prepare",
            "speed_order", "split_coverage", "composite"]
 
-MAX_LAYERS = 4
-GAP_FRACTION = 0.05
+MAX_LAYERS = 4  # the OpenCL kernels hold LAYERED_MAXK = 8 (clblur.opencl.constants)
+GAP_FRACTION = 0.05  # speed ordering: a layer boundary is a gap of 5 % of the speed range
+# Float depth: neighbours whose distances differ by more than 5 % (beyond what the slope of a
+# plane predicts) lie on different surfaces.  A renderer's Z is exact, so any small value
+# separates objects; 5 % keeps an object that far in front of its background apart (0.5 m in
+# front of a wall 10 m away) while staying above the relative noise of a depth estimate, and
+# fragments that noise does make are merged back by the layer cap, least separated first.
 DEPTH_TAU = 0.05
 SPREAD_PX = 1.0
 TILE = 16

@@ -194,6 +194,9 @@ def test_float_depth_keeps_at_most_max_layers():
         d[5:25, 10 * i:10 * i + 8] = 1.5 ** -i
     lab = layered.layer_labels(d)
     assert lab.max() == layered.MAX_LAYERS - 1
+    from clblur.opencl.constants import LAYERED_MAXK  # what the kernels hold
+
+    assert layered.MAX_LAYERS <= LAYERED_MAXK
     # order is kept: a nearer card never lands on a farther layer than a farther card
     cards = [int(lab[10, 10 * i]) for i in range(9)]
     assert cards == sorted(cards, reverse=True)
