@@ -153,22 +153,25 @@ def _inverse_depth(depth: np.ndarray) -> np.ndarray:
 
 def _continuous(w: np.ndarray, axis: int) -> np.ndarray:
     """Whether each pair of neighbours along ``axis`` (``w`` inverse depth) lies on one
-    surface: the jump ``d`` between them is within ``DEPTH_TAU * min(w)`` of 0 or of the
-    slope one pixel beyond either of them (a plane's inverse depth is affine in the image,
-    so a slanted plane's steps are predicted exactly; the slope is taken one pixel away so
-    that a mixed pixel between two surfaces does not predict the jump it sits in)."""
+    surface: the jump ``d`` between them is within ``DEPTH_TAU * min(w)`` of 0, or of both of
+    the two steps beyond either of them, skipping the adjacent step (a plane's inverse depth is
+    affine in the image, so a slanted plane's steps are predicted exactly; the adjacent step is
+    skipped so that a mixed pixel between two surfaces does not predict the jump it sits in,
+    and two steps are asked for so that a one- or two-pixel sliver of a middle surface, whose
+    step to the far one may equal the jump by chance, does not either)."""
     m = np.moveaxis(w, axis, 0)
     n = m.shape[0]
     d = m[1:] - m[:-1]                          # jump between i and i + 1, n - 1 of them
     tol = DEPTH_TAU * np.minimum(m[1:], m[:-1])
     ok = np.abs(d) <= tol
-    if n >= 4:
-        before = np.full_like(d, np.nan)        # slope from i - 2 to i - 1
-        before[2:] = m[1:n - 2] - m[:n - 3]
-        after = np.full_like(d, np.nan)         # slope from i + 2 to i + 3
-        after[:n - 3] = m[3:] - m[2:n - 1]
+    if n >= 5:
+        step = np.full((n + 5,) + m.shape[1:], np.nan)
+        step[3:n + 2] = d                       # step[j + 3] = d[j]; NaN outside
+        # d[i] against d[i - 2] and d[i - 3] (before), and d[i + 2] and d[i + 3] (after)
         with np.errstate(invalid="ignore"):
-            ok |= (np.abs(d - before) <= tol) | (np.abs(d - after) <= tol)
+            before = (np.abs(d - step[1:n]) <= tol) & (np.abs(d - step[0:n - 1]) <= tol)
+            after = (np.abs(d - step[5:n + 4]) <= tol) & (np.abs(d - step[6:n + 5]) <= tol)
+        ok |= before | after
     sky = m == 0  # +inf depth: only sky continues sky
     ok = np.where(sky[1:] | sky[:-1], sky[1:] & sky[:-1], ok)
     return np.moveaxis(ok, 0, axis)
@@ -181,8 +184,8 @@ def depth_components(depth: np.ndarray) -> tuple[np.ndarray, int]:
     (:func:`_continuous`, threshold ``DEPTH_TAU``, scale-invariant: depth * c gives the same
     surfaces); +inf (sky) is a surface of its own.  A sliver (a component one pixel thick
     everywhere, cut from both neighbours along a row or column, e.g. the mixed pixels between
-    two surfaces) joins the nearest thicker component it touches in front of it, as
-    ``prepare`` puts mixed pixels on the nearer layer.
+    two surfaces) joins the nearest component it touches in front of it (and with it, where
+    that is a sliver too), as ``prepare`` puts mixed pixels on the nearer layer.
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
@@ -215,13 +218,20 @@ def depth_components(depth: np.ndarray) -> tuple[np.ndarray, int]:
         for a, b in ((comp[:, :-1][~right], comp[:, 1:][~right]),
                      (comp[:-1, :][~down], comp[1:, :][~down])):
             for x, y in ((a, b), (b, a)):  # x's neighbour y
-                sel = ~interior[x] & interior[y] & (mean_w[y] > mean_w[x])
+                sel = ~interior[x] & (mean_w[y] > mean_w[x])
                 np.maximum.at(best, x[sel], mean_w[y[sel]])
         for a, b in ((comp[:, :-1][~right], comp[:, 1:][~right]),
                      (comp[:-1, :][~down], comp[1:, :][~down])):
             for x, y in ((a, b), (b, a)):
-                sel = (best[x] >= 0) & (mean_w[y] == best[x]) & interior[y]
+                sel = (best[x] >= 0) & (mean_w[y] == best[x])
                 target[x[sel]] = y[sel]
+        # a sliver in front of a sliver (the mixed pixels of a corner) follows it: targets are
+        # strictly nearer, so the chain ends
+        while True:
+            nxt = target[target]
+            if np.array_equal(nxt, target):
+                break
+            target = nxt
         _, comp_new = np.unique(target[comp], return_inverse=True)
         comp = comp_new.reshape(h, wd)
         n = int(comp.max()) + 1

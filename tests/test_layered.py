@@ -136,7 +136,12 @@ def test_layer_labels():
     assert layered.layer_labels(d).tolist() == [0, 0, 0, 1, 1, 2]
     smooth = np.linspace(1.0, 2.0, 100)  # steps of 1 %: one surface
     assert layered.layer_labels(smooth).max() == 0
-    assert layered.layer_labels(np.arange(1.0, 11.0)).max() == layered.MAX_LAYERS - 1
+    strips = np.repeat(np.arange(1.0, 11.0), 3)[None].repeat(3, axis=0)  # 3 px wide each
+    assert layered.layer_labels(strips).max() == layered.MAX_LAYERS - 1
+    # a one-pixel strip between two surfaces is taken for their mixed pixels: it joins the
+    # surface in front of it
+    assert layered.layer_labels(np.array([[1.0, 1.0, 1.0, 5.0, 9.0, 9.0, 9.0]])).tolist() == \
+        [[0, 0, 0, 0, 1, 1, 1]]
     assert layered.layer_labels(np.arange(10)).max() == layered.MAX_LAYERS - 1
     # the speed ordering keeps its own rule: gaps wider than GAP_FRACTION of the range
     speed = -np.array([0.0, 0.01, 0.02, 5.0, 5.02, 9.0])
