@@ -45,12 +45,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import peers  # noqa: E402  (bench/peers.py)
 
 from clblur import opencl, reference  # noqa: E402
-from clblur.data import data_dir  # noqa: E402
-from clblur.io import atomic_write_text  # noqa: E402
+from clblur.io import (
+    atomic_write_text,  # noqa: E402
+    data_dir,  # noqa: E402
+)
 from clblur.motion import sample_counts  # noqa: E402
 from clblur.opencl import taps as opencl_taps  # noqa: E402
 from clblur.pixels import linearisation_table  # noqa: E402
-from clblur.plan import make_plan  # noqa: E402
+from clblur.request import make_plan  # noqa: E402
 from clblur.responses import response  # noqa: E402
 
 RESPONSE = "exp"

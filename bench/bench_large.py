@@ -160,7 +160,7 @@ def reference_working_set(side: int = 512) -> list[tuple[str, float]]:
     import tracemalloc
 
     from clblur import reference
-    from clblur.plan import make_plan
+    from clblur.request import make_plan
     from clblur.tiling import window_bytes_per_px
 
     rng = np.random.default_rng(0)

@@ -2,13 +2,16 @@
 
     python bench/bench_study.py speed  [--results bench/results_study.md]
     python bench/bench_study.py limits [--seeds 3] [--noise A] [--results FILE]
+    python bench/bench_study.py series [--data DIR] [--results FILE]
 
 ``speed``: renders a 1000 x 1000 RGB pair with the virtual camera (uniform motion (14, 5) px,
 a 15 % exposure-gain mismatch, then a 1000 x 1000 PSF pair), writes PNGs and a manifest in a
 temporary folder and times ``clblur.study.study`` end to end (reading, histograms, all tests,
 report and figures).  ``limits``: for each effect, the fraction of seeds on which the study
 ranks the hidden effect first and significant, at magnitudes below and inside the realistic
-range of ``clblur.study.synthetic.RANGES`` (48 x 64 scenes, as in the tests).
+range of ``clblur.study.synthetic.RANGES`` (48 x 64 scenes, as in the tests).  ``series``:
+the 7 JPEGs of ``$CLBLUR_DATA/canon400d_road`` downscaled to 0.3 MP, timing ``calibrate``
+(every model) and ``study`` end to end (target: study under 2 minutes).
 """
 
 from __future__ import annotations
@@ -75,6 +78,56 @@ def speed(results: Path) -> None:
     _write(results, lines)
 
 
+def series(results: Path, data: Path | None, megapixels: float = 0.3) -> None:
+    """Calibrate and study a 7-JPEG exposure bracket downscaled to ~``megapixels``."""
+    import cv2
+
+    from clblur.calibration import calibrate, load_series
+    from clblur.calibration.series import exif_exposure
+    from clblur.io import data_dir
+
+    root = data or data_dir()
+    folder = None if root is None else Path(root) / "canon400d_road"
+    if folder is None or not folder.is_dir():
+        raise SystemExit("bench_study series: canon400d_road not found (set CLBLUR_DATA)")
+    files = sorted(folder.glob("*.JPG"))
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        images = []
+        for f in files:
+            im = cv2.imread(str(f), cv2.IMREAD_COLOR)
+            scale = (megapixels * 1e6 / (im.shape[0] * im.shape[1])) ** 0.5
+            small = cv2.resize(im, (round(im.shape[1] * scale), round(im.shape[0] * scale)),
+                               interpolation=cv2.INTER_AREA)
+            cv2.imwrite(str(tmp / f.name), small, [cv2.IMWRITE_JPEG_QUALITY, 95])
+            t, fn = exif_exposure(f)
+            images.append({"path": f.name, "exposure": t, "f_number": fn})
+        write_manifest(tmp / "m.json", {"kind": "exposure-series", "images": images})
+        h, w = small.shape[:2]
+        t0, c0 = time.perf_counter(), time.process_time()
+        cal = calibrate(load_series(tmp / "m.json"), progress=True)
+        cal_t = (time.perf_counter() - t0, time.process_time() - c0)
+        e = cal.evaluations[cal.best]
+        t0, c0 = time.perf_counter(), time.process_time()
+        r = study(tmp / "m.json", report=tmp / "r.json", progress=True).report
+        st_t = (time.perf_counter() - t0, time.process_time() - c0)
+    lines = [_header("series"),
+             f"{len(files)} JPEGs of `canon400d_road` (EXIF times) downscaled to {w} x {h} "
+             f"({w * h / 1e6:.2f} MP), JPEG quality 95.", "",
+             "| step | wall (s) | CPU (s) | result |", "|---|---:|---:|---|",
+             f"| `clblur calibrate` (all models, leave-one-exposure-out) | {cal_t[0]:.1f} | "
+             f"{cal_t[1]:.1f} | best {cal.best}: all valid pixels, darker target "
+             f"{_f(e['rmse_darker'].get(1))} / {_f(e['rmse_darker'].get(4))} DN at 1 / 4 stops |",
+             f"| `clblur study` | {st_t[0]:.1f} | {st_t[1]:.1f} | effects "
+             f"{', '.join(r['extended']['effects']) or 'none'}; held-out RMSE "
+             f"{r['baseline']['heldout_rmse']:.2f} -> {r['extended']['heldout_rmse']:.2f} |"]
+    _write(results, lines)
+
+
+def _f(v) -> str:
+    return "n/a" if v is None or v != v else f"{v:.2f}"
+
+
 def limits(results: Path, seeds: int, noise: float) -> None:
     cmd = f"limits --seeds {seeds}" + (f" --noise {noise:g}" if noise else "")
     rule = ("the hidden effect is ranked first and significant" if not noise else
@@ -120,7 +173,8 @@ def _write(path: Path, lines: list[str]) -> None:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("mode", choices=("speed", "limits"))
+    p.add_argument("mode", choices=("speed", "limits", "series"))
+    p.add_argument("--data", type=Path, help="series: shared data folder (default CLBLUR_DATA)")
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--noise", type=float, default=0.0,
                    help="limits: camera noise a (b = a / 100) under every hidden effect")
@@ -128,6 +182,8 @@ def main() -> None:
     a = p.parse_args()
     if a.mode == "speed":
         speed(a.results or Path("bench/results_study.md"))
+    elif a.mode == "series":
+        series(a.results or Path("bench/results_study_series.md"), a.data)
     else:
         name = "results_study_limits" + ("_noisy" if a.noise else "") + ".md"
         limits(a.results or Path("bench") / name, a.seeds, a.noise)

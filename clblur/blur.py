@@ -9,7 +9,7 @@ import numpy as np
 
 from clblur import pipeline
 from clblur.errors import InputError
-from clblur.plan import BlurPlan, make_plan
+from clblur.request import BlurPlan, make_plan
 
 __all__ = ["BACKENDS", "blur", "blur_plan", "check_backend", "resolve_backend", "stages"]
 

@@ -61,7 +61,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from clblur.motion import PSF, Field, Uniform, sample_counts
-from clblur.plan import BlurPlan
+from clblur.request import BlurPlan
 
 __all__ = ["DEPTH_TAU", "GAP_FRACTION", "MAX_LAYERS", "SPLIT_PRIOR", "SPREAD_PX", "TILE", "Layers",
            "boundary_mask", "depth_components", "order_components", "region_mask",

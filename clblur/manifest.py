@@ -1,7 +1,7 @@
 """Measurement manifests shared by ``clblur calibrate`` and ``clblur study``.
 
 Three kinds, paths relative to the manifest file.  Every path must resolve (symlinks followed)
-inside the manifest's folder or the measured-data folder (``clblur.data.data_dir``:
+inside the manifest's folder or the measured-data folder (``clblur.io.data_dir``:
 ``$CLBLUR_DATA``), so manifests written elsewhere may name the shared data; any other path
 (``..``, absolute or through a symlink) is refused::
 
@@ -105,7 +105,7 @@ def load_manifest(path: str | os.PathLike) -> Manifest:
         raise InputError(f"cannot read manifest {path}: {e}") from None
     if not isinstance(doc, dict) or doc.get("kind") not in KINDS:
         raise InputError(f"manifest {path}: 'kind' must be one of {', '.join(KINDS)}")
-    from clblur.data import data_dir
+    from clblur.io import data_dir
 
     shared = data_dir()
     base = [path.parent] + ([shared] if shared is not None else [])  # the allowed roots

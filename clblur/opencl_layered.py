@@ -26,7 +26,7 @@ from clblur import reference
 from clblur.opencl.constants import LAYERED_MAXK, build_defines
 from clblur.opencl.device import pyopencl_module
 from clblur.opencl.program import Program
-from clblur.plan import BlurPlan
+from clblur.request import BlurPlan
 from clblur.responses import response
 
 __all__ = ["OpenCLStages", "composite", "integrator"]

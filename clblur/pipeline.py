@@ -35,7 +35,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from clblur import reference
-from clblur.plan import BlurPlan
+from clblur.request import BlurPlan
 
 __all__ = ["Backend", "Integrator", "NUMPY", "NumpyStages", "run", "run_numpy"]
 
@@ -79,7 +79,7 @@ def run(plan: BlurPlan, backend: Backend = NUMPY,
 
     Parameters
     ----------
-    plan : a validated request (``clblur.plan.make_plan``).
+    plan : a validated request (``clblur.request.make_plan``).
     backend : the stages to run; default the numpy reference.
     integrate : the integrator; default the backend's own (the plain gather), or its fused
         path when it has one.

@@ -21,7 +21,7 @@ import numpy as np
 from clblur.motion import PSF, Field, Uniform, sample_counts, uniform_taps
 from clblur.pixels import linearise as linearise_channel
 from clblur.pixels import normalise, quantise
-from clblur.plan import BlurPlan
+from clblur.request import BlurPlan
 
 __all__ = ["bilinear", "bilinear_at", "linearise", "integrate", "finish", "blur"]
 

@@ -8,11 +8,7 @@ Conventions
   clamped in full-image coordinates exactly as in the untiled run; only the tile is kept.  With
   a sufficient halo the tiled result is therefore bitwise identical to ``clblur.blur`` on the
   same backend.
-* Halo, per axis: ``ceil(reach) + 2``.  ``reach`` is the farthest a sample lies from its pixel:
-  ``max |v_axis| * max(a, 1 - a)`` over the tile for a uniform or per-pixel motion (samples lie
-  at ``p - v (s - a)`` with ``s`` in [0, 1]; anchor ``a``), the kernel's extent from its centre
-  for a PSF.  ``+1`` is the bilinear neighbour, ``+1`` a margin for sample positions that a
-  float32 kernel rounds past the exact reach.
+* Halo, per axis: ``ceil(reach) + 2``, from how far the samples reach (``clblur.halo``).
   The halo is capped at the image size: a window never extends past the image, so a motion
   of 1e9 px on a small image needs a window of the whole image, not of 1e9 px.
 * Sources and destinations are array-likes (``clblur.io.raster``): numpy arrays, zarr arrays,
@@ -35,6 +31,7 @@ import numpy as np
 
 from clblur.blur import blur_plan, resolve_backend
 from clblur.errors import InputError
+from clblur.halo import fixed_halo, flow_halo, global_flow_halo, tiled_motion
 from clblur.io import (
     IMAGE_FORMATS,
     as_array_like,
@@ -43,16 +40,14 @@ from clblur.io import (
     check_output,
     create_tiff,
     is_tiff,
-    open_flow,
     open_image,
     write_image,
 )
-from clblur.motion import PSF, Field, Uniform, anchor_value, psf
-from clblur.plan import make_plan
+from clblur.motion import anchor_value
+from clblur.request import make_plan
 
 __all__ = ["DEFAULT_MEMORY_BUDGET", "TiledRun", "blur_file", "blur_tiled", "choose_tile",
-           "fixed_halo", "flow_halo", "halo_for_reach", "parse_size", "tiled_motion", "tiles",
-           "window_bytes_per_px"]
+           "parse_size", "tiles", "window_bytes_per_px"]
 
 DEFAULT_MEMORY_BUDGET = 512 * 2**20
 FLOW_BYTES_PER_PX = 8  # float32 (dx, dy)
@@ -71,84 +66,6 @@ def window_bytes_per_px(channels: int, itemsize: int, per_pixel_flow: bool) -> i
     """
     return 8 * (12 * channels + 20) + 2 * channels * itemsize + \
         (FLOW_BYTES_PER_PX if per_pixel_flow else 0)
-
-
-# --------------------------------------------------------------------------- motion and halo
-@dataclass(frozen=True)
-class TiledMotion:
-    """The motion of a tiled run: a uniform vector or PSF (in memory), or a flow array-like
-    read window by window."""
-
-    fixed: Uniform | PSF | None = None
-    flow: object | None = None  # array-like H x W x 2
-
-
-def tiled_motion(motion, shape: tuple[int, int]) -> TiledMotion:
-    """Classify ``motion`` without loading a flow field: ``(dx, dy)``, an H x W x 2 array-like
-    (numpy, np.memmap, zarr, MappedRaster), a ``.npy``/``.flo`` path, or a 2-D PSF."""
-    if isinstance(motion, (Uniform, PSF)):
-        return TiledMotion(fixed=make_plan(np.zeros((1, 1), np.uint8), motion).motion)
-    if isinstance(motion, Field):
-        motion = motion.flow
-    if isinstance(motion, (str, os.PathLike)):
-        motion = open_flow(motion)
-    if not hasattr(motion, "shape"):
-        motion = np.asarray(motion)
-    if np.ndim(motion) == 1 or tuple(motion.shape) == (2,):
-        return TiledMotion(fixed=make_plan(np.zeros((1, 1), np.uint8), motion).motion)
-    if len(motion.shape) == 2:
-        return TiledMotion(fixed=psf(np.asarray(motion)))
-    if len(motion.shape) == 3:
-        h, w = shape
-        if tuple(motion.shape) != (h, w, 2):
-            raise InputError(f"flow field has shape {tuple(motion.shape)}, expected "
-                             f"({h}, {w}, 2) to match the image")
-        if np.dtype(motion.dtype).kind not in "fiu":
-            raise TypeError(f"flow field must be numeric, got dtype {motion.dtype}")
-        return TiledMotion(flow=as_array_like(motion))
-    raise InputError(f"motion has shape {tuple(motion.shape)}; expected (2,), (H, W, 2) or a "
-                     "2-D PSF")
-
-
-def halo_for_reach(reach: float) -> int:
-    """Halo for a sample reach (pixels): see the module conventions."""
-    return int(math.ceil(reach)) + 2
-
-
-def fixed_halo(motion: Uniform | PSF, anchor: float) -> tuple[int, int]:
-    """(rows, cols) halo of a uniform motion or PSF."""
-    if isinstance(motion, PSF):
-        kh, kw = motion.kernel.shape
-        cy, cx = motion.center
-        return halo_for_reach(max(cy, kh - 1 - cy)), halo_for_reach(max(cx, kw - 1 - cx))
-    f = max(anchor, 1.0 - anchor)
-    dx, dy = np.float32(motion.dx), np.float32(motion.dy)
-    return halo_for_reach(abs(float(dy)) * f), halo_for_reach(abs(float(dx)) * f)
-
-
-def flow_halo(flow: np.ndarray, anchor: float) -> tuple[int, int]:
-    """(rows, cols) halo covering every vector of ``flow`` (any H x W x 2 block)."""
-    v = np.asarray(flow).reshape(-1, 2)
-    if v.size == 0:
-        return halo_for_reach(0.0), halo_for_reach(0.0)
-    if v.dtype == np.float16:  # numpy reduces float16 slowly; the float32 copy is exact
-        v = v.astype(np.float32)
-    # per-column max and min: no |v| temporary, and fast on the strided columns
-    amax = np.array([max(abs(float(v[:, k].max())), abs(float(v[:, k].min())))
-                     for k in (0, 1)])
-    if not np.isfinite(amax).all():
-        raise InputError("flow field contains NaN or infinite values")
-    f = max(anchor, 1.0 - anchor)
-    return halo_for_reach(amax[1] * f), halo_for_reach(amax[0] * f)
-
-
-def global_flow_halo(flow, anchor: float, rows_per_read: int) -> tuple[int, int]:
-    """The largest halo over the whole flow, read in bands of ``rows_per_read`` rows."""
-    hy = hx = halo_for_reach(0.0)
-    for r in range(0, flow.shape[0], max(rows_per_read, 1)):
-        y, x = flow_halo(flow[r:r + rows_per_read], anchor)
-        hy, hx = max(hy, y), max(hx, x)
-    return hy, hx
 
 
 # --------------------------------------------------------------------------- tile geometry

@@ -45,7 +45,7 @@ from clblur.io.video import (
 )
 from clblur.layered_exposure import layered_half
 from clblur.pipeline import run_numpy
-from clblur.plan import check_image, make_plan
+from clblur.request import check_image, make_plan
 from clblur.responses import per_channel
 
 # Chosen from docs/studies/video.md (GoPro 240 fps ground truth).

@@ -11,7 +11,7 @@ import os
 import numpy as np
 import pytest
 
-from clblur.data import data_dir
+from clblur.io import data_dir
 
 
 @pytest.fixture(scope="session")

@@ -1,4 +1,4 @@
-"""clblur.dask.blur equals the in-memory blur bit for bit, whatever the chunking."""
+"""clblur.dask_array.blur equals the in-memory blur bit for bit, whatever the chunking."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 import clblur
 
 da = pytest.importorskip("dask.array")
-cdask = pytest.importorskip("clblur.dask")
+cdask = pytest.importorskip("clblur.dask_array")
 
 
 @pytest.fixture(autouse=True)

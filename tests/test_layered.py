@@ -15,7 +15,7 @@ import pytest
 import clblur
 from clblur import layered_exposure as layered
 from clblur import pipeline, reference
-from clblur.plan import make_plan
+from clblur.request import make_plan
 from clblur.responses import response
 
 sys.path.insert(0, str(Path(__file__).parent))

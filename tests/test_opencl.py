@@ -31,8 +31,8 @@ import pytest
 from clblur import reference
 from clblur.motion import sample_counts
 from clblur.pixels import imax, linearise, normalise
-from clblur.plan import make_plan
-from clblur.responses import Gamma, Table, response
+from clblur.request import make_plan
+from clblur.responses import ExpShape, Gamma, Table, response
 
 TIE_LSB = 0.3
 MAX_DIFFER = 0.02
@@ -101,6 +101,11 @@ def table_response():
 RESPONSES = {
     "linear": "linear", "exp": "exp", "exp3": "exp:3", "gamma": "gamma:2.2", "srgb": "srgb",
     "table": table_response(),
+    # the extremes of the accepted ranges (clblur.responses.RANGES): both backends agree there
+    "gamma_min": "gamma:0.1", "gamma_max": "gamma:10", "exp_kmin": "exp:1e-6",
+    "exp_kmax": "exp:1e6",
+    # a fitted family without a kernel code runs as its dense table
+    "exp_shape": ExpShape(0.05, 1.4, 0.5, (0.3, -0.2)),
 }
 
 

@@ -29,7 +29,7 @@ from test_opencl import (
 
 from clblur.opencl.constants import build_defines
 from clblur.opencl.program import KERNEL_FILES, kernel_signatures, kernel_source
-from clblur.plan import make_plan
+from clblur.request import make_plan
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -37,7 +37,8 @@ REPO = Path(__file__).resolve().parent.parent
 # --- constants and signatures (no device needed) ---------------------------------------------
 
 def test_shared_constants_are_only_defined_in_python():
-    source = kernel_source()
+    # every program of the package (the main one and the layered compositor)
+    source = "\n".join(p.read_text() for p in sorted((REPO / "clblur" / "opencl").glob("*.cl")))
     for option in build_defines():
         name = option[2:].split("=")[0]
         assert re.search(rf"\b{name}\b", source), f"{name} is never used by the kernels"

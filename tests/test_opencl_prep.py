@@ -14,7 +14,7 @@ from clblur import reference
 from clblur.opencl import half_float, quantisation, response_pack, taps
 from clblur.opencl.constants import QHEAD, RESP_STRIDE
 from clblur.pixels import imax, linearisation_table
-from clblur.plan import make_plan
+from clblur.request import make_plan
 from clblur.responses import Gamma, Table, response
 
 RESPONSES = ["linear", "exp", "exp:3", "gamma:2.2", "srgb",

@@ -8,7 +8,24 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import clblur
-from clblur.responses import SRGB, Exp, Gamma, Linear, Table, per_channel, response
+from clblur.responses import (
+    RANGES,
+    SRGB,
+    Emor,
+    Exp,
+    ExpOffset,
+    ExpShape,
+    Gamma,
+    GammaOffset,
+    Linear,
+    MonotoneSpline,
+    Polynomial,
+    Table,
+    for_device,
+    from_dict,
+    per_channel,
+    response,
+)
 
 k_values = st.floats(min_value=1e-3, max_value=1e3)
 gammas = st.floats(min_value=0.2, max_value=5.0)
@@ -84,6 +101,11 @@ def test_spec_parsing(spec, expected):
 @pytest.mark.parametrize("spec,match", [
     ("gamma:0", "positive"), ("gamma:-1", "positive"), ("gamma:abc", "number"),
     ("gamma", "exponent"), ("nope", "unknown response"), ("exp:0", "positive"),
+    # outside the accepted ranges: refused with the range named
+    ("gamma:1e-10", r"within \[0.1, 10\]"), ("gamma:1e-300", r"within \[0.1, 10\]"),
+    ("gamma:100", r"within \[0.1, 10\]"), ("exp:1e9", r"within \[1e-06, 1e\+06\]"),
+    # with context: which spec, what was expected
+    ("exp:abc", r"response spec 'exp:abc': exp k must be a number, expected exp:K"),
 ])
 def test_bad_specs(spec, match):
     with pytest.raises(ValueError, match=match):
@@ -116,3 +138,61 @@ def test_per_channel():
     assert per_channel(["linear", "exp", "srgb"], 3)[1] == Exp()
     with pytest.raises(ValueError, match="per-channel"):
         per_channel(["linear", "exp"], 3)
+
+
+FAMILIES = [
+    ExpOffset(0.05, 2.0), GammaOffset(0.04, 2.4), ExpShape(0.02, 1.3, 0.4, (0.3, -0.2, 0.1)),
+    ExpShape(), Polynomial((0.0, 0.3, 0.2, 0.5)),
+    MonotoneSpline.from_vector(np.linspace(-1.0, 1.0, 16)),
+]
+
+
+@pytest.mark.parametrize("r", FAMILIES, ids=lambda r: r.kind + str(len(r.vector())))
+def test_families_parameters_round_trip(r):
+    v = np.linspace(0.06, 0.95, 50)
+    x = r.inverse(v)
+    assert np.all(np.diff(x) > 0)
+    np.testing.assert_allclose(r.forward(x), v, atol=1e-6)
+    again = type(r).from_vector(r.vector())
+    np.testing.assert_allclose(again.inverse(v), x, rtol=1e-9)
+    assert from_dict(r.to_dict()) == r
+    # kernels run any family as its dense table, within 1e-5 of the formula
+    t = for_device(r)
+    assert t.kind == "table"
+    np.testing.assert_allclose(t.forward(x), v, atol=1e-5)
+
+
+def test_exp_shape_nests_the_paper_curve():
+    v = np.linspace(0.0, 0.99, 40)
+    np.testing.assert_allclose(ExpShape().inverse(v), Exp(1.0).inverse(v), rtol=1e-12)
+    x = np.geomspace(1e-4, 10, 30)
+    got, slope = ExpShape().forward_slope(x)
+    np.testing.assert_allclose(got, Exp(1.0).forward(x), rtol=1e-12)
+    np.testing.assert_allclose(slope, np.exp(-x), rtol=1e-9)
+    # with a warp the sampled slope matches a finite difference
+    r = ExpShape(0.0, 1.2, 0.5, (0.4, -0.3))
+    x = np.geomspace(1e-3, 1.0, 20)
+    _, s = r.forward_slope(x)
+    fd = (r.forward(x * 1.001) - r.forward(x / 1.001)) / (x * 1.001 - x / 1.001)
+    np.testing.assert_allclose(s, fd, rtol=0.05)
+
+
+def test_emor_family_round_trip(shared_data):
+    if not (shared_data / "crf" / "emor.txt").is_file():
+        pytest.skip("EMoR basis not in the shared data")
+    r = Emor((0.5, -0.2), emor_dir=str(shared_data / "crf"))
+    v = np.linspace(0.05, 0.95, 30)
+    np.testing.assert_allclose(r.forward(r.inverse(v)), v, atol=1e-9)
+    assert from_dict(r.to_dict()) == r
+
+
+def test_family_ranges_enforced():
+    lo, hi = RANGES["black"]
+    with pytest.raises(ValueError, match="black level must be within"):
+        ExpOffset(hi + 0.1)
+    with pytest.raises(ValueError, match="gamma exponent must be within"):
+        GammaOffset(0.0, 20.0)
+    with pytest.raises(ValueError, match="rho must be within"):
+        ExpShape(0.0, 1.0, 2.0)
+    with pytest.raises(ValueError, match="knots"):
+        MonotoneSpline([0.0, 0.5, 0.9], [0.0, 0.0])

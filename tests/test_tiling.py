@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import clblur
-from clblur import io, tiling
+from clblur import halo, io, tiling
 from clblur.io import MappedRaster, read_image, write_flow, write_image
 from clblur.tiling import blur_file, blur_tiled, choose_tile
 
@@ -65,7 +65,7 @@ def test_halo_too_small_breaks_equality(rng, monkeypatch):
     """The equality tests can fail: without a halo the tile edges differ."""
     img = _image(rng)
     ref = clblur.blur(img, (7.3, -2.5), backend="numpy")
-    monkeypatch.setattr(tiling, "halo_for_reach", lambda reach: 0)
+    monkeypatch.setattr(halo, "halo_for_reach", lambda reach: 0)
     out = np.zeros_like(img)
     blur_tiled(img, out, (7.3, -2.5), backend="numpy", tile=8)
     assert (out != ref).any()

@@ -10,13 +10,14 @@ Conventions
 * Leave-one-exposure-out: with ``refit=True`` (default) the model is refitted without image
   ``j`` (same samples, same options) before predicting it, so the target never informed the
   curve.  Pixels inside any sampled patch are never scored (held-out pixels only).
-* Scored values: pixel-channels valid (``low < v < high``) in both images and *flat*: their
-  3 x 3 neighbourhood spans at most ``flat_tolerance`` of full scale in both images, so a
-  sub-pixel misregistration between the exposures (scanned film frames, hand-held shots)
-  cannot masquerade as response error.  ``flat_tolerance=None`` scores every pixel.
-* ``low`` defaults to 0.1: below it a pixel sits at or near the black level, where one code
-  value stands for a large exposure range (an under-exposed value, rejected like a clipped
-  one).  RMSE in code values of the series' dtype, pooled over pairs and channels.
+* Scored values (headline): *every* pixel-channel valid in both images, i.e. codes 3..252 of
+  255 (``low < v < high`` with the defaults; neither clipped at the top nor at code 0..2 in
+  the dark), random pixels, edges and textures included.  A secondary column keeps only
+  *flat* pixels: their 3 x 3 neighbourhood spans at most ``flat_tolerance`` of full scale in
+  both images (8 DN in uint8), where a sub-pixel misregistration between the exposures cannot
+  masquerade as response error.  RMSE in code values of the series' dtype, pooled over pairs
+  and channels.
+* A gap with no pair of exposures that far apart gets RMSE NaN and a reason in ``missing``.
 """
 
 from __future__ import annotations
@@ -25,11 +26,12 @@ import numpy as np
 from tqdm import tqdm
 
 from clblur.calibration.fitting import ResponseFit, fit, transfer
-from clblur.calibration.sampling import VALID_HIGH, Sampling
 from clblur.calibration.series import ExposureSeries
 
 FLAT_TOLERANCE = 0.03
-EVAL_LOW = 0.1
+# Codes 3..252 of 255 are valid: code 0..2 may be a clipped black, 253..255 a clipped white.
+EVAL_LOW = 2.5 / 255.0
+EVAL_HIGH = 252.5 / 255.0
 DIRECTIONS = ("darker", "brighter")
 
 
@@ -45,15 +47,13 @@ def _local_range(image: np.ndarray, coords: np.ndarray) -> np.ndarray:
 
 def _refit_without(series: ExposureSeries, f: ResponseFit, j: int) -> ResponseFit:
     keep = [i for i in range(len(series.images)) if i != j]
-    s = f.sampling
-    sampling = Sampling([c.drop_exposure(j) for c in s.per_channel], s.footprint, s.patch,
-                        s.low, s.high)
-    return fit(series.subset(keep), f.model, sampling=sampling, **f.options)
+    return fit(series.subset(keep), f.model, sampling=f.sampling.drop_exposure(j),
+               **f.options)
 
 
 def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=(1, 4), *,
              refit: bool = True, tolerance: float = 0.25, max_pixels: int | None = None,
-             low: float = EVAL_LOW, high: float = VALID_HIGH,
+             low: float = EVAL_LOW, high: float = EVAL_HIGH,
              flat_tolerance: float | None = FLAT_TOLERANCE, seed: int = 0,
              progress: bool = False) -> dict:
     """Held-out RMSE (code values) for each gap in stops, plus the fit's AIC/BIC.
@@ -61,8 +61,10 @@ def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=(1, 4), *,
     ``max_pixels`` scores a random subset of the held-out pixels (faster; the same subset for
     every pair).  Returns ``{"model", "shared", "rmse": {gap: rmse}, "rmse_per_channel":
     {gap: [...]}, "rmse_darker": {gap: rmse}, "rmse_brighter": {gap: rmse}, "n_values":
-    {gap: n}, "n_pairs": {gap: n}, "log_likelihood", "n_params", "aic", "bic", "rmse_fit"}``;
-    a gap with no pair gets RMSE NaN.
+    {gap: n}, "n_pairs": {gap: n}, "flat": {"rmse", "rmse_darker", "rmse_brighter",
+    "n_values"} (flat pixels only; absent when ``flat_tolerance`` is None), "missing":
+    {gap: reason}, "log_likelihood", "n_params", "aic", "bic", "rmse_fit"}``; a gap with no
+    pair gets RMSE NaN and its reason in ``missing``.
     """
     gaps = tuple(float(g) for g in gaps)
     if not gaps or any(g <= 0 for g in gaps):
@@ -76,14 +78,13 @@ def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=(1, 4), *,
         coords = np.sort(np.random.default_rng(seed).choice(coords, max_pixels, replace=False))
     values = [im.reshape(-1, ch)[coords].astype(np.float64) / series.full_scale
               for im in series.images]
-    usable = []
-    for im, v in zip(series.images, values, strict=True):
-        ok = (v > low) & (v < high)
-        if flat_tolerance is not None:
-            ok &= _local_range(im, coords) <= flat_tolerance * series.full_scale
-        usable.append(ok)
-    sse = {(g, d): np.zeros(ch) for g in gaps for d in DIRECTIONS}
-    cnt = {(g, d): np.zeros(ch, dtype=np.int64) for g in gaps for d in DIRECTIONS}
+    usable = [(v > low) & (v < high) for v in values]
+    flat = None if flat_tolerance is None else [
+        _local_range(im, coords) <= flat_tolerance * series.full_scale for im in series.images]
+    kinds = ("all",) if flat is None else ("all", "flat")
+    sse = {(g, d, k): np.zeros(ch) for g in gaps for d in DIRECTIONS for k in kinds}
+    cnt = {(g, d, k): np.zeros(ch, dtype=np.int64) for g in gaps for d in DIRECTIONS
+           for k in kinds}
     pairs = dict.fromkeys(gaps, 0)
     sources = {j: [(i, g) for i in range(n) for g in gaps
                    if i != j and abs(abs(stops[i] - stops[j]) - g) <= tolerance]
@@ -96,30 +97,50 @@ def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=(1, 4), *,
             ok = usable[i] & usable[j]
             pairs[g] += 1
             ratio = 2.0 ** (stops[j] - stops[i])
-            key = (g, "darker" if ratio < 1 else "brighter")
+            direction = "darker" if ratio < 1 else "brighter"
+            both_flat = None if flat is None else flat[i] & flat[j]
             for c in range(ch):
                 m = ok[:, c]
                 pred = transfer(model.responses[c], values[i][m, c], ratio)
-                err = (pred - values[j][m, c]) * series.full_scale
-                sse[key][c] += float(np.sum(err**2))
-                cnt[key][c] += int(m.sum())
+                err2 = ((pred - values[j][m, c]) * series.full_scale) ** 2
+                sse[g, direction, "all"][c] += float(np.sum(err2))
+                cnt[g, direction, "all"][c] += int(m.sum())
+                if both_flat is not None:
+                    fm = both_flat[:, c][m]
+                    sse[g, direction, "flat"][c] += float(np.sum(err2[fm]))
+                    cnt[g, direction, "flat"][c] += int(fm.sum())
 
     def rmse(s, k):
         return float(np.sqrt(s / k)) if k else float("nan")
 
     out = {"model": fit_result.model, "shared": fit_result.shared, "rmse": {},
            "rmse_per_channel": {}, "rmse_darker": {}, "rmse_brighter": {}, "n_values": {},
-           "n_pairs": {}}
+           "n_pairs": {}, "missing": {}}
+    if flat is not None:
+        out["flat"] = {"rmse": {}, "rmse_darker": {}, "rmse_brighter": {}, "n_values": {}}
+    present = sorted({round(abs(a - b), 2) for a in stops for b in stops if a > b})
     for g in gaps:
         key = int(g) if g.is_integer() else g
-        s_all = sse[g, "darker"] + sse[g, "brighter"]
-        c_all = cnt[g, "darker"] + cnt[g, "brighter"]
-        out["rmse"][key] = rmse(s_all.sum(), c_all.sum())
-        out["rmse_per_channel"][key] = [rmse(a, b) for a, b in zip(s_all, c_all, strict=True)]
-        for d in DIRECTIONS:
-            out[f"rmse_{d}"][key] = rmse(sse[g, d].sum(), cnt[g, d].sum())
-        out["n_values"][key] = int(c_all.sum())
+        for kind in kinds:
+            dest = out if kind == "all" else out["flat"]
+            s_all = sse[g, "darker", kind] + sse[g, "brighter", kind]
+            c_all = cnt[g, "darker", kind] + cnt[g, "brighter", kind]
+            dest["rmse"][key] = rmse(s_all.sum(), c_all.sum())
+            if kind == "all":
+                out["rmse_per_channel"][key] = [rmse(a, b) for a, b
+                                                in zip(s_all, c_all, strict=True)]
+            for d in DIRECTIONS:
+                dest[f"rmse_{d}"][key] = rmse(sse[g, d, kind].sum(), cnt[g, d, kind].sum())
+            dest["n_values"][key] = int(c_all.sum())
         out["n_pairs"][key] = pairs[g]
+        if not pairs[g]:
+            shown = ", ".join(f"{p:g}" for p in present[:12]) + (" ..." if len(present) > 12
+                                                                 else "")
+            out["missing"][key] = (f"no two exposures are {g:g} stops apart (within "
+                                   f"{tolerance:g} stop); the gaps in this series are {shown}")
+        elif not out["n_values"][key]:
+            out["missing"][key] = (f"no held-out pixel is valid (codes 3..252) in both images "
+                                   f"of any pair {g:g} stops apart")
     out.update({"log_likelihood": fit_result.log_likelihood, "n_params": fit_result.n_params,
                 "aic": fit_result.aic, "bic": fit_result.bic, "rmse_fit": fit_result.rmse_fit})
     return out

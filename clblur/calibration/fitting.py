@@ -123,10 +123,16 @@ def fit(series: ExposureSeries, model: str, *, shared: bool = False, n_samples: 
         sampling = sample_series(series, n_samples, patch=patch, low=min(low, VALID_LOW),
                                  high=high, seed=seed)
     chosen = sampling
-    if (low, high) != (sampling.low, sampling.high):
-        sampling = sampling.with_range(low, high)
     tau = series.relative_exposures()
-    groups = [SampleSet.concat(sampling.per_channel)] if shared else sampling.per_channel
+    if getattr(family, "uses_pixels", False):  # random single pixels, their own valid range
+        if not sampling.pixels:
+            raise ValueError(f"the {model} model needs random pixel samples (sample_series "
+                             "with n_pixels > 0)")
+        groups = [SampleSet.concat(sampling.pixels)] if shared else sampling.pixels
+    else:
+        if (low, high) != (sampling.low, sampling.high):
+            sampling = sampling.with_range(low, high)
+        groups = [SampleSet.concat(sampling.per_channel)] if shared else sampling.per_channel
     fits: list[FamilyFit] = []
     for samples in tqdm(groups, desc=f"fit {model}", disable=not progress, leave=False):
         fits.append(family.fit(samples, tau, full_scale=series.full_scale,

@@ -150,13 +150,15 @@ def figure_residuals(series: ExposureSeries, fits: dict[str, ResponseFit], path:
 def comparison_table(evaluations: dict[str, dict], gaps) -> str:
     head = ["model"] + [f"{g}-stop both" for g in gaps] + [f"{g}-stop darker" for g in gaps] \
         + [f"{g}-stop brighter" for g in gaps] + [f"{g}-stop R/G/B" for g in gaps] \
-        + ["fit RMSE", "params", "AIC", "BIC"]
+        + [f"{g}-stop darker, flat only" for g in gaps] + ["fit RMSE", "params", "AIC", "BIC"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, e in evaluations.items():
         cells = [name] + [f"{e['rmse'][g]:.2f}" for g in gaps]
         cells += [f"{e['rmse_darker'][g]:.2f}" for g in gaps]
         cells += [f"{e['rmse_brighter'][g]:.2f}" for g in gaps]
         cells += [" / ".join(f"{v:.2f}" for v in e["rmse_per_channel"][g]) for g in gaps]
+        flat = e.get("flat")
+        cells += [f"{flat['rmse_darker'][g]:.2f}" if flat else "-" for g in gaps]
         cells += [f"{e['rmse_fit']:.2f}", str(e["n_params"]), f"{e['aic']:.0f}",
                   f"{e['bic']:.0f}"]
         lines.append("| " + " | ".join(cells) + " |")
@@ -231,14 +233,18 @@ def write_report(folder: str | Path, series: ExposureSeries, fits: dict[str, Res
     ]
     if command:
         lines += ["Command:", "", "```", command, "```", ""]
+    missing = {g: why for e in evaluations.values() for g, why in e.get("missing", {}).items()}
     if evaluations:
+        lines += [f"*{g}-stop columns are empty: {why}*" for g, why in missing.items()]
         lines += ["## Held-out prediction (code values) and information criteria", "",
                   comparison_table(evaluations, gaps), "",
                   "RMSE in code values: predicting each image from the images 1 and 4 "
                   "stops away through the model fitted without it (leave-one-exposure-out "
-                  "unless `--no-refit`); pixels outside every sampled patch, valid in both "
-                  "images and flat in their 3 x 3 neighbourhood (`clblur.calibration."
-                  "evaluate`).  *darker*: the target is the shorter exposure; *brighter*: "
+                  "unless `--no-refit`); every pixel outside the fitting samples that is valid "
+                  "(codes 3..252 of 255) in both images, edges and textures included; the "
+                  "*flat only* columns keep pixels whose 3 x 3 neighbourhood spans at most "
+                  "8 DN in both images (`clblur.calibration.evaluate`).  *darker*: the "
+                  "target is the shorter exposure; *brighter*: "
                   "the longer; *both*: pooled.  AIC/BIC: forward residuals of the sampled "
                   "patches with values in [0.1, 0.98] of full scale, the same for every "
                   "model (Gaussian noise; see `clblur.calibration.fitting`).", ""]

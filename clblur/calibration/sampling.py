@@ -13,6 +13,10 @@ Conventions
   exposures or sensor noise barely changes the sample.
 * A patch is valid in an image only if all its pixels are; a patch whose valid values fall by
   more than ``monotone_tolerance`` while the exposure grows is rejected (corrupt or moving).
+* ``pixels``: besides the patches, ``n_pixels`` single pixels drawn uniformly at random (edges,
+  textures and dark pixels included, outside the patches) for fits that minimise the
+  cross-exposure prediction error on the kind of pixels the evaluation scores.  Both are in
+  the ``footprint``, so the evaluation never scores a pixel any fit has seen.
 """
 
 from __future__ import annotations
@@ -26,6 +30,9 @@ VALID_HIGH = 0.98
 # A patch whose value drops by more than this (normalised) while the exposure grows is not a
 # static, noise-limited observation (a moving object, a misaligned edge, a corrupt pixel).
 MONOTONE_TOLERANCE = 0.03
+# Random single pixels per channel for the cross-exposure fit (pooled by value, so the fit's
+# cost does not grow with it; the held-out pixels are all the others).
+N_PIXELS = 20000
 
 
 @dataclass(frozen=True)
@@ -72,10 +79,11 @@ class Sampling:
     """Per-channel sample sets and the pixels they cover (excluded from evaluation)."""
 
     per_channel: list[SampleSet]
-    footprint: np.ndarray  # H x W bool: pixels inside any sampled patch
+    footprint: np.ndarray  # H x W bool: pixels inside any sampled patch or pixel sample
     patch: int
     low: float
     high: float
+    pixels: list[SampleSet] | None = None  # per channel: random single pixels (all values)
 
     def with_range(self, low: float, high: float) -> Sampling:
         """Same patches (and footprint), validity re-judged; only narrower ranges make sense."""
@@ -87,7 +95,13 @@ class Sampling:
         if empty:
             raise ValueError(f"channel(s) {empty} keep no sample valid in two exposures within "
                              f"({low}, {high})")
-        return Sampling(sets, self.footprint, self.patch, low, high)
+        return Sampling(sets, self.footprint, self.patch, low, high, self.pixels)
+
+    def drop_exposure(self, index: int) -> Sampling:
+        """The same samples without exposure ``index`` (leave-one-exposure-out)."""
+        pix = None if self.pixels is None else [p.drop_exposure(index) for p in self.pixels]
+        return Sampling([c.drop_exposure(index) for c in self.per_channel], self.footprint,
+                        self.patch, self.low, self.high, pix)
 
 
 def valid_mask(values: np.ndarray, low: float = VALID_LOW, high: float = VALID_HIGH):
@@ -126,8 +140,10 @@ def _monotone(means: np.ndarray, ok: np.ndarray, order: np.ndarray, tol: float) 
 
 def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float = VALID_LOW,
                   high: float = VALID_HIGH, seed: int = 0,
-                  monotone_tolerance: float = MONOTONE_TOLERANCE) -> Sampling:
-    """Choose up to ``n_samples`` flat patches per channel, spread over the value range."""
+                  monotone_tolerance: float = MONOTONE_TOLERANCE,
+                  n_pixels: int = N_PIXELS) -> Sampling:
+    """Choose up to ``n_samples`` flat patches per channel, spread over the value range, and
+    ``n_pixels`` random single pixels (see the module doc)."""
     if not isinstance(n_samples, (int, np.integer)) or n_samples < 8:
         raise ValueError(f"n_samples must be an integer >= 8, got {n_samples!r}")
     if not isinstance(patch, (int, np.integer)) or patch < 1 or patch % 2 == 0:
@@ -175,7 +191,26 @@ def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float =
         missing = sorted(set(range(channels)) - {int(s.channel[0]) for s in sets})
         raise ValueError(f"channel(s) {missing} have no usable samples (saturated or "
                          "under-exposed everywhere)")
-    return Sampling(sets, footprint, patch, low, high)
+    pixels = _random_pixels(stack, footprint, n_pixels, rng)
+    return Sampling(sets, footprint, patch, low, high, pixels)
+
+
+def _random_pixels(stack: np.ndarray, footprint: np.ndarray, n_pixels: int,
+                   rng: np.random.Generator) -> list[SampleSet]:
+    """``n_pixels`` random pixels outside ``footprint`` (then added to it), every channel."""
+    if not isinstance(n_pixels, (int, np.integer)) or n_pixels < 0:
+        raise ValueError(f"n_pixels must be a non-negative integer, got {n_pixels!r}")
+    free = np.flatnonzero(~footprint.ravel())
+    # at most half the free pixels: the other half is left for held-out scoring
+    idx = np.sort(rng.choice(free, min(int(n_pixels), free.size // 2), replace=False))
+    rows, cols = np.unravel_index(idx, footprint.shape)
+    footprint[rows, cols] = True
+    out = []
+    for c in range(stack.shape[3]):
+        v = stack[:, rows, cols, c].T.astype(np.float64)
+        valid = (v > 0.0) & (v < 1.0)
+        out.append(SampleSet(v, valid, np.full(rows.size, c), rows, cols, v, v))
+    return out
 
 
 def _stratified_pick(level: np.ndarray, std: np.ndarray, usable: np.ndarray, n_samples: int,

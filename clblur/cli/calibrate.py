@@ -56,10 +56,10 @@ def register(subparsers) -> None:
                         "exposure (faster, slightly optimistic)")
     p.add_argument("--eval-low", type=float, default=EVAL_LOW, metavar="V",
                    help="scored values must exceed V of full scale in both images "
-                        f"(default {EVAL_LOW})")
+                        f"(default {EVAL_LOW:.4f}: codes 3..252 of 255 are valid)")
     p.add_argument("--flat-tolerance", type=_tolerance, default=FLAT_TOLERANCE, metavar="V",
-                   help="scored pixels' 3x3 neighbourhood spans at most V of full scale in "
-                        f"both images; 'none' scores every pixel (default {FLAT_TOLERANCE})")
+                   help="secondary column: pixels whose 3x3 neighbourhood spans at most V of "
+                        f"full scale in both images; 'none' drops it (default {FLAT_TOLERANCE})")
     p.add_argument("--eval-pixels", type=int, default=None, metavar="N",
                    help="score a random subset of N held-out pixels (default: all)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -116,11 +116,17 @@ def run(args: argparse.Namespace) -> int:
                        max_pixels=args.eval_pixels, progress=not args.quiet)
     best, evaluations = result.best, result.evaluations
     gaps = list(evaluations[best]["rmse"])
-    print("held-out RMSE (code values), target darker / brighter / both; AIC")
-    print("model         " + "".join(f"{str(g) + '-stop':>22}" for g in gaps) + "         AIC")
+    flat = "flat" in evaluations[best]
+    print("held-out RMSE (code values) on all valid pixels, target darker / brighter / both"
+          + ("; flat pixels only, darker" if flat else "") + "; AIC")
+    print("model         " + "".join(f"{str(g) + '-stop':>22}" for g in gaps)
+          + ("".join(f"{str(g) + '-stop flat':>13}" for g in gaps) if flat else "")
+          + "         AIC")
     for n, e in evaluations.items():
         cells = "".join(f"{e['rmse_darker'][g]:8.2f}{e['rmse_brighter'][g]:7.2f}"
                         f"{e['rmse'][g]:7.2f}" for g in gaps)
+        if flat:
+            cells += "".join(f"{e['flat']['rmse_darker'][g]:13.2f}" for g in gaps)
         print(f"{n:<14}{cells}  {e['aic']:10.0f}" + ("   <- best" if n == best else ""))
     for line in nan_reasons(evaluations[best]):  # say why a column is nan
         print(line)

@@ -26,11 +26,11 @@ from clblur.io.images import (
     read_image,
     write_image,
 )
-from clblur.io.paths import check_output, refuse_overwrite, resolve_inside
+from clblur.io.paths import check_output, data_dir, refuse_overwrite, resolve_inside
 from clblur.io.raster import MappedRaster, as_array_like, create_tiff, is_tiff, open_image
 
 __all__ = ["FLO_MAGIC", "IMAGE_FORMATS", "MappedRaster", "as_array_like", "atomic_write",
-           "atomic_write_text", "check_decodable", "check_output", "create_tiff",
+           "atomic_write_text", "check_decodable", "check_output", "create_tiff", "data_dir",
            "image_format", "is_tiff", "open_flow", "open_image", "probe_image", "read_flow",
            "read_depth", "read_image", "read_psf", "refuse_overwrite", "resolve_inside",
            "tmp_beside", "write_flow", "write_image"]

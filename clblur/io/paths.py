@@ -1,5 +1,6 @@
 """Where paths may point: inputs named by manifests stay inside their folder, outputs stay
-inside the output folder, and an output never replaces an input.
+inside the output folder, and an output never replaces an input; and where the shared
+measured data lives (``data_dir``: read from there, never copied into the repository).
 
 Conventions
 -----------
@@ -16,7 +17,7 @@ from pathlib import Path
 
 from clblur.errors import InputError
 
-__all__ = ["check_output", "refuse_overwrite", "resolve_inside"]
+__all__ = ["check_output", "data_dir", "refuse_overwrite", "resolve_inside"]
 
 PathLike = str | os.PathLike
 
@@ -84,3 +85,22 @@ def check_output(out: PathLike, *inputs: PathLike | None, suffixes: Sequence[str
                          f"of {', '.join(suffixes)}")
     refuse_overwrite(o, *inputs)
     return o
+
+
+def data_dir(required: bool = False) -> Path | None:
+    """``$CLBLUR_DATA``, else ``../shared/data`` beside the source tree or working directory.
+
+    Returns None (or raises ``ValueError`` when ``required``) if no such folder exists.
+    """
+    candidates = []
+    if os.environ.get("CLBLUR_DATA"):
+        candidates.append(Path(os.environ["CLBLUR_DATA"]))
+    repo = Path(__file__).resolve().parents[2]  # the checkout: clblur/io/paths.py
+    candidates += [repo.parent / "shared" / "data", Path.cwd().parent / "shared" / "data"]
+    for c in candidates:
+        if c.is_dir():
+            return c
+    if required:
+        raise ValueError("measured data not found: set CLBLUR_DATA to the shared data folder "
+                         "(see ../shared/data/README.md)")
+    return None

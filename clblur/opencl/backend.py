@@ -36,7 +36,7 @@ from clblur.opencl.device import Runtime, pyopencl_module, runtime
 from clblur.opencl.linearisation import linearisation_tables, linearise_float_image
 from clblur.opencl.program import Program
 from clblur.opencl.transfers import bands_of, download, pinned_empty, upload_rows
-from clblur.plan import BlurPlan
+from clblur.request import BlurPlan
 
 __all__ = ["DeviceInput", "FieldInput", "blur", "finish_args", "integrate_box",
            "integrate_field", "integrate_taps", "linearise", "pinned_empty", "run_plan",

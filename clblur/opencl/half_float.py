@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from clblur.plan import BlurPlan
+from clblur.request import BlurPlan
 from clblur.responses import Response, Table
 
 __all__ = ["HALF_MAX_LSB", "half_error_lsb", "half_storage_ok"]

@@ -19,7 +19,7 @@ import numpy as np
 from clblur.motion import Field
 from clblur.opencl.backend import run_plan
 from clblur.opencl.device import runtime
-from clblur.plan import make_plan
+from clblur.request import make_plan
 
 __all__ = ["blur_array"]
 

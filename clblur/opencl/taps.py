@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from clblur.motion import PSF, Field, Uniform, uniform_taps
-from clblur.plan import BlurPlan
+from clblur.request import BlurPlan
 
 __all__ = ["IntegerTaps", "fixed_point_scale", "psf_taps", "rasterise", "space_invariant_taps"]
 

@@ -30,9 +30,13 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
+from clblur.responses import ExpShape
 from clblur.study.effects import PARAMS, channel_gains
 
 CODES = 256
+# Free-shape warp coefficients of the response (``clblur.responses.ExpShape``); absent keys
+# are 0, so the paper's Eq. 3 stays the null of ``response_shape``.
+WARP_KEYS = ("w1", "w2", "w3", "w4")
 TOP = 1.0 - 1.0 / (4 * 255)  # largest normalised value linearised as is (clblur.pixels)
 _LOG2PI = float(np.log(2 * np.pi))
 
@@ -75,6 +79,13 @@ class Group:
                      self.fold[idx], self.source_clipped)
 
 
+def shape(p: dict[str, float]) -> ExpShape:
+    """The response curve above the black level (``black = 0``): Eq. 3 generalised by
+    ``gamma``, ``rho`` and the warp coefficients (``clblur.responses.ExpShape``)."""
+    warp = tuple(float(p.get(k, 0.0)) for k in WARP_KEYS)
+    return ExpShape(0.0, p["gamma"], p["rho"], warp if any(warp) else ())
+
+
 def inverse_table(p: dict[str, float]) -> np.ndarray:
     """``T[code]``: exposure of each source code under black level, shape and saturation."""
     v = np.arange(CODES, dtype=np.float64) / 255.0
@@ -84,24 +95,15 @@ def inverse_table(p: dict[str, float]) -> np.ndarray:
     # *shape* a hair away from Eq. 3 act as a saturation factor of 2.
     top = 1.0 - p["rho"] * (1.0 - TOP)
     w = np.clip((v - beta) / (1.0 - beta), 0.0, top)
-    t = _inverse(w, p["gamma"], p["rho"])
-    t[-1] = p["sat"] * _inverse(np.array([top]), p["gamma"], p["rho"])[0]
+    curve = shape(p)
+    t = curve.inverse(w)
+    t[-1] = p["sat"] * curve.inverse(np.array([top]))[0]
     return t
 
 
-def _inverse(w, gamma, rho):
-    return np.power(-np.log1p(-rho * w) / rho, gamma)
-
-
-def forward(x: np.ndarray, gamma: float, rho: float) -> tuple[np.ndarray, np.ndarray]:
-    """Normalised value and its slope d v / d x for exposure ``x`` (inverse of ``_inverse``)."""
-    x = np.maximum(x, 1e-12)
-    root = np.power(x, 1.0 / gamma)
-    ex = np.exp(-rho * root)
-    v = -np.expm1(-rho * root) / rho
-    slope = ex * root / (gamma * x)
-    over = v > 1.0
-    return np.where(over, 1.0, v), np.where(over, 0.0, slope)
+def forward(x: np.ndarray, gamma: float, rho: float, warp=()) -> tuple[np.ndarray, np.ndarray]:
+    """Normalised value above the black level and its slope d v / d x at exposure ``x``."""
+    return ExpShape(0.0, gamma, rho, tuple(warp)).forward_slope(x)
 
 
 def time_ok(p: dict[str, float]) -> bool:
@@ -123,6 +125,7 @@ def predict(g: Group, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
     pred = np.empty((n, nc))
     var = np.empty((n, nc))
     t = inverse_table(p)
+    curve_fs = shape(p).forward_slope
     step = np.gradient(t)
     step[-1] = step[-2]  # a clipped code's error is the saturation factor's business
     dq = step * step / 12.0
@@ -140,7 +143,7 @@ def predict(g: Group, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
         e = num / np.maximum(norm, 1e-12)
         m = g.ratio * np.exp(p["gain"]) * gains[c] * vig_out
         x = m * e
-        v, dv = forward(x, p["gamma"], p["rho"])
+        v, dv = curve_fs(x)
         scale = 255.0 * (1.0 - p["black"])
         pred[:, c] = 255.0 * p["black"] + scale * v
         s = scale * dv
@@ -165,3 +168,67 @@ def pixel_nll(g: Group, p: dict[str, float]) -> np.ndarray:
 
 def null_params() -> dict[str, float]:
     return {k: v[0] for k, v in PARAMS.items()}
+
+
+def shape_starts(groups: list[Group], start: dict[str, float],
+                 min_pools: int = 24) -> list[dict[str, float]]:
+    """Starting points for ``response_shape`` from a quick calibration on the data itself.
+
+    Target pixels whose source histogram sits on one code (every exposure-series step; the
+    still parts of pairs and stacks) give (source code, target code, exposure ratio) triples:
+    exactly the cross-exposure objective of ``clblur calibrate``'s ``spline`` model, fitted
+    with the same function (``clblur.calibration.models.fit_cross_exposure``).  The fitted
+    curve is then projected onto the study's ``ExpShape`` family (least squares on the log
+    inverse over the observed codes).  Empty when too few such pixels exist.
+    """
+    from scipy.optimize import least_squares
+
+    from clblur.calibration.models import fit_cross_exposure
+    from clblur.responses import default_knots, warp_basis
+
+    src, tgt, ratio = [], [], []
+    for g in groups:
+        h = g.hist.get((0, 0))
+        if h is None:
+            continue
+        for c in range(g.channels):
+            m = h[c].tocsr()
+            single = np.diff(m.indptr) == 1
+            ok = single & g.valid[:, c]
+            code = m.indices[m.indptr[:-1][ok]]
+            keep = (code > 2) & (code < 253) & (g.target[ok, c] > 2) & (g.target[ok, c] < 253)
+            src.append(code[keep].astype(np.float64))
+            tgt.append(g.target[ok, c][keep])
+            ratio.append(np.full(int(keep.sum()), g.ratio))
+    if not src:
+        return []
+    src, tgt, ratio = (np.concatenate(a) for a in (src, tgt, ratio))
+    key = src + 256.0 * np.unique(ratio, return_inverse=True)[1]
+    uniq, inv, count = np.unique(key, return_inverse=True, return_counts=True)
+    if uniq.size < min_pools or np.unique(ratio).size < 1:
+        return []
+    mean = np.bincount(inv, weights=tgt) / count / 255.0
+    pool_ratio = np.bincount(inv, weights=ratio) / count
+    u = default_knots(16)
+    theta = fit_cross_exposure(u, (uniq % 256.0) / 255.0, mean, pool_ratio,
+                               np.sqrt(count) * 255.0, 0.3)
+    x_knots = np.concatenate([[0.0], np.cumsum(np.exp(theta))])
+    lo, hi = np.percentile(src, [1, 99]) / 255.0
+    v = np.linspace(max(lo, start["black"] + 0.02), min(hi, 0.97), 48)
+    target = np.log(np.maximum(np.interp(v, u, x_knots), 1e-12))
+    w = np.clip((v - start["black"]) / (1.0 - start["black"]), 1e-6, 1 - 1e-6)
+    basis = warp_basis(w, len(WARP_KEYS))
+    names = ("gamma", "rho", *WARP_KEYS)
+    lower = [PARAMS[n][1] for n in names]
+    upper = [PARAMS[n][2] for n in names]
+
+    def resid(q):  # log inverse of ExpShape, free exposure offset q[-1]
+        base = q[0] * np.log(-np.log1p(-q[1] * w) / q[1])
+        return base + q[2:-1] @ basis + q[-1] - target
+
+    out = []
+    for g0, r0 in ((1.0, 1.0), (2.2, 0.05)):
+        sol = least_squares(resid, [g0, r0, 0, 0, 0, 0, 0.0],
+                            bounds=(lower + [-np.inf], upper + [np.inf]))
+        out.append({**start, **dict(zip(names, (float(t) for t in sol.x[:-1]), strict=True))})
+    return out

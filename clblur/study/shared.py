@@ -1,4 +1,4 @@
-"""Manifests for the shared measured data (``clblur.data.data_dir()``), written outside it.
+"""Manifests for the shared measured data (``clblur.io.data_dir()``), written outside it.
 
 ``python -m clblur.study.shared OUTDIR`` writes ``memorial.json``, ``levin2009.json`` and
 the GoPro frame-stack manifests into ``OUTDIR``; image paths point into the data folder,
@@ -16,8 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clblur.data import data_dir
-from clblur.io import read_image, write_image
+from clblur.io import data_dir, read_image, write_image
 from clblur.manifest import write_manifest
 
 GOPRO_STACK = 8  # 240 fps frames per 30 fps exposure

@@ -106,9 +106,8 @@ def gopro_part(args) -> dict | None:
     DIS flows to c-8 and c+8, 360-degree shutter, srgb.  Depth proxy: motion that departs
     from the frame's dominant (median) motion is nearer (see depth_proxy)."""
     from clblur import video
-    from clblur.data import data_dir
     from clblur.flow import FlowEstimator
-    from clblur.io import read_image
+    from clblur.io import data_dir, read_image
 
     d = data_dir()
     if d is None or not (d / "gopro240" / "frames").is_dir():

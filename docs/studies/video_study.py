@@ -21,9 +21,8 @@ import numpy as np
 
 from clblur import video
 from clblur.cli import video as video_cli
-from clblur.data import data_dir
 from clblur.flow import FlowFolder
-from clblur.io import read_image
+from clblur.io import data_dir, read_image
 from clblur.pixels import linearise, normalise, quantise
 from clblur.responses import response
 

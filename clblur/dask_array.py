@@ -24,9 +24,9 @@ import dask.array as da
 import numpy as np
 
 from clblur.blur import blur_plan, check_backend
+from clblur.halo import fixed_halo, halo_for_reach, tiled_motion
 from clblur.motion import PSF, Uniform, anchor_value
-from clblur.plan import make_plan
-from clblur.tiling import fixed_halo, halo_for_reach, tiled_motion
+from clblur.request import make_plan
 
 
 def blur(array, motion, response="exp", *, anchor: str = "center", samples: int | None = None,

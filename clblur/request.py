@@ -14,6 +14,8 @@ from clblur.motion import FLOW_LIMIT, Field, Motion, anchor_value, parse_motion,
 from clblur.pixels import SUPPORTED_DTYPES, validate_saturation
 from clblur.responses import Response, per_channel
 
+__all__ = ["BlurPlan", "bound_far_flow", "check_depth", "check_image", "make_plan"]
+
 
 @dataclass(frozen=True)
 class BlurPlan:
