@@ -42,11 +42,12 @@ def blur(image: np.ndarray, motion, response="exp", *, anchor: str = "center",
     saturation : exposure given to full-scale pixels, in units of the least exposure that
         saturates (>= 1; see ``clblur.pixels``).
     device : OpenCL device selector (overrides ``CLBLUR_DEVICE``); see ``clblur info``.
-    depth : occlusion ordering, H x W: a float depth (smaller = nearer) or integer layer IDs
-        (smaller = nearer).  With it, a per-pixel flow is integrated as layered exposure
-        (``clblur.layered_exposure``): every shutter sample composites the layers front to
-        back, so moving objects smear over what lies behind them.  ``"speed"``: faster is
-        nearer.  Default None: the gather.
+    depth : occlusion ordering, H x W: a float depth (a distance > 0, smaller = nearer, +inf
+        for the sky; cut into layers where it jumps between neighbouring pixels, in any unit)
+        or integer layer IDs (smaller = nearer).  With it, a per-pixel flow is integrated as
+        layered exposure (``clblur.layered_exposure``): every shutter sample composites the
+        layers front to back, so moving objects smear over what lies behind them.
+        ``"speed"``: faster is nearer.  Default None: the gather.
     background : with ``depth``, what lies behind every layer (a clean plate; the input's shape
         and dtype).  Without it, what a moving object uncovers is reconstructed from its
         neighbours (``clblur.layered_exposure``).

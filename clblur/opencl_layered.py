@@ -137,14 +137,14 @@ def integrator(device: str | None = None):
         ordered = layered.plan_order(plan)
         if ordered is None:
             return None
-        v, order = ordered
+        v, order, rule = ordered
         region = layered.region_mask(v, plan.anchor)
         if not region.any():
             return None
         def crop_linear(crop):  # linearise only the crop the layers need
             return reference.linearise(replace(plan, image=plan.image[crop], background=None))
         layers = layered.prepare(crop_linear, v, order, plan.anchor, region,
-                                 layered.background_linear(plan))
+                                 layered.background_linear(plan), rule=rule)
         if layers is None:
             return None
         values = composite(layers, plan.anchor, plan.samples, plan.weights, plan.full_shape,

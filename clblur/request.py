@@ -39,6 +39,8 @@ class BlurPlan:
     # Occlusion ordering (``clblur.layered_exposure``): None (plain gather), an H x W float64
     # depth (smaller = nearer), or H x W int64 layer IDs (smaller = nearer).
     depth: np.ndarray | None = None
+    # ``depth`` is the speed ordering ``-|v|`` (cut by gaps in its range, not at surfaces).
+    speed_order: bool = False
     # What lies behind every layer (a clean plate), the input's dtype and layout, or None.
     background: np.ndarray | None = None
 
@@ -102,7 +104,8 @@ def make_plan(image, motion, response="exp", *, anchor: str = "center",
     return BlurPlan(image=img, squeeze=np.ndim(image) == 2, motion=parsed,
                     responses=tuple(per_channel(response, c)), anchor=a,
                     samples=n, weights=wts, saturation=validate_saturation(saturation),
-                    alpha=bool(alpha), depth=check_depth(_speed(depth, parsed), (h, w)),
+                    alpha=bool(alpha), speed_order=_is_speed(depth),
+                    depth=check_depth(_speed(depth, parsed), (h, w), speed=_is_speed(depth)),
                     background=_check_background(background, image, depth),
                     **where)
 
@@ -145,6 +148,10 @@ def _check_background(background, image: np.ndarray, depth) -> np.ndarray | None
     return check_image(background)
 
 
+def _is_speed(depth) -> bool:
+    return isinstance(depth, str) and depth == "speed"
+
+
 def _speed(depth, motion):
     """``depth="speed"``: order by speed, faster = nearer (``-|v|``); no order for uniform
     motion or a PSF, where nothing moves relative to anything else."""
@@ -155,9 +162,11 @@ def _speed(depth, motion):
     return -np.hypot(motion.flow[..., 0].astype(np.float64), motion.flow[..., 1])
 
 
-def check_depth(depth, shape: tuple[int, int]) -> np.ndarray | None:
+def check_depth(depth, shape: tuple[int, int], speed: bool = False) -> np.ndarray | None:
     """An occlusion ordering for an image of ``shape``: None, an H x W float depth (smaller is
-    nearer; returned as float64) or H x W integer layer IDs (smaller is nearer; int64)."""
+    nearer, > 0, +inf for the sky; returned as float64) or H x W integer layer IDs (smaller
+    is nearer; int64).  ``speed``: ``depth`` is the speed ordering ``-|v|`` (any finite
+    value)."""
     if depth is None:
         return None
     d = np.asarray(depth)
@@ -171,9 +180,18 @@ def check_depth(depth, shape: tuple[int, int]) -> np.ndarray | None:
     if np.issubdtype(d.dtype, np.integer):
         return d.astype(np.int64)
     d = d.astype(np.float64)
-    bad = ~np.isfinite(d)
+    if speed:
+        return d
+    # +inf is the sky (farther than anything, a layer of its own); NaN has no order and a
+    # distance is positive: both are refused in one line rather than guessed at
+    bad = np.isnan(d) | (d == -np.inf)
     if bad.any():
-        raise ValueError(f"depth contains {int(bad.sum())} NaN or infinite value(s)")
+        raise ValueError(f"depth contains {int(bad.sum())} NaN or -inf value(s); use +inf for "
+                         "the sky")
+    if (d <= 0).any():
+        raise ValueError(f"depth contains {int((d <= 0).sum())} value(s) <= 0; a float depth "
+                         "is a distance (> 0, smaller = nearer); pass integer layer IDs for a "
+                         "rank order")
     return d
 
 

@@ -134,10 +134,77 @@ def test_layer_labels():
     assert layered.layer_labels(np.array([[3, 1], [1, 7]])).tolist() == [[1, 0], [0, 2]]
     d = np.array([1.0, 1.01, 1.02, 5.0, 5.02, 9.0])
     assert layered.layer_labels(d).tolist() == [0, 0, 0, 1, 1, 2]
-    smooth = np.linspace(0.0, 1.0, 100)  # gaps of 1 % of the range: one surface
+    smooth = np.linspace(1.0, 2.0, 100)  # steps of 1 %: one surface
     assert layered.layer_labels(smooth).max() == 0
-    assert layered.layer_labels(np.arange(10.0)).max() == layered.MAX_LAYERS - 1
+    strips = np.repeat(np.arange(1.0, 11.0), 3)[None].repeat(3, axis=0)  # 3 px wide each
+    assert layered.layer_labels(strips).max() == layered.MAX_LAYERS - 1
+    # a one-pixel strip between two surfaces is taken for their mixed pixels: it joins the
+    # surface in front of it
+    assert layered.layer_labels(np.array([[1.0, 1.0, 1.0, 5.0, 9.0, 9.0, 9.0]])).tolist() == \
+        [[0, 0, 0, 0, 1, 1, 1]]
     assert layered.layer_labels(np.arange(10)).max() == layered.MAX_LAYERS - 1
+    # the speed ordering keeps its own rule: gaps wider than GAP_FRACTION of the range
+    speed = -np.array([0.0, 0.01, 0.02, 5.0, 5.02, 9.0])
+    assert layered.layer_labels(speed, rule="speed").tolist() == [2, 2, 2, 1, 1, 0]
+
+
+def _ground(scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """A 64 x 80 Z pass: sky (+inf) above row 10, a ground plane below it (z = 100 / (y - 10):
+    steps of up to 100 % between rows near the horizon, 2 % at the bottom) and a card in front
+    of it (rows 20-40, columns 30-49, 0.7 times the depth of the ground just below it)."""
+    y = np.arange(64, dtype=np.float64)[:, None] + np.zeros((1, 80))
+    with np.errstate(divide="ignore"):
+        z = np.where(y > 10, 100.0 / (y - 10), np.inf)
+    card = np.zeros(z.shape, bool)
+    card[20:41, 30:50] = True
+    z[card] = 0.7 * 100.0 / 31
+    return z * scale, card
+
+
+def test_float_depth_separates_an_object_but_not_a_slanted_ground_plane():
+    z, card = _ground()
+    labels = layered.layer_labels(z)
+    sky = ~np.isfinite(z)
+    ground = ~sky & ~card
+    assert np.unique(labels[card]).tolist() == [0]      # the card is nearest
+    assert np.unique(labels[ground]).tolist() == [1]    # the whole plane is one surface
+    assert np.unique(labels[sky]).tolist() == [2]       # the sky is farthest
+    # a global gap rule would have cut the plane: its rows near the horizon differ by 100 %
+    assert z[11, 0] / z[12, 0] == 2.0
+
+
+def test_float_depth_layering_is_scale_invariant(rng):
+    z, card = _ground()
+    base = layered.layer_labels(z)
+    for scale in (1e-3, 1000.0):
+        np.testing.assert_array_equal(layered.layer_labels(z * scale), base)
+    # objects at 1 and 2 in front of a background at 1000 (a renderer's Z pass) are three
+    # layers whatever the units, and ordered as their depths are
+    d = np.full((40, 60), 1000.0)
+    d[5:20, 5:25], d[20:35, 30:55] = 2.0, 1.0
+    for scale in (1.0, 1e-3, 1e3):
+        lab = layered.layer_labels(d * scale)
+        assert (lab[25, 40], lab[10, 10], lab[0, 0]) == (0, 1, 2)
+    # mixed pixels between a disc and the background (an antialiased Z) join the disc
+    yy, xx = np.mgrid[:40, :60]
+    cover = np.clip(9.5 - np.hypot(yy - 20, xx - 30), 0, 1)
+    soft = 1.0 / (cover / 2.0 + (1 - cover) / 10.0)  # inverse depths mix linearly
+    lab = layered.layer_labels(soft)
+    assert lab.max() == 1 and (lab[cover > 0] == 0).all()
+
+
+def test_float_depth_keeps_at_most_max_layers():
+    d = np.ones((30, 90))
+    for i in range(9):  # nine cards at 1.5^i in front of one another's neighbours
+        d[5:25, 10 * i:10 * i + 8] = 1.5 ** -i
+    lab = layered.layer_labels(d)
+    assert lab.max() == layered.MAX_LAYERS - 1
+    from clblur.opencl.constants import LAYERED_MAXK  # what the kernels hold
+
+    assert layered.MAX_LAYERS <= LAYERED_MAXK
+    # order is kept: a nearer card never lands on a farther layer than a farther card
+    cards = [int(lab[10, 10 * i]) for i in range(9)]
+    assert cards == sorted(cards, reverse=True)
 
 
 def test_bad_depth_is_refused():
@@ -147,12 +214,20 @@ def test_bad_depth_is_refused():
         clblur.blur(img, flow, depth=np.zeros((9, 8)))
     with pytest.raises(ValueError, match="NaN"):
         clblur.blur(img, flow, depth=np.full((8, 9), np.nan))
+    with pytest.raises(ValueError, match="<= 0"):
+        clblur.blur(img, flow, depth=np.zeros((8, 9)))
+    with pytest.raises(ValueError, match="-inf"):
+        clblur.blur(img, flow, depth=np.full((8, 9), -np.inf))
+    with pytest.raises(ValueError, match="<= 0"):
+        layered.layer_labels(-np.ones((3, 3)))
+    sky = np.full((8, 9), np.inf)  # +inf is the sky: accepted
+    assert clblur.blur(img, flow, depth=sky).shape == img.shape
     with pytest.raises(TypeError, match="depth must be"):
         clblur.blur(img, flow, depth="far")
     with pytest.raises(ValueError, match="background"):
         clblur.blur(img, flow, background=img)
     with pytest.raises(ValueError, match="whole image"):
-        plan = make_plan(img, flow, depth=np.zeros((8, 9)), region=(0, 0, 10, 10))
+        plan = make_plan(img, flow, depth=np.ones((8, 9)), region=(0, 0, 10, 10))
         pipeline.run_numpy(plan, layered.integrate)
 
 

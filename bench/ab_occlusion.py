@@ -1,0 +1,69 @@
+"""Before / after timing of the layered path: two source trees, interleaved runs.
+
+On a shared machine the wall time swings between runs; timing two trees in alternation and
+keeping the best of each cell compares them under the same load.  Each run times
+``clblur.blur`` on ``bench_occlusion.speed_scene`` (static and panning background), plain and
+with ``depth``, on PoCL, in a fresh interpreter with that tree first on the path.
+
+Run:  python bench/ab_occlusion.py BEFORE_TREE AFTER_TREE [--rounds 2]
+(e.g. ``git archive 0ca3731 | tar -x -C /tmp/before``).  Prints a Markdown table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+CHILD = r'''
+import json, sys, time
+sys.path.insert(0, sys.argv[1])
+from bench_occlusion import speed_scene
+import clblur
+res = {}
+for label, pan in (("static", (0.0, 0.0)), ("panning", (16.0, 2.0))):
+    img, flow, depth = speed_scene(pan=pan)
+    for name, o in (("plain", {}), ("layered", {"depth": depth})):
+        clblur.blur(img, flow, "srgb", backend="opencl", **o)
+        wall, cpu = [], []
+        for _ in range(5):
+            t0, c0 = time.perf_counter(), time.process_time()
+            clblur.blur(img, flow, "srgb", backend="opencl", **o)
+            wall.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
+        res[label + " " + name] = (min(wall), min(cpu))
+print(json.dumps(res))
+'''
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("before", type=Path)
+    ap.add_argument("after", type=Path)
+    ap.add_argument("--rounds", type=int, default=2)
+    args = ap.parse_args()
+    bench = str(Path(__file__).resolve().parent)  # the scene of this tree, for both
+    trees = {"before": args.before.resolve(), "after": args.after.resolve()}
+    best: dict[tuple[str, str], list[float]] = {}
+    for _ in range(args.rounds):
+        for tag, root in trees.items():
+            env = dict(os.environ, PYTHONPATH=str(root))
+            out = subprocess.run([sys.executable, "-c", CHILD, bench], env=env, cwd=root,
+                                 capture_output=True, text=True, check=True)
+            for key, (wall, cpu) in json.loads(out.stdout.splitlines()[-1]).items():
+                cell = best.setdefault((tag, key), [float("inf"), float("inf")])
+                cell[0], cell[1] = min(cell[0], wall), min(cell[1], cpu)
+    print("| tree | background | plain gather | depth layers | ratio wall / CPU |")
+    print("|---|---|---|---|---|")
+    for tag in trees:
+        for scene in ("static", "panning"):
+            p, q = best[(tag, scene + " plain")], best[(tag, scene + " layered")]
+            print(f"| {tag} | {scene} | {p[0]:.3f} / {p[1]:.3f} | {q[0]:.3f} / {q[1]:.3f} | "
+                  f"{q[0] / p[0]:.1f} / {q[1] / p[1]:.1f} |")
+
+
+if __name__ == "__main__":
+    main()
