@@ -530,12 +530,20 @@ static long16 fixed_hi(__global const float *plane, size_t at, float scale)
                     transposed ? (size_t)(x0 + L) * w + k : (size_t)k * w + x0 + L,         \
                     channels, cbase, cg);
 
+/* Integer codes of 4 pixels' channel groups: through the grid where the host built one
+ * (cells > 0), else by the search.  Both give the same codes. */
+#define BOX_QUANTISE(m)                                                                   \
+    (cells > 0 ? quantise16_grid((m), grid, cells, gstride, gscale, thresholds, buckets)     \
+               : quantise16((m), thresholds, buckets))
+
 /* Box of taps d = lo..hi along plane index k with equal weights, as running sums: the cost
  * per pixel does not grow with the box length.  LANES neighbouring lines run as vector lanes.
  * Taps clamp to the window (which lies inside the image: the same as clamping to the image
  * and then to the window).  mean = sum / (count * scale). */
 __kernel void integrate_box(__global const float *plane, int ps, int across, int len,
-                            int transposed, int lo, int hi, float scale, int w, STORE_PARAMS)
+                            int transposed, int lo, int hi, float scale, int w,
+                            __global const int *grid, int cells, int gstride, float gscale,
+                            STORE_PARAMS)
 {
     int x0 = get_global_id(0) * LANES;
     if (x0 >= across) return;
@@ -550,8 +558,7 @@ __kernel void integrate_box(__global const float *plane, int ps, int across, int
     for (int k = 0; k < len; ++k) {
         float16 m_lo = convert_float16(sum_lo) * norm, m_hi = convert_float16(sum_hi) * norm;
         if (codes) {
-            int16 q_lo = quantise16(m_lo, thresholds, buckets);
-            int16 q_hi = quantise16(m_hi, thresholds, buckets);
+            int16 q_lo = BOX_QUANTISE(m_lo), q_hi = BOX_QUANTISE(m_hi);
             BOX_CODES(0, q_lo.s0123) BOX_CODES(1, q_lo.s4567)
             BOX_CODES(2, q_lo.s89ab) BOX_CODES(3, q_lo.scdef)
             BOX_CODES(4, q_hi.s0123) BOX_CODES(5, q_hi.s4567)
@@ -610,7 +617,8 @@ static long4 fixed_codes(__global const uchar *image, int in_kind, __global cons
 __kernel void integrate_box_codes(__global const uchar *image, int in_kind,
                                   __global const long *lutq, int lut_len, int across, int len,
                                   int transposed, int lo, int hi, float scale, int w,
-                                  STORE_PARAMS)
+                                  __global const int *grid, int cells, int gstride,
+                                  float gscale, STORE_PARAMS)
 {
     int x0 = get_global_id(0) * LANES;
     if (x0 >= across) return;
@@ -625,8 +633,7 @@ __kernel void integrate_box_codes(__global const uchar *image, int in_kind,
     for (int k = 0; k < len; ++k) {
         float16 m_lo = convert_float16(sum_lo) * norm, m_hi = convert_float16(sum_hi) * norm;
         if (codes) {
-            int16 q_lo = quantise16(m_lo, thresholds, buckets);
-            int16 q_hi = quantise16(m_hi, thresholds, buckets);
+            int16 q_lo = BOX_QUANTISE(m_lo), q_hi = BOX_QUANTISE(m_hi);
             BOX_CODES(0, q_lo.s0123) BOX_CODES(1, q_lo.s4567)
             BOX_CODES(2, q_lo.s89ab) BOX_CODES(3, q_lo.scdef)
             BOX_CODES(4, q_hi.s0123) BOX_CODES(5, q_hi.s4567)
