@@ -279,3 +279,23 @@ def test_wheel_ships_the_kernel_sources(tmp_path):
                          cwd=tmp_path, env={"PYTHONPATH": str(tmp_path / "site")}, timeout=60)
     assert out.returncode == 0, out.stderr
     assert int(out.stdout) == len(kernel_source())
+
+
+@pytest.mark.opencl
+@pytest.mark.parametrize("spec", ["exp", "gamma:2.2", "linear"])
+def test_box_code_grid_equals_the_search(opencl, rng, monkeypatch, spec):
+    """uint8 boxes give the same codes through the code grid as through the bucket search
+    (gamma: dark values fall in cells holding several boundaries and take the search)."""
+    from clblur.opencl import quantisation
+
+    img = random_image(rng, np.uint8, 3)
+    img[:, : img.shape[1] // 2] //= 8  # dark half: dense boundaries for gamma
+    plans = [make_plan(img, (6.0, 0.0), spec), make_plan(img, (0.0, 9.0), spec),
+             make_plan(img[..., :1].copy(), (6.0, 0.0), spec)]
+    rt = opencl.runtime(None)
+    with rt.lock:
+        grid = [opencl.run_plan(rt, plan) for plan in plans]
+        monkeypatch.setattr(quantisation, "quantisation_grid", lambda t: None)
+        search = [opencl.run_plan(rt, plan) for plan in plans]
+    for a, b in zip(grid, search, strict=True):
+        assert np.array_equal(a, b)
