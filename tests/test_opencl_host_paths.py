@@ -285,13 +285,15 @@ def test_wheel_ships_the_kernel_sources(tmp_path):
 @pytest.mark.parametrize("spec", ["exp", "gamma:2.2", "linear"])
 def test_box_code_grid_equals_the_search(opencl, rng, monkeypatch, spec):
     """uint8 boxes give the same codes through the code grid as through the bucket search
-    (gamma: dark values fall in cells holding several boundaries and take the search)."""
+    (gamma: dark values fall in cells holding boundaries and take the search), with one grid
+    row for all channels or one per channel."""
     from clblur.opencl import quantisation
 
     img = random_image(rng, np.uint8, 3)
     img[:, : img.shape[1] // 2] //= 8  # dark half: dense boundaries for gamma
     plans = [make_plan(img, (6.0, 0.0), spec), make_plan(img, (0.0, 9.0), spec),
-             make_plan(img[..., :1].copy(), (6.0, 0.0), spec)]
+             make_plan(img[..., :1].copy(), (6.0, 0.0), spec),
+             make_plan(img, (0.0, 5.0), [spec, "srgb", "exp:3"])]  # a grid row per channel
     rt = opencl.runtime(None)
     with rt.lock:
         grid = [opencl.run_plan(rt, plan) for plan in plans]
