@@ -613,6 +613,14 @@ static long4 fixed_codes(__global const uchar *image, int in_kind, __global cons
              fixed_codes(image, in_kind, lutq, lut_len, BOX_PIXEL(L0 + 3, k), channels,    \
                          cbase, cg))
 
+/* Longest box whose values a work-item keeps (integrate_box_codes): 2 x 32 long16 = 8 KiB
+ * of private memory, cheap on CPUs; GPUs would spill it, and read twice instead. */
+#ifdef GPU_VARIANT
+#define BOX_RING 1
+#else
+#define BOX_RING 32
+#endif
+
 /* integrate_box for integer images, read from the codes (same sums, same results). */
 __kernel void integrate_box_codes(__global const uchar *image, int in_kind,
                                   __global const long *lutq, int lut_len, int across, int len,
@@ -625,10 +633,20 @@ __kernel void integrate_box_codes(__global const uchar *image, int in_kind,
     float norm = 1.0f / ((float)(hi - lo + 1) * scale);
     bool codes = out_kind != OUT_F32;
     long16 sum_lo = (long16)(0), sum_hi = (long16)(0);
+    /* Boxes of up to BOX_RING taps keep the values they add until they leave the box, so
+     * each step reads one pixel per line instead of two (same integers, same sums). */
+    int n = hi - lo + 1, j = 0;
+    bool ring = n <= BOX_RING;
+    long16 ring_lo[BOX_RING], ring_hi[BOX_RING];
     for (int d = lo; d <= hi; ++d) {
         int at = clamp(d, 0, len - 1);
-        sum_lo += CODES4(0, at);
-        sum_hi += CODES4(4, at);
+        long16 v_lo = CODES4(0, at), v_hi = CODES4(4, at);
+        sum_lo += v_lo;
+        sum_hi += v_hi;
+        if (ring) {
+            ring_lo[d - lo] = v_lo;
+            ring_hi[d - lo] = v_hi;
+        }
     }
     for (int k = 0; k < len; ++k) {
         float16 m_lo = convert_float16(sum_lo) * norm, m_hi = convert_float16(sum_hi) * norm;
@@ -645,7 +663,16 @@ __kernel void integrate_box_codes(__global const uchar *image, int in_kind,
             BOX_STORE(6, m_hi.s89ab) BOX_STORE(7, m_hi.scdef)
         }
         int enter = clamp(k + hi + 1, 0, len - 1), leave = clamp(k + lo, 0, len - 1);
-        sum_lo += CODES4(0, enter) - CODES4(0, leave);
-        sum_hi += CODES4(4, enter) - CODES4(4, leave);
+        if (ring) {  /* ring[j] entered n steps ago: the value at k + lo */
+            long16 v_lo = CODES4(0, enter), v_hi = CODES4(4, enter);
+            sum_lo += v_lo - ring_lo[j];
+            sum_hi += v_hi - ring_hi[j];
+            ring_lo[j] = v_lo;
+            ring_hi[j] = v_hi;
+            j = j + 1 == n ? 0 : j + 1;
+        } else {
+            sum_lo += CODES4(0, enter) - CODES4(0, leave);
+            sum_hi += CODES4(4, enter) - CODES4(4, leave);
+        }
     }
 }
