@@ -303,3 +303,17 @@ def test_box_code_grid_equals_the_search(opencl, rng, monkeypatch, spec):
         search = [opencl.run_plan(rt, plan) for plan in plans]
     for a, b in zip(grid, search, strict=True):
         assert np.array_equal(a, b)
+
+
+@pytest.mark.opencl
+@pytest.mark.parametrize("length", [1, 2, 5, 24, 60, 130])
+def test_boxes_of_every_length_match_the_reference(opencl, rng, length):
+    """Running sums whose values are kept until they leave the box (integrate_box_codes),
+    including boxes longer than the line (clamped values entering and leaving)."""
+    from clblur.opencl.taps import space_invariant_taps
+
+    img = random_image(rng, np.uint8, 3)
+    for motion in ((float(length - 1), 0.0), (0.0, float(length - 1))):
+        plan = make_plan(img, motion, "exp", anchor="start")
+        assert length == 1 or space_invariant_taps(plan).box()
+        assert_matches_reference(opencl, plan)
