@@ -280,3 +280,41 @@ def test_wheel_ships_the_kernel_sources(tmp_path):
                          cwd=tmp_path, env={"PYTHONPATH": str(tmp_path / "site")}, timeout=60)
     assert out.returncode == 0, out.stderr
     assert int(out.stdout) == len(kernel_source())
+
+
+@pytest.mark.opencl
+@pytest.mark.parametrize("spec", ["exp", "gamma:2.2", "linear"])
+def test_box_code_grid_equals_the_search(opencl, rng, monkeypatch, spec):
+    """uint8 boxes give the same codes through the code grid as through the bucket search
+    (gamma: dark values fall in cells holding boundaries and take the search), with one grid
+    row for all channels or one per channel."""
+    from clblur.opencl import quantisation
+    from clblur.opencl.taps import space_invariant_taps
+
+    img = random_image(rng, np.uint8, 3)
+    img[:, : img.shape[1] // 2] //= 8  # dark half: dense boundaries for gamma
+    plans = [make_plan(img, (6.0, 0.0), spec), make_plan(img, (0.0, 8.0), spec),
+             make_plan(img[..., :1].copy(), (6.0, 0.0), spec),
+             make_plan(img, (0.0, 4.0), [spec, "srgb", "exp:3"])]  # a grid row per channel
+    assert all(space_invariant_taps(plan).box() for plan in plans)  # running sums
+    rt = opencl.runtime(None)
+    with rt.lock:
+        grid = [opencl.run_plan(rt, plan) for plan in plans]
+        monkeypatch.setattr(quantisation, "quantisation_grid", lambda t: None)
+        search = [opencl.run_plan(rt, plan) for plan in plans]
+    for a, b in zip(grid, search, strict=True):
+        assert np.array_equal(a, b)
+
+
+@pytest.mark.opencl
+@pytest.mark.parametrize("length", [1, 2, 5, 24, 60, 130])
+def test_boxes_of_every_length_match_the_reference(opencl, rng, length):
+    """Running sums whose values are kept until they leave the box (integrate_box_codes),
+    including boxes longer than the line (clamped values entering and leaving)."""
+    from clblur.opencl.taps import space_invariant_taps
+
+    img = random_image(rng, np.uint8, 3)
+    for motion in ((float(length - 1), 0.0), (0.0, float(length - 1))):
+        plan = make_plan(img, motion, "exp", anchor="start")
+        assert length == 1 or space_invariant_taps(plan).box()
+        assert_matches_reference(opencl, plan)

@@ -12,7 +12,7 @@ import pytest
 
 from clblur import reference
 from clblur.opencl import half_float, quantisation, response_pack, taps
-from clblur.opencl.constants import QHEAD, RESP_STRIDE
+from clblur.opencl.constants import GRID_SEARCH, QHEAD, RESP_STRIDE
 from clblur.pixels import imax, linearisation_table
 from clblur.request import make_plan
 from clblur.responses import Gamma, Table, response
@@ -145,3 +145,41 @@ def test_four_channel_padding_and_response_params():
     assert rows[0].tolist() == [1, 2.0, 0, 0]
     assert rows[1][0] == 2 and np.isclose(rows[1][1], 1 / 2.2)
     assert rows[2].tolist() == [4, 0.0, 0, 2] and tables.tolist() == [0, 1, 0, 1]
+
+
+@pytest.mark.parametrize("spec", RESPONSES, ids=str)
+def test_code_grid_gives_the_searchs_count(rng, spec):
+    """Every exposure whose grid cell holds a code is given the search's count; only cells
+    holding a boundary are left to the search, and those are few."""
+    resp = response(spec)
+    t = quantisation.quantisation_thresholds(response_pack.four_channels([resp]), np.uint8)
+    grid = quantisation.quantisation_grid(t)
+    assert grid is not None
+    table, cells, scale, stride = grid
+    assert stride == 0 and table.shape == (cells,)  # four equal channels share one row
+    row = t[0, :255]
+    top = float(row[np.isfinite(row)].max())
+    finite = row[np.isfinite(row) & (row >= 0)]
+    near = np.concatenate([finite, np.nextafter(finite, np.float32(np.inf)),
+                           np.nextafter(finite, np.float32(-np.inf))])
+    e = np.concatenate([rng.uniform(0, top * 1.5, 200000), rng.uniform(0, top / 300, 20000),
+                        near, [0.0, top, 1e30]]).astype(np.float32)
+    e = np.maximum(e, 0)
+    code = table[quantisation.grid_cells(e, scale, cells)]
+    held = (code & GRID_SEARCH) == 0
+    assert np.array_equal(code[held], np.searchsorted(t[0], e[held], side="left"))
+    assert np.count_nonzero(table & GRID_SEARCH) <= 255  # cells holding a boundary
+    # cell starts are exact: the float32 below a cell's first exposure lies in the cell before
+    starts = quantisation._cell_starts(cells, scale)
+    assert np.all(np.diff(quantisation.grid_cells(starts, scale, cells)) == 1)
+
+
+def test_code_grid_per_channel_and_not_for_uint16():
+    t = quantisation.quantisation_thresholds(
+        [response("exp"), response("gamma:2.2"), response("srgb"), response("exp")], np.uint8)
+    table, cells, _, stride = quantisation.quantisation_grid(t)
+    assert stride == cells and table.shape == (4 * cells,)
+    t16 = quantisation.quantisation_thresholds([response("exp")] * 4, np.uint16)
+    assert quantisation.quantisation_grid(t16) is None
+    flat = np.full((4, 256 + quantisation.THRESHOLD_PAD), np.inf, np.float32)
+    assert quantisation.quantisation_grid(flat) is None  # no boundary: nothing to index

@@ -4,10 +4,10 @@ preparation by concern, the kernels (``*.cl`` beside this file) and the pipeline
 Modules: ``device`` (selection, contexts, queues, buffers), ``program`` (kernel wrapper),
 ``constants`` (every constant shared with the kernels, passed as ``-D`` options), ``taps``
 (rasterising uniform motion and PSFs), ``response_pack`` (forward responses for the kernels),
-``quantisation`` (code boundaries and bucket index), ``half_float`` (half-storage error bound),
-``linearisation`` (host tables), ``transfers`` (row bands on several queues, pinned memory),
-``backend`` (stage functions and ``blur``), ``resident``
-(``pyopencl.array.Array`` in and out).  Importing this package imports no pyopencl.
+``quantisation`` (code boundaries, their bucket index and the uint8 code grid),
+``half_float`` (half-storage error bound), ``linearisation`` (host tables), ``transfers``
+(row bands on several queues, pinned memory), ``backend`` (stage functions and ``blur``),
+``resident`` (``pyopencl.array.Array`` in and out).  Importing this package imports no pyopencl.
 """
 
 from clblur.opencl.backend import blur, pinned_empty, run_plan

@@ -121,6 +121,22 @@ def finish_args(rt: Runtime, plan: BlurPlan, cbase: int, cg: int, out_buf) -> di
             "cg": cg}
 
 
+def _grid_args(rt: Runtime, plan: BlurPlan, cbase: int, cg: int) -> dict:
+    """The box kernels' code grid (``quantisation.quantisation_grid``); ``cells = 0`` (the
+    search) where there is none."""
+    grid = None
+    if plan.dtype == np.uint8:
+        group = response_pack.four_channels(plan.responses[cbase:cbase + cg])
+        grid = quantisation.quantisation_grid(
+            quantisation.quantisation_thresholds(group, plan.dtype))
+    if grid is None:
+        return {"grid": rt.upload("grid", np.zeros(1, np.int32)), "cells": 0, "gstride": 0,
+                "gscale": 0.0}
+    table, cells, scale, stride = grid
+    return {"grid": rt.upload("grid", table), "cells": cells, "gstride": stride,
+            "gscale": float(scale)}
+
+
 def _lut(src: DeviceInput, cbase: int, cg: int) -> np.ndarray:
     return (src.luts[cbase:cbase + cg].astype(np.float32) if src.luts is not None
             else np.zeros((1, 1), np.float32))
@@ -253,6 +269,7 @@ def integrate_box(rt: Runtime, prog: Program, plan: BlurPlan, src: DeviceInput,
     ready = [ev for band in src.ready for ev in band] + after
     channels = plan.image.shape[2]
     table = _lut(src, cbase, cg)
+    finish = {**finish, **_grid_args(rt, plan, cbase, cg)}
     if src.luts is not None:  # integer codes: fixed-point tables, no plane
         lutq = np.rint(table.astype(np.float64) * scale).astype(np.int64)
         return [prog.run("integrate_box_codes", rt.queue, grid, (BOX_GROUP_SIZE,),

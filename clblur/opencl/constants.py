@@ -12,6 +12,8 @@ Conventions
   ``clblur.responses.KIND_CODES``.
 * ``QHEAD``: header length of the quantisation bucket table
   (``[shift, base, bucket count, steps, threshold row stride]``).
+* ``GRID_SEARCH``: flag of a uint8 code-grid cell that holds a code boundary (the kernel
+  searches there; clblur/opencl/quantisation.py ``quantisation_grid``).
 * Input kinds (what the image buffer holds) and output kinds (what the store writes).
 * ``FLOW_LIMIT`` (``clblur.motion``): the largest flow component the kernels accept.
 """
@@ -32,6 +34,7 @@ LAYERED_MAXK = 8
 GROUP = 4
 RESP_STRIDE = 4
 QHEAD = 5
+GRID_SEARCH = 0x100  # uint8 code grid: flag of a cell that holds a code boundary
 
 IN_U8, IN_U16, IN_F32 = 0, 1, 2
 IN_KINDS = {np.dtype(np.uint8): IN_U8, np.dtype(np.uint16): IN_U16}  # float inputs: IN_F32
@@ -45,7 +48,7 @@ OUT_KINDS = {np.dtype(np.uint8): OUT_U8, np.dtype(np.uint16): OUT_U16,
 def build_defines() -> tuple[str, ...]:
     """``-DNAME=value`` options for every shared constant (sorted: a stable cache key)."""
     values = {"LANES": LANES, "GROUP": GROUP, "RESP_STRIDE": RESP_STRIDE, "QHEAD": QHEAD,
-              "MAXK": LAYERED_MAXK,
+              "MAXK": LAYERED_MAXK, "GRID_SEARCH": GRID_SEARCH,
               "IN_U8": IN_U8, "IN_U16": IN_U16, "IN_F32": IN_F32,
               "OUT_U8": OUT_U8, "OUT_U16": OUT_U16, "OUT_F32": OUT_F32}
     values.update({f"KIND_{name.upper()}": code for name, code in KIND_CODES.items()})

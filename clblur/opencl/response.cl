@@ -112,6 +112,32 @@ static int16 quantise16(float16 e, __global const float *thresholds,
     return q;
 }
 
+/* quantise16() with one lookup per value (the box kernels, uint8 outputs): a uniform grid
+ * over exposures (clblur/opencl/quantisation.py quantisation_grid), cell g = e * gscale
+ * (truncated, clamped to the last cell), holds the code of every exposure in it, or the flag
+ * GRID_SEARCH where a code boundary lies inside the cell: a vector meeting one takes the
+ * search.  Same codes as quantise16; about half its loads.  `gstride` is the cells per
+ * channel, 0 where the channels share one row. */
+__attribute__((always_inline))
+static int16 quantise16_grid(float16 e, __global const int *grid, int cells, int gstride,
+                             float gscale, __global const float *thresholds,
+                             __global const int *buckets)
+{
+    const int16 channel = (int16)(0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3);
+    e = select((float16)(0.0f), e, e > 0.0f);
+    int16 g = min(convert_int16(fmin(e * gscale, (float16)((float)(cells - 1)))), cells - 1)
+              + channel * gstride;
+    int16 q = (int16)(grid[g.s0], grid[g.s1], grid[g.s2], grid[g.s3], grid[g.s4], grid[g.s5],
+                      grid[g.s6], grid[g.s7], grid[g.s8], grid[g.s9], grid[g.sa], grid[g.sb],
+                      grid[g.sc], grid[g.sd], grid[g.se], grid[g.sf]);
+    int8 o8 = q.lo | q.hi;  /* any lane flagged: an OR tree (any() scalarises on PoCL) */
+    int4 o4 = o8.lo | o8.hi;
+    int2 o2 = o4.lo | o4.hi;
+    if ((o2.x | o2.y) & GRID_SEARCH)
+        return quantise16(e, thresholds, buckets);
+    return q;
+}
+
 /* Store the integer codes of one pixel's channel group (uint8 or uint16 output). */
 static void store_codes(int4 q, __global uchar *restrict out, int out_kind, size_t pixel,
                         int channels, int cbase, int cg)
