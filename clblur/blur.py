@@ -106,7 +106,7 @@ def stages(backend: str, device: str | None = None) -> pipeline.Backend:
     """The pipeline stages of a resolved backend (``"numpy"`` or ``"opencl"``)."""
     if backend == "numpy":
         return pipeline.NUMPY
-    from clblur.opencl_layered import OpenCLStages
+    from clblur.opencl.layered import OpenCLStages
 
     return OpenCLStages(device)
 

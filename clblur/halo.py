@@ -25,7 +25,7 @@ from clblur.motion import PSF, Field, Uniform, psf
 from clblur.request import make_plan
 
 __all__ = ["TiledMotion", "fixed_halo", "flow_halo", "global_flow_halo", "halo_for_reach",
-           "tiled_motion"]
+           "reach", "tiled_motion"]
 
 
 @dataclass(frozen=True)
@@ -103,3 +103,12 @@ def global_flow_halo(flow, anchor: float, rows_per_read: int) -> tuple[int, int]
         y, x = flow_halo(flow[r:r + rows_per_read], anchor)
         hy, hx = max(hy, y), max(hx, x)
     return hy, hx
+
+
+def reach(v: np.ndarray, anchor: float) -> float:
+    """Farthest any sample of ``v`` lands from its pixel: ``max |v| * max(a, 1 - a)``."""
+    if not v.size:
+        return 0.0
+    x, y = v[..., 0], v[..., 1]
+    longest = math.sqrt(float(np.max(x * x + y * y)))  # float32 squares, rounded up below
+    return longest * (1 + 1e-6) * max(anchor, 1.0 - anchor)

@@ -26,7 +26,7 @@ from clblur.motion import FLOW_LIMIT
 from clblur.responses import KIND_CODES
 
 __all__ = ["GROUP", "IN_F32", "IN_KINDS", "IN_U8", "IN_U16", "LANES", "LAYERED_MAXK", "OUT_F32",
-           "OUT_KINDS", "OUT_U8", "OUT_U16", "QHEAD", "RESP_STRIDE", "build_defines"]
+           "OUT_KINDS", "OUT_U8", "OUT_U16", "QHEAD", "RESP_STRIDE", "GRID_SEARCH", "build_defines"]
 
 LANES = 8
 # layers one work-item of the layered compositor (layered.cl) holds in registers

@@ -1,0 +1,262 @@
+"""The layers of layered exposure: premultiplied planes, their vectors, and what lies hidden.
+
+Builds :class:`Layers` for a crop of the image (``clblur.layered_exposure`` states the model):
+each layer a premultiplied image ``(M L, M)`` with a vector field, hidden pixels reconstructed
+from the nearest visible pixel at or behind them (the stated assumption), mixed pixels split by
+a coverage fitted to their light (:func:`split_coverage`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from clblur.halo import reach
+from clblur.layering import layer_labels
+
+__all__ = ["INPAINT_RADIUS", "Layers", "MID_EXTEND_PX", "SPLIT_PRIOR", "prepare",
+           "split_coverage"]
+
+INPAINT_RADIUS = 3
+MID_EXTEND_PX = 2.0
+SPLIT_PRIOR = 1e-4  # (linear light)^2: below this contrast a mixed pixel stays half and half
+
+
+@dataclass
+class Layers:
+    """The layers of a crop of the image, ready to composite (module Conventions).
+
+    ``origin``: (row, col) of the crop in the full image; ``planes``: K x h x w x (C + 1)
+    premultiplied ``(M L, M)``; ``vectors``: K x h x w x 2 float32 ``D_k``; ``flow`` and
+    ``linear``: the crop of the image's own vectors and linear image (for uncovered light);
+    ``region``: h x w bool, the pixels to composite; ``present``: K x h x w bool, whether
+    layer ``k`` can cover the pixel at any sample (farther than its reach plus the bilinear
+    footprint it reads only zeros, so skipping it changes nothing but the sample count).
+    """
+
+    origin: tuple[int, int]
+    planes: np.ndarray
+    vectors: np.ndarray
+    flow: np.ndarray
+    linear: np.ndarray
+    region: np.ndarray
+    present: np.ndarray
+
+
+def _inpaint(lin: np.ndarray, known: np.ndarray, depth: float,
+             nearest: tuple[np.ndarray, tuple[np.ndarray, np.ndarray]] | None = None,
+             needed: np.ndarray | None = None) -> np.ndarray:
+    """``lin`` with the pixels outside ``known`` reconstructed from the known ones
+    (Navier-Stokes inpainting, Bertalmio et al. 2001, as ``cv2.inpaint``; per channel) up to
+    ``depth`` pixels from them; deeper pixels, which no sample reads, take their nearest known
+    pixel (so the inpainting only walks the band that can be uncovered).  ``nearest``: the
+    distance transform of ``~known`` with its indices, if already computed; ``needed``: the
+    pixels any sample can read (others take their nearest known pixel too), and the
+    inpainting runs only on the bounding box of the hole they leave, plus a margin."""
+    import cv2
+    from scipy.ndimage import distance_transform_edt
+
+    if not known.any():
+        return lin.copy()
+    dist, idx = nearest if nearest is not None else \
+        distance_transform_edt(~known, return_indices=True)
+    deep = dist > depth + INPAINT_RADIUS + 1
+    if needed is not None:
+        deep |= ~needed
+    base = lin[idx[0], idx[1]] if deep.any() else lin
+    hole = ~known & ~deep
+    out = np.array(base, copy=True)
+    if not hole.any():
+        return np.where(known[..., None], lin, out)
+    # cv2.inpaint marches over the whole array it is given: give it only the hole's box
+    # plus the radius it reads (and one pixel of border) around it.
+    m = INPAINT_RADIUS + 2
+    rows, cols = np.nonzero(hole.any(axis=1))[0], np.nonzero(hole.any(axis=0))[0]
+    box = (slice(max(rows[0] - m, 0), rows[-1] + m + 1),
+           slice(max(cols[0] - m, 0), cols[-1] + m + 1))
+    hole8 = hole[box].astype(np.uint8)
+    for c in range(lin.shape[2]):
+        out[box + (c,)] = cv2.inpaint(np.ascontiguousarray(base[box + (c,)], np.float32),
+                                      hole8, INPAINT_RADIUS, cv2.INPAINT_NS)
+    return np.where(known[..., None], lin, out)
+
+
+# offsets within 3 px, nearest first (ties in a fixed order)
+_NEAR = sorted(((dy, dx) for dy in range(-3, 4) for dx in range(-3, 4) if dy or dx),
+               key=lambda o: (o[0] * o[0] + o[1] * o[1], o))
+
+
+def _nearest_pixel(inside: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, cols) of a nearest ``inside`` pixel to each ``at`` pixel (row-major order of
+    ``at``): looked up within 3 px, then by a distance transform for the rest (mixed pixels
+    lie next to their layer, so the lookup nearly always succeeds)."""
+    from scipy.ndimage import distance_transform_edt
+
+    h, w = inside.shape
+    ys, xs = np.nonzero(at)
+    ry, rx = np.full(ys.size, -1), np.full(ys.size, -1)
+    todo = np.ones(ys.size, bool)
+    for dy, dx in _NEAR:
+        y, x = ys + dy, xs + dx
+        hit = todo & (y >= 0) & (y < h) & (x >= 0) & (x < w)
+        hit[hit] = inside[y[hit], x[hit]]
+        ry[hit], rx[hit] = y[hit], x[hit]
+        todo &= ~hit
+        if not todo.any():
+            return ry, rx
+    idx = distance_transform_edt(~inside, return_indices=True)[1]
+    ry[todo], rx[todo] = idx[0][ys[todo], xs[todo]], idx[1][ys[todo], xs[todo]]
+    return ry, rx
+
+
+def split_coverage(light: np.ndarray, front: np.ndarray, behind: np.ndarray) -> np.ndarray:
+    """Coverage of the nearer layer in mixed pixels, from their light (in [0, 1]; ``light``,
+    ``front`` and ``behind`` are ... x C linear light, the result has their shape but C).
+
+    A mixed pixel holds ``a F + (1 - a) B`` (``F``: the nearest unmixed pixel of the nearer
+    layer, ``B``: what lies behind); ``a`` is the least-squares fit over the channels (the
+    colour-line model of alpha matting), regularised towards 1/2 by ``SPLIT_PRIOR`` (where
+    ``F`` and ``B`` are alike the light cannot tell, and half and half is kept; also where
+    ``F`` is unknown, NaN)."""
+    fb = front - behind
+    num = np.sum((light - behind) * fb, axis=-1) + 0.5 * SPLIT_PRIOR
+    den = np.sum(fb * fb, axis=-1) + SPLIT_PRIOR
+    a = np.clip(num / den, 0.0, 1.0)
+    return np.where(np.isfinite(a), a, 0.5)
+
+
+def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
+            region: np.ndarray, background: np.ndarray | None = None,
+            split_edges: bool = True, rule: str = "depth") -> Layers | None:
+    """Build the layers around ``region`` (H x W bool) from the linear image, the vectors and
+    the ordering signal; ``background``: the linear clean plate, if known.  Host-side, shared
+    by both backends.  ``lin``: the linear image, or a function that returns the linear image
+    of a crop ``(row slice, col slice)`` (so only the crop is linearised).  None when the
+    ordering gives one layer there: a single surface is what the gather integrates.
+    ``rule``: how a float ``order`` becomes layers (:func:`layer_labels`)."""
+    from scipy.ndimage import (
+        binary_dilation,
+        distance_transform_edt,
+        maximum_filter,
+        minimum_filter,
+    )
+
+    h, w = region.shape
+    r = reach(v, anchor)
+    band = 2.0 * r + 2.0
+    margin = int(math.ceil(band + r)) + 3
+    rows, cols = np.nonzero(region.any(axis=1))[0], np.nonzero(region.any(axis=0))[0]
+    r0, r1 = max(rows[0] - margin, 0), min(rows[-1] + margin + 1, h)
+    c0, c1 = max(cols[0] - margin, 0), min(cols[-1] + margin + 1, w)
+    crop = (slice(r0, r1), slice(c0, c1))
+    labels = layer_labels(order[crop], rule=rule)
+    last = int(labels.max())
+    if last == 0 and background is None:
+        return None
+    lin_c = lin(crop) if callable(lin) else lin[crop]
+    v_c = v[crop].astype(np.float32)
+    # Mixed pixels: a pixel next to another layer holds light of both; it is split between the
+    # nearer layer around it (coverage fitted to its light, split_coverage) and what lies
+    # behind (reconstructed), so the composite at the anchor time is the image itself.
+    front = minimum_filter(labels, size=3, mode="nearest")
+    split = (front != maximum_filter(labels, size=3, mode="nearest")) if split_edges else \
+        np.zeros(labels.shape, bool)
+    labels = np.where(split, front, labels)
+    own = v_c  # the image's own vectors, for light no layer covers
+    v_c = v_c.copy()
+    pure = lin_c.copy()  # at a split pixel: the light of the nearest unmixed pixel of its layer
+    for k in range(last + 1):  # a split pixel moves with the layer it joined
+        core = (labels == k) & ~split
+        joined = split & (labels == k)
+        if core.any() and joined.any():
+            ys, xs = _nearest_pixel(core, joined)
+            v_c[joined] = v_c[ys, xs]
+            pure[joined] = lin_c[ys, xs]
+        elif joined.any():
+            pure[joined] = np.nan  # no unmixed pixel: the split stays half and half
+    fills: dict[int, np.ndarray] = {}
+    nearest_at_or_behind: dict[int, tuple] = {}
+    # Samples of region pixels land within the reach of a layer's vectors (+ the bilinear
+    # footprint) of the region: the reconstruction of layer k is needed only there (plus the
+    # inpainting radius, so that what is read is inpainted from a filled neighbourhood), and
+    # around the mixed pixels of layer k - 1, which take it as what lies behind them.  The
+    # vectors of layer k all come from pixels at or behind it.
+    from_region = distance_transform_edt(~region[crop])
+    pad = 2.0 + INPAINT_RADIUS + 1
+    l2 = v_c[..., 0] * v_c[..., 0] + v_c[..., 1] * v_c[..., 1]
+    # reach() of the vectors at or behind each layer: the largest square, rearmost first
+    longest = np.maximum.accumulate(
+        [float(l2[labels == k].max(initial=0.0)) for k in range(last, -1, -1)])[::-1]
+    reach_at_or_behind = [math.sqrt(x) * (1 + 1e-6) * max(anchor, 1.0 - anchor)
+                          for x in longest]
+
+    def needed(k: int) -> np.ndarray:
+        out = from_region <= reach_at_or_behind[k] + pad
+        mixed = split & (labels == k - 1)
+        if mixed.any():
+            out |= (binary_dilation(mixed, iterations=INPAINT_RADIUS + 1)
+                    & (from_region <= reach_at_or_behind[k - 1] + pad))
+        return out
+
+    def behind_edt(k: int) -> tuple:
+        """Distance to, and index of, the nearest pixel at or behind layer ``k``."""
+        if k not in nearest_at_or_behind:
+            nearest_at_or_behind[k] = distance_transform_edt(labels < k, return_indices=True)
+        return nearest_at_or_behind[k]
+
+    def fill(k: int) -> np.ndarray:
+        """The linear image with everything nearer than layer ``k`` reconstructed."""
+        if k not in fills:
+            # an intermediate layer extends MID_EXTEND_PX under what hides it, and a mixed
+            # pixel lies within 2 px of what is behind it: deeper, nothing reads the fill
+            depth = band if k == last else MID_EXTEND_PX + 2.0
+            fills[k] = _inpaint(lin_c, labels >= k, depth, behind_edt(k), needed(k))
+        return fills[k]
+
+    planes, vectors, present = [], [], []
+    for k in range(last + 1):
+        at_or_behind = labels >= k
+        if k == last and background is not None:
+            # the clean plate is what lies behind everything, and it does not move
+            ext = np.ones_like(at_or_behind)
+            colour = np.where(at_or_behind[..., None], lin_c, background[crop])
+            vec = np.where(at_or_behind[..., None], v_c, np.float32(0))
+            cover = np.ones(ext.shape)
+            mine = np.zeros(ext.shape, bool)
+        else:
+            if k == 0:
+                ext, colour, vec = labels == 0, lin_c, v_c
+            else:
+                dist, idx = behind_edt(k)
+                source = (idx[0], idx[1])  # nearest pixel at or behind layer k (itself there)
+                # only the rearmost layer is assumed to continue far under what hides it
+                ext = (labels[source] == k) & (dist <= (band if k == last else MID_EXTEND_PX))
+                colour = fill(k)
+                vec = v_c[source]
+            mine = split & (labels == k)
+            cover = np.ones(ext.shape)
+            if mine.any():
+                behind = (background[crop] if background is not None and k == last - 1
+                          else fill(k + 1))
+                cover[mine] = split_coverage(lin_c[mine], pure[mine], behind[mine])
+        if not ext.any():
+            continue
+        m = (ext * cover).astype(lin_c.dtype)[..., None]
+        light = colour * m
+        if mine.any():
+            # premultiplied: what the pixel holds beyond the light behind it, so the
+            # composite at the anchor time is the image itself
+            light[mine] = ((lin_c[mine] - (1.0 - cover[mine][:, None]) * behind[mine])
+                           * ext[mine][:, None])
+        planes.append(np.concatenate([light, m], axis=2))
+        # D_k: the vector of the nearest pixel of the (extended) layer, everywhere.
+        dist, nearest = distance_transform_edt(~ext, return_indices=True)
+        d = vec[nearest[0], nearest[1]].astype(np.float32)
+        vectors.append(d)
+        farthest = np.hypot(d[..., 0], d[..., 1]) * max(anchor, 1.0 - anchor)
+        present.append(dist <= farthest + 1.5)  # a bilinear footprint reaches sqrt(2) px
+    return Layers(origin=(int(r0), int(c0)), planes=np.stack(planes),
+                  vectors=np.stack(vectors), flow=own, linear=lin_c,
+                  region=region[crop], present=np.stack(present))

@@ -1,0 +1,261 @@
+"""Ordering signals to layers: which surface each pixel belongs to, front to back.
+
+The first step of layered exposure (``clblur.layered_exposure``, whose Conventions state the
+model).  A float depth (a distance, ``> 0``; ``+inf`` is the sky) is cut into continuous
+surfaces at depth discontinuities between neighbouring pixels (scale-invariant, in inverse
+depth); integer layer IDs are taken as given; speed (faster = nearer) is cut where its sorted
+values jump by more than ``GAP_FRACTION`` of their range.  At most ``MAX_LAYERS`` layers.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = ["DEPTH_TAU", "GAP_FRACTION", "MAX_LAYERS", "depth_components", "layer_labels",
+           "order_components", "speed_order"]
+
+MAX_LAYERS = 4  # the OpenCL kernels hold LAYERED_MAXK = 8 (clblur.opencl.constants)
+GAP_FRACTION = 0.05  # speed ordering: a layer boundary is a gap of 5 % of the speed range
+# Float depth: neighbours whose distances differ by more than 5 % (beyond what the slope of a
+# plane predicts) lie on different surfaces.  A renderer's Z is exact, so any small value
+# separates objects; 5 % keeps an object that far in front of its background apart (0.5 m in
+# front of a wall 10 m away) while staying above the relative noise of a depth estimate, and
+# fragments that noise does make are merged back by the layer cap, least separated first.
+DEPTH_TAU = 0.05
+
+
+def speed_order(v: np.ndarray) -> np.ndarray:
+    """The speed ordering signal: ``-|v|`` as a depth (faster = nearer)."""
+    return -np.hypot(v[..., 0].astype(np.float64), v[..., 1].astype(np.float64))
+
+
+def layer_labels(order: np.ndarray, max_layers: int = MAX_LAYERS,
+                 rule: str = "depth") -> np.ndarray:
+    """Layer index per pixel (0 = nearest, int32) from an ordering signal.
+
+    Integer maps: every distinct ID is a layer.  ``rule="speed"`` (a float ``-|v|``): the
+    sorted distinct values are cut where consecutive values differ by more than
+    ``GAP_FRACTION`` of their range.  Float depth (``rule="depth"``): the continuous surfaces
+    of :func:`depth_components`, ordered front to back by :func:`order_components`; components
+    at the same depth (key gap below ``log(1 + DEPTH_TAU)``) share a layer.  Either way at most
+    ``max_layers`` layers remain: the widest gaps cut, the least separated neighbours in the
+    order merge.
+    """
+    if np.issubdtype(order.dtype, np.integer):
+        u, inverse = np.unique(order, return_inverse=True)
+        return _cut(np.ones(max(u.size - 1, 0)), np.ones(max(u.size - 1, 0), bool),
+                    max_layers)[inverse.reshape(order.shape)]
+    if rule == "speed":
+        u, inverse = np.unique(order, return_inverse=True)
+        vals = u.astype(np.float64)
+        gaps = np.diff(vals)
+        cut = gaps > GAP_FRACTION * (vals[-1] - vals[0]) if gaps.size else gaps > 0
+        return _cut(gaps, cut, max_layers)[inverse.reshape(order.shape)]
+    if rule != "depth":
+        raise ValueError(f"unknown layering rule {rule!r}; use 'depth' or 'speed'")
+    if order.ndim == 1:  # a row of pixels
+        return layer_labels(order[None], max_layers, rule)[0]
+    comp, n = depth_components(order)
+    if n == 1:
+        return np.zeros(order.shape, np.int32)
+    ranked, keys = order_components(order, comp, n)
+    # separation of consecutive components in the order, in log-depth (scale-invariant);
+    # sky (key inf) next to sky is no gap
+    k = np.asarray(keys)[ranked]
+    with np.errstate(invalid="ignore"):
+        gaps = np.abs(np.diff(k))
+    gaps = np.where(np.isnan(gaps), 0.0, gaps)
+    layer_of_rank = _cut(gaps, gaps > math.log1p(DEPTH_TAU), max_layers)
+    layer_of_comp = np.empty(n, np.int32)
+    layer_of_comp[ranked] = layer_of_rank
+    return layer_of_comp[comp]
+
+
+def _cut(gaps: np.ndarray, cut: np.ndarray, max_layers: int) -> np.ndarray:
+    """Layer of each of ``gaps.size + 1`` ordered items, cut where ``cut``; at most
+    ``max_layers`` layers (only the widest cut gaps are kept)."""
+    if cut.sum() > max_layers - 1:
+        widest = np.argsort(-np.where(cut, gaps, -np.inf), kind="stable")[:max_layers - 1]
+        cut = np.zeros_like(cut)
+        cut[widest] = True
+    return np.concatenate([[0], np.cumsum(cut)]).astype(np.int32)
+
+
+def _inverse_depth(depth: np.ndarray) -> np.ndarray:
+    """``1 / z`` (0 for +inf, the sky); refuses NaN, -inf and z <= 0 with a one-line error."""
+    z = np.asarray(depth, np.float64)
+    if np.isnan(z).any() or (z <= 0).any():
+        raise ValueError("float depth must be > 0 (distance, smaller = nearer) or +inf (sky); "
+                         f"got {int(np.isnan(z).sum())} NaN and {int((z <= 0).sum())} value(s) "
+                         "<= 0 (pass integer layer IDs for a rank order)")
+    with np.errstate(divide="ignore"):
+        return 1.0 / z
+
+
+def _continuous(w: np.ndarray, axis: int) -> np.ndarray:
+    """Whether each pair of neighbours along ``axis`` (``w`` inverse depth) lies on one
+    surface: the jump ``d`` between them is within ``DEPTH_TAU * min(w)`` of 0, or of both of
+    the two steps beyond either of them, skipping the adjacent step (a plane's inverse depth is
+    affine in the image, so a slanted plane's steps are predicted exactly; the adjacent step is
+    skipped so that a mixed pixel between two surfaces does not predict the jump it sits in,
+    and two steps are asked for so that a one- or two-pixel sliver of a middle surface, whose
+    step to the far one may equal the jump by chance, does not either)."""
+    m = np.moveaxis(w, axis, 0)
+    n = m.shape[0]
+    d = m[1:] - m[:-1]                          # jump between i and i + 1, n - 1 of them
+    tol = DEPTH_TAU * np.minimum(m[1:], m[:-1])
+    ok = np.abs(d) <= tol
+    if n >= 5:
+        step = np.full((n + 5,) + m.shape[1:], np.nan)
+        step[3:n + 2] = d                       # step[j + 3] = d[j]; NaN outside
+        # d[i] against d[i - 2] and d[i - 3] (before), and d[i + 2] and d[i + 3] (after)
+        with np.errstate(invalid="ignore"):
+            before = (np.abs(d - step[1:n]) <= tol) & (np.abs(d - step[0:n - 1]) <= tol)
+            after = (np.abs(d - step[5:n + 4]) <= tol) & (np.abs(d - step[6:n + 5]) <= tol)
+        ok |= before | after
+    sky = m == 0  # +inf depth: only sky continues sky
+    ok = np.where(sky[1:] | sky[:-1], sky[1:] & sky[:-1], ok)
+    return np.moveaxis(ok, 0, axis)
+
+
+def depth_components(depth: np.ndarray) -> tuple[np.ndarray, int]:
+    """Continuous surfaces of a float depth map: (H x W int labels 0..n-1, n).
+
+    Neighbours (4-connected) belong to one surface unless the depth jumps between them
+    (:func:`_continuous`, threshold ``DEPTH_TAU``, scale-invariant: depth * c gives the same
+    surfaces); +inf (sky) is a surface of its own.  A sliver (a component one pixel thick
+    everywhere, cut from both neighbours along a row or column, e.g. the mixed pixels between
+    two surfaces) joins the nearest component it touches in front of it (and with it, where
+    that is a sliver too), as ``prepare`` puts mixed pixels on the nearer layer.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    w = _inverse_depth(depth)
+    h, wd = w.shape
+    idx = np.arange(h * wd).reshape(h, wd)
+    right = _continuous(w, 1)
+    down = _continuous(w, 0)
+    rows = np.concatenate([idx[:, :-1][right], idx[:-1, :][down]])
+    cols = np.concatenate([idx[:, 1:][right], idx[1:, :][down]])
+    graph = coo_matrix((np.ones(rows.size, np.int8), (rows, cols)), shape=(h * wd,) * 2)
+    n, comp = connected_components(graph, directed=False)
+    comp = comp.reshape(h, wd).astype(np.int64)
+    if n == 1:
+        return comp.astype(np.int32), 1
+    # slivers: every pixel of the component is cut from both of its neighbours along a row or
+    # a column (one pixel thick, as the mixed pixels of an antialiased Z are)
+    cut_l, cut_r, cut_u, cut_d = (np.zeros((h, wd), bool) for _ in range(4))
+    cut_r[:, :-1], cut_l[:, 1:] = ~right, ~right
+    cut_d[:-1, :], cut_u[1:, :] = ~down, ~down
+    thin = (cut_l & cut_r) | (cut_u & cut_d)
+    interior = np.bincount(comp[~thin], minlength=n) > 0
+    if not interior.all():
+        # mean inverse depth of each component, and of its nearest (largest w) neighbour
+        wf = np.where(np.isfinite(w), w, 0.0)
+        mean_w = np.bincount(comp.ravel(), wf.ravel(), n) / np.bincount(comp.ravel(), None, n)
+        target = np.arange(n)
+        best = np.full(n, -1.0)
+        for a, b in ((comp[:, :-1][~right], comp[:, 1:][~right]),
+                     (comp[:-1, :][~down], comp[1:, :][~down])):
+            for x, y in ((a, b), (b, a)):  # x's neighbour y
+                sel = ~interior[x] & (mean_w[y] > mean_w[x])
+                np.maximum.at(best, x[sel], mean_w[y[sel]])
+        for a, b in ((comp[:, :-1][~right], comp[:, 1:][~right]),
+                     (comp[:-1, :][~down], comp[1:, :][~down])):
+            for x, y in ((a, b), (b, a)):
+                sel = (best[x] >= 0) & (mean_w[y] == best[x])
+                target[x[sel]] = y[sel]
+        # a sliver in front of a sliver (the mixed pixels of a corner) follows it: targets are
+        # strictly nearer, so the chain ends
+        while True:
+            nxt = target[target]
+            if np.array_equal(nxt, target):
+                break
+            target = nxt
+        _, comp_new = np.unique(target[comp], return_inverse=True)
+        comp = comp_new.reshape(h, wd)
+        n = int(comp.max()) + 1
+    return comp.astype(np.int32), n
+
+
+def order_components(depth: np.ndarray, comp: np.ndarray, n: int) -> tuple[list[int], list[float]]:
+    """Front-to-back order of the components of :func:`depth_components` and their keys.
+
+    Where two components touch, the one whose pixels along the shared boundary are nearer
+    (median log-depth difference over the boundary's neighbour pairs) is in front.  These
+    pairwise constraints are sorted topologically; among the components free to go next the
+    one with the smallest key (median log-depth of its boundary pixels, where it touches
+    others: a ground plane is ordered by where it meets what stands on it, not by its far
+    end) goes first, and a cycle is broken the same way.
+    """
+    import heapq
+
+    with np.errstate(divide="ignore"):
+        logz = np.log(np.asarray(depth, np.float64))  # +inf stays +inf
+    pairs: dict[tuple[int, int], list[np.ndarray]] = {}
+    border = np.zeros(comp.shape, bool)
+    for axis in (0, 1):
+        a = np.moveaxis(comp, axis, 0)
+        la = np.moveaxis(logz, axis, 0)
+        ca, cb = a[:-1], a[1:]
+        diff = ca != cb
+        if not diff.any():
+            continue
+        b = np.moveaxis(border, axis, 0)
+        b[:-1] |= diff
+        b[1:] |= diff
+        x, y = ca[diff], cb[diff]
+        with np.errstate(invalid="ignore"):
+            dz = la[1:][diff] - la[:-1][diff]  # > 0: x nearer than y
+        dz = np.where(np.isnan(dz), 0.0, dz)  # sky next to sky
+        lo, hi = np.minimum(x, y), np.maximum(x, y)
+        sign = np.where(x == lo, dz, -dz)  # > 0: lo nearer than hi
+        key = lo.astype(np.int64) * n + hi
+        srt = np.argsort(key, kind="stable")
+        key, sign = key[srt], sign[srt]
+        starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+        for s, e in zip(starts, np.r_[starts[1:], key.size], strict=True):
+            pairs.setdefault((int(key[s] // n), int(key[s] % n)), []).append(sign[s:e])
+    # median log-depth of each component's boundary pixels (of all its pixels if it has none)
+    at = border if np.bincount(comp[border], minlength=n).all() else \
+        border | ~np.isin(comp, np.unique(comp[border]))
+    c_at, z_at = comp[at], logz[at]
+    srt = np.lexsort((z_at, c_at))
+    c_at, z_at = c_at[srt], z_at[srt]
+    start = np.searchsorted(c_at, np.arange(n))
+    end = np.searchsorted(c_at, np.arange(n), side="right")
+    lo_i, hi_i = (start + end - 1) // 2, (start + end) // 2
+    with np.errstate(invalid="ignore"):
+        keys = [float(x) for x in np.where(z_at[lo_i] == z_at[hi_i], z_at[lo_i],
+                                           0.5 * (z_at[lo_i] + z_at[hi_i]))]
+    after: list[set[int]] = [set() for _ in range(n)]
+    indeg = np.zeros(n, np.int64)
+    for (lo, hi), parts in pairs.items():
+        med = float(np.median(np.concatenate(parts)))
+        if med == 0.0:
+            continue
+        front, back = (lo, hi) if med > 0 else (hi, lo)
+        after[front].add(back)
+        indeg[back] += 1
+    ready = [(keys[c], c) for c in range(n) if indeg[c] == 0]
+    heapq.heapify(ready)
+    done = np.zeros(n, bool)
+    ranked: list[int] = []
+    while len(ranked) < n:
+        if not ready:  # a cycle: the nearest remaining component goes first
+            c = min((c for c in range(n) if not done[c]), key=lambda c: (keys[c], c))
+            heapq.heappush(ready, (keys[c], c))
+            indeg[c] = 0
+        _, c = heapq.heappop(ready)
+        if done[c]:
+            continue
+        done[c] = True
+        ranked.append(c)
+        for b in after[c]:
+            indeg[b] -= 1
+            if indeg[b] == 0 and not done[b]:
+                heapq.heappush(ready, (keys[b], b))
+    return ranked, keys
