@@ -12,28 +12,19 @@ Each is the fastest of --repeats after a warm-up; the device is synchronised in 
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from peers import best_time  # noqa: E402  (bench/peers.py, beside this file)
+
 import clblur  # noqa: E402
 from clblur import opencl  # noqa: E402
 from clblur.io import atomic_write_text  # noqa: E402
 
 __all__ = ["gpu_section"]
-
-
-def _best(fn, repeats: int) -> float:
-    fn()
-    best = float("inf")
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t)
-    return best
 
 
 def gpu_section(args, img: np.ndarray, flow: np.ndarray, source: str, mean_n: float) -> None:
@@ -53,17 +44,17 @@ def gpu_section(args, img: np.ndarray, flow: np.ndarray, source: str, mean_n: fl
 
     want = clblur.blur(img, flow, backend="opencl", device=args.device)
     add("end-to-end, numpy in / numpy out",
-        _best(lambda: clblur.blur(img, flow, backend="opencl", device=args.device),
+        best_time(lambda: clblur.blur(img, flow, backend="opencl", device=args.device),
               args.repeats))
     p_img = opencl.pinned_empty(img.shape, img.dtype, args.device)
     p_flow = opencl.pinned_empty(flow.shape, flow.dtype, args.device)
     p_img[...], p_flow[...] = img, flow
     add("end-to-end, pinned in / numpy out",
-        _best(lambda: clblur.blur(p_img, p_flow, backend="opencl", device=args.device),
+        best_time(lambda: clblur.blur(p_img, p_flow, backend="opencl", device=args.device),
               args.repeats))
     flow16 = flow.astype(np.float16)
     add("end-to-end, numpy in, float16 flow",
-        _best(lambda: clblur.blur(img, flow16, backend="opencl", device=args.device),
+        best_time(lambda: clblur.blur(img, flow16, backend="opencl", device=args.device),
               args.repeats), "flow rounded to half by the caller")
     d_img, d_flow = cla.to_device(rt.queue, img), cla.to_device(rt.queue, flow)
     got = clblur.blur(d_img, d_flow, device=args.device).get()
@@ -72,7 +63,7 @@ def gpu_section(args, img: np.ndarray, flow: np.ndarray, source: str, mean_n: fl
     def resident():
         clblur.blur(d_img, d_flow, device=args.device)
         rt.queue.finish()
-    t_kernel = _best(resident, args.repeats)
+    t_kernel = best_time(resident, args.repeats)
     add("device-resident (kernels only)", t_kernel, same)
     d_buf = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, img.nbytes + flow.nbytes)
 
@@ -85,7 +76,7 @@ def gpu_section(args, img: np.ndarray, flow: np.ndarray, source: str, mean_n: fl
     def download():
         cl.enqueue_copy(rt.queue, out_host, d_buf)
         rt.queue.finish()
-    t_up, t_down = _best(upload, args.repeats), _best(download, args.repeats)
+    t_up, t_down = best_time(upload, args.repeats), best_time(download, args.repeats)
     lines = [
         "# GPU benchmark", "",
         "Command: `" + " ".join(["python bench/bench_blur.py", *sys.argv[1:]]) + "`", "",

@@ -23,7 +23,7 @@ from clblur.motion import sample_counts
 from clblur.pixels import linearisation_table
 from clblur.responses import Exp, response
 
-__all__ = ["numba_field", "opencv_box", "torch_field", "torch_cuda_field", "available"]
+__all__ = ["available", "best_time", "numba_field", "opencv_box", "torch_cuda_field", "torch_field"]
 
 
 def available(name: str) -> str | None:
@@ -185,8 +185,8 @@ def opencv_box(img, length: int, spec="exp"):
     return cv2.convertScaleAbs(e, alpha=-255.0, beta=255.0)
 
 
-def timed_cuda(fn, repeats: int):
-    """Fastest wall time of ``fn`` (which synchronises) after one warm-up."""
+def best_time(fn, repeats: int):
+    """Fastest wall time of ``fn`` (which must synchronise any device work) after one warm-up."""
     fn()
     best = float("inf")
     for _ in range(repeats):

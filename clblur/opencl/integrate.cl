@@ -575,6 +575,29 @@ static long16 fixed_hi(__global const float *plane, size_t at, float scale)
         }                                                                                  \
     }
 
+/* The box mean of step k (8 lines x 4 channels in sum_lo/sum_hi), stored as codes (packed where
+ * the layout allows) or as floats: the same store for both box kernels. */
+#define BOX_EMIT()                                                                              \
+    {                                                                                           \
+        float16 m_lo = convert_float16(sum_lo) * norm, m_hi = convert_float16(sum_hi) * norm;   \
+        if (codes) {                                                                            \
+            int16 q_lo = BOX_QUANTISE(m_lo), q_hi = BOX_QUANTISE(m_hi);                         \
+            if (packed && (!transposed || k < len4)) {                                          \
+                BOX_PACKED(q_lo, q_hi)                                                          \
+            } else {                                                                            \
+                BOX_CODES(0, q_lo.s0123) BOX_CODES(1, q_lo.s4567)                               \
+                BOX_CODES(2, q_lo.s89ab) BOX_CODES(3, q_lo.scdef)                               \
+                BOX_CODES(4, q_hi.s0123) BOX_CODES(5, q_hi.s4567)                               \
+                BOX_CODES(6, q_hi.s89ab) BOX_CODES(7, q_hi.scdef)                               \
+            }                                                                                   \
+        } else {                                                                                \
+            BOX_STORE(0, m_lo.s0123) BOX_STORE(1, m_lo.s4567)                                   \
+            BOX_STORE(2, m_lo.s89ab) BOX_STORE(3, m_lo.scdef)                                   \
+            BOX_STORE(4, m_hi.s0123) BOX_STORE(5, m_hi.s4567)                                   \
+            BOX_STORE(6, m_hi.s89ab) BOX_STORE(7, m_hi.scdef)                                   \
+        }                                                                                       \
+    }
+
 /* Box of taps d = lo..hi along plane index k with equal weights, as running sums: the cost
  * per pixel does not grow with the box length.  LANES neighbouring lines run as vector lanes.
  * Taps clamp to the window (which lies inside the image: the same as clamping to the image
@@ -596,23 +619,7 @@ __kernel void integrate_box(__global const float *plane, int ps, int across, int
         sum_hi += fixed_hi(plane, at, scale);
     }
     for (int k = 0; k < len; ++k) {
-        float16 m_lo = convert_float16(sum_lo) * norm, m_hi = convert_float16(sum_hi) * norm;
-        if (codes) {
-            int16 q_lo = BOX_QUANTISE(m_lo), q_hi = BOX_QUANTISE(m_hi);
-            if (packed && (!transposed || k < len4)) {
-                BOX_PACKED(q_lo, q_hi)
-            } else {
-                BOX_CODES(0, q_lo.s0123) BOX_CODES(1, q_lo.s4567)
-                BOX_CODES(2, q_lo.s89ab) BOX_CODES(3, q_lo.scdef)
-                BOX_CODES(4, q_hi.s0123) BOX_CODES(5, q_hi.s4567)
-                BOX_CODES(6, q_hi.s89ab) BOX_CODES(7, q_hi.scdef)
-            }
-        } else {
-            BOX_STORE(0, m_lo.s0123) BOX_STORE(1, m_lo.s4567)
-            BOX_STORE(2, m_lo.s89ab) BOX_STORE(3, m_lo.scdef)
-            BOX_STORE(4, m_hi.s0123) BOX_STORE(5, m_hi.s4567)
-            BOX_STORE(6, m_hi.s89ab) BOX_STORE(7, m_hi.scdef)
-        }
+        BOX_EMIT()
         size_t enter = (size_t)clamp(k + hi + 1, 0, len - 1) * ps + x0;
         size_t leave = (size_t)clamp(k + lo, 0, len - 1) * ps + x0;
         sum_lo += fixed_lo(plane, enter, scale) - fixed_lo(plane, leave, scale);
@@ -696,23 +703,7 @@ __kernel void integrate_box_codes(__global const uchar *image, int in_kind,
         }
     }
     for (int k = 0; k < len; ++k) {
-        float16 m_lo = convert_float16(sum_lo) * norm, m_hi = convert_float16(sum_hi) * norm;
-        if (codes) {
-            int16 q_lo = BOX_QUANTISE(m_lo), q_hi = BOX_QUANTISE(m_hi);
-            if (packed && (!transposed || k < len4)) {
-                BOX_PACKED(q_lo, q_hi)
-            } else {
-                BOX_CODES(0, q_lo.s0123) BOX_CODES(1, q_lo.s4567)
-                BOX_CODES(2, q_lo.s89ab) BOX_CODES(3, q_lo.scdef)
-                BOX_CODES(4, q_hi.s0123) BOX_CODES(5, q_hi.s4567)
-                BOX_CODES(6, q_hi.s89ab) BOX_CODES(7, q_hi.scdef)
-            }
-        } else {
-            BOX_STORE(0, m_lo.s0123) BOX_STORE(1, m_lo.s4567)
-            BOX_STORE(2, m_lo.s89ab) BOX_STORE(3, m_lo.scdef)
-            BOX_STORE(4, m_hi.s0123) BOX_STORE(5, m_hi.s4567)
-            BOX_STORE(6, m_hi.s89ab) BOX_STORE(7, m_hi.scdef)
-        }
+        BOX_EMIT()
         int enter = clamp(k + hi + 1, 0, len - 1), leave = clamp(k + lo, 0, len - 1);
         if (ring) {  /* ring[j] entered n steps ago: the value at k + lo */
             long16 v_lo = CODES4(0, enter), v_hi = CODES4(4, enter);
