@@ -27,6 +27,7 @@ from clblur.responses import (
 __all__ = ["SplineFamily", "curve_black_level", "pooled_pairs", "fit_cross_exposure",
            "PAIR_LOW_CODE", "PAIR_HIGH_CODE"]
 
+
 # Pixel values the cross-exposure fit uses, in codes of an 8-bit scale: everything not clipped
 # at either end (the same range the evaluation scores).
 PAIR_LOW_CODE, PAIR_HIGH_CODE = 2.5, 252.5

@@ -36,6 +36,7 @@ __all__ = ["FamilyFit", "ForwardFamily", "ExpFamily", "ExpOffsetFamily", "GammaO
            "EmorFamily", "time_deviation_basis", "TABLE_SIZE", "FLOOR_LOW", "CURVE_LOW",
            "TIME_SIGMA", "TIME_PRIOR_SCALE"]
 
+
 TABLE_SIZE = 1024
 # Default low end of the fitted values.  The offset families model the black level, so they
 # see values down to just above code 0.  The free curves do not model it; near the black level

@@ -32,6 +32,7 @@ from clblur.responses import (
 
 __all__ = ["PolynomialFamily", "NonparametricFamily"]
 
+
 def _consecutive_pairs(samples, tau):
     """(v_dark, v_bright, ratio index) for every sample valid in two neighbouring exposures."""
     order = np.argsort(tau)

@@ -25,6 +25,7 @@ if TYPE_CHECKING:
 
 __all__ = ["Response", "Parametric", "KIND_CODES", "RANGES", "FORMAT_VERSION"]
 
+
 FORMAT_VERSION = 1
 
 # Response kind codes; the kernels get them as -D options (clblur/opencl/constants.py).

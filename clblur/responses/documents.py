@@ -26,6 +26,7 @@ from clblur.responses.kernel_curves import SRGB, Exp, Gamma, Linear, Table
 __all__ = ["FAMILY_CLASSES", "CHANNEL_SET_KIND", "for_device", "from_dict", "load_response",
            "response", "channel_set_to_dict", "save_channel_set", "per_channel"]
 
+
 _BY_KIND = {"linear": Linear, "exp": Exp, "gamma": Gamma, "srgb": SRGB}
 # every family a response document may name (device kinds and fitted families)
 FAMILY_CLASSES = {**_BY_KIND, "exp-offset": ExpOffset, "gamma-offset": GammaOffset,

@@ -21,6 +21,7 @@ from clblur.responses.base import Parametric, _strictly_increasing
 
 __all__ = ["Emor", "EmorBasis"]
 
+
 @dataclass(frozen=True)
 class EmorBasis:
     """Grossberg & Nayar's EMoR: ``f(E) = f0(E) + sum_m c_m h_m(E)`` sampled on grid E."""

@@ -32,6 +32,7 @@ from clblur.responses.kernel_curves import Table
 __all__ = ["ExpOffset", "GammaOffset", "ExpShape", "Polynomial", "MonotoneSpline", "default_knots",
            "warp_basis"]
 
+
 # Value grid on which families without a closed-form forward are inverted numerically.
 _GRID = np.linspace(0.0, 1.0, 4097)
 

@@ -24,6 +24,7 @@ from clblur.responses.base import (
 
 __all__ = ["Linear", "Exp", "Gamma", "SRGB", "Table"]
 
+
 class Linear(Response):
     """Identity response: the conventional box blur (the paper's Eq. 7)."""
 

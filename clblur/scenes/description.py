@@ -21,6 +21,7 @@ import numpy as np
 __all__ = ["Texture", "wave_texture", "flat_texture", "Disc", "Rect", "MaskShape", "star_mask",
            "SceneObject", "Background", "Scene", "frame_displacements", "example_scenes"]
 
+
 Texture = Callable[[np.ndarray, np.ndarray], np.ndarray]
 """A texture maps local coordinates ``(u, v)`` (arrays of one shape ``S``, pixels) to linear
 radiance of shape ``S + (C,)``."""

@@ -23,6 +23,7 @@ from clblur.scenes.description import Scene, SceneObject
 
 __all__ = ["Render", "render", "psnr"]
 
+
 @dataclass(eq=False)
 class Render:
     """Everything ``render`` returns (see the module Conventions)."""
