@@ -145,7 +145,7 @@ def fit_cross_exposure(u: np.ndarray, src: np.ndarray, target: np.ndarray, ratio
     diff2[r, r], diff2[r, r + 1], diff2[r, r + 2] = 1.0, -2.0, 1.0
 
     def predict(th):
-        x = np.concatenate([[0.0], np.cumsum(np.exp(th))])
+        x = MonotoneSpline.knot_exposures(th)
         xi = x[a] + w * (x[a + 1] - x[a])
         z = ratio * xi
         b = np.clip(np.searchsorted(x, z, side="right") - 1, 0, k - 1)

@@ -160,6 +160,13 @@ class ExpShape(_Sampled):
                                  ).reshape(w.shape)
         return base
 
+    @staticmethod
+    def log_shape_inverse(w, gamma: float, rho: float) -> np.ndarray:
+        """``ln`` of ``shape_inverse`` without warp, ``gamma ln(-ln(1 - rho w) / rho)``, on
+        ``w`` in (0, 1): the form ``clblur.study`` fits by least squares (the warp adds
+        ``c @ warp_basis(w)`` to it)."""
+        return gamma * np.log(-np.log1p(-rho * w) / rho)
+
     def inverse(self, v):
         v = np.asarray(v, dtype=np.float64)
         w = np.clip((v - self.black) / (1.0 - self.black), 0.0, 1.0)
@@ -270,12 +277,21 @@ class MonotoneSpline(Table):
         total = float(np.log(np.sum(np.exp(th - th.max()))) + th.max())
         if abs(total) > 1e-12:  # x_K = 1 (the exposure unit); a saved curve already has it
             th = th - total
-        x = np.concatenate([[0.0], np.cumsum(np.exp(th))])
+        x = self.knot_exposures(th)
         self.knots, self.log_increments = u, th
         info = {"family": self.family, "knots": u.tolist(), "log_increments": th.tolist()}
         super().__init__(_strictly_increasing(x / x[-1]), u, meta={**info, **(meta or {})})
 
     param_names = property(lambda self: tuple(f"t{m}" for m in range(self.log_increments.size)))
+
+    @staticmethod
+    def knot_exposures(log_increments: np.ndarray) -> np.ndarray:
+        """Unnormalised exposures at the knots, ``x_k = sum_{m <= k} exp(theta_m)``, ``x_0 = 0``.
+
+        The one place the spline's parametrisation is written; ``clblur.calibration`` fits
+        ``log_increments`` through it and ``clblur.study`` reads fitted curves through it.
+        """
+        return np.concatenate([[0.0], np.cumsum(np.exp(log_increments))])
 
     def vector(self) -> np.ndarray:
         return self.log_increments.copy()
