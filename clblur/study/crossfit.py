@@ -23,7 +23,8 @@ from clblur.study.effects import EFFECTS, PARAMS
 from clblur.study.model import Group, time_ok
 from clblur.study.variants import darkest_code, has_variant, pixel_nll, predict, subset
 
-__all__ = ["assign_blocks", "applicable", "physical_bounds", "fit"]
+__all__ = ["assign_blocks", "applicable", "physical_bounds", "fit", "Folds", "average_params",
+           "heldout_scores"]
 
 
 def assign_blocks(groups: list[Group], blocks_per_group: int = 64) -> int:
@@ -68,7 +69,22 @@ def physical_bounds(groups: list[Group]) -> dict[str, tuple[float, float]]:
     return {"black": (0.0, min(PARAMS["black"][2], max(dark, 0) / 255.0))}
 
 
-class _Folds:
+class Folds:
+    """The two folds of a set of groups, with the fits on each cached by effect set.
+
+    Parameters
+    ----------
+    groups : list of Group
+        Groups whose ``fold`` and ``block`` were set by ``assign_blocks``.
+    nblocks : int
+        Number of blocks (``assign_blocks``'s return value).
+
+    Conventions
+    -----------
+    ``fit`` returns ``[params fitted on fold 0, params fitted on fold 1]``; the ``block_*``
+    scores evaluate fold ``f`` with the parameters of fold ``1 - f``.
+    """
+
     def __init__(self, groups: list[Group], nblocks: int):
         self.nblocks = nblocks
         self.part = [[subset(g, g.fold == f) for g in groups] for f in (0, 1)]
@@ -77,6 +93,7 @@ class _Folds:
         self.bounds = physical_bounds(groups)
 
     def fit(self, effects: frozenset, start: list[dict], channels: int) -> list[dict]:
+        """Parameters fitted on each fold with ``effects`` free (cached per effect set)."""
         if effects not in self.cache:
             free = [n for e in sorted(effects) for n in EFFECTS[e].params(channels)]
             self.cache[effects] = [fit(self.part[f], free, start[f], self.nvalid[f],
@@ -190,12 +207,16 @@ def _fit_continuous(groups: list[Group], free: list[str], start: dict, nvalid: i
 
 
 
-def _average(params: list[dict]) -> dict:
+def average_params(params: list[dict]) -> dict:
+    """The mean of the two folds' parameters (the reported estimate)."""
     return {k: 0.5 * (params[0][k] + params[1][k]) for k in params[0]}
 
 
-def _heldout(groups: list[Group], params: list[dict]):
-    """Cross-fitted RMSE (codes), NLL per valid value, and predictions per group."""
+def heldout_scores(groups: list[Group], params: list[dict]):
+    """Cross-fitted RMSE (codes), NLL per valid value, and predictions per group.
+
+    Fold ``f`` of every group is predicted with ``params[1 - f]``.
+    """
     se = nll = 0.0
     count = 0
     preds = []

@@ -38,12 +38,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from clblur.study.crossfit import (
-    _average,
-    _Folds,
-    _heldout,
+    Folds,
     applicable,
     assign_blocks,
+    average_params,
     fit,
+    heldout_scores,
     physical_bounds,
 )
 from clblur.study.effects import EFFECTS, PARAMS, explain, readable_estimate
@@ -98,7 +98,7 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
     """Run the whole diagnosis (see the module docstring)."""
     nblocks = assign_blocks(groups)
     channels = groups[0].channels
-    folds = _Folds(groups, nblocks)
+    folds = Folds(groups, nblocks)
     used = np.zeros(nblocks, bool)
     for part in folds.part:
         for g in part:
@@ -128,7 +128,7 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
             d = d[reach]
             t, pv = weighted_test(d, u[reach], a[reach])
         gain = float(d.sum()) / max(nvalid, 1)
-        est = readable_estimate(effect, _average(p_e), channels)
+        est = readable_estimate(effect, average_params(p_e), channels)
         findings[effect] = Finding(effect, False, t, pv, est, explain(effect, est, False, gain),
                                    gain, rnd)
         if progress is not None:
@@ -167,14 +167,14 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
         (f for e, f in findings.items() if e not in order), key=lambda f: -f.statistic)
     base_p = folds.fit(frozenset(), [null, null], channels)
     full = fit(groups, [n for e in sorted(current) for n in EFFECTS[e].params(channels)],
-               _average(cur_params), sum(int(g.valid.sum()) for g in groups), folds.bounds)
+               average_params(cur_params), sum(int(g.valid.sum()) for g in groups), folds.bounds)
     for f in ranked:
         if f.significant:
             f.estimate = readable_estimate(f.effect, full, channels)
             f.explanation = explain(f.effect, f.estimate, True, f.nll_gain)
             f.interval = intervals(groups, full, f.effect, channels, folds.bounds)
-    b_rmse, b_nll, b_pred = _heldout(groups, base_p)
-    x_rmse, x_nll, x_pred = _heldout(groups, cur_params)
+    b_rmse, b_nll, b_pred = heldout_scores(groups, base_p)
+    x_rmse, x_nll, x_pred = heldout_scores(groups, cur_params)
     return Selection(order, ranked, full, b_rmse, x_rmse, b_nll, x_nll, b_pred, x_pred, skip)
 
 

@@ -37,7 +37,7 @@ def weighted_test(d: np.ndarray, u: np.ndarray, a: np.ndarray) -> tuple[float, f
     ``T = sum d_b / sqrt(sum u_b^2)`` (a cluster-robust Wald statistic: pixels inside a block
     may be correlated, blocks are nearly independent); Student's t with Satterthwaite's
     degrees of freedom ``(sum a)^2 / sum a^2 - 1``, so a gain carried by a few blocks is
-    judged with the few degrees of freedom those blocks give.  See ``_Folds.block_score``.
+    judged with the few degrees of freedom those blocks give.  See ``Folds.block_score``.
     """
     if d.size < 2:
         return 0.0, 1.0
