@@ -15,10 +15,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from clblur.calibration.forward_families import (
-    FamilyFit,
-)
+from clblur.calibration.forward_families import FamilyFit
 from clblur.responses import (
+    Gamma,
     MonotoneSpline,
     Response,
     default_knots,
@@ -172,7 +171,7 @@ def fit_cross_exposure(u: np.ndarray, src: np.ndarray, target: np.ndarray, ratio
         return np.vstack([jac, smoothness * diff2, (e / e.sum())[None, :]])
 
     if theta0 is None:
-        x0 = u ** 2.2
+        x0 = Gamma(2.2).inverse(u)  # start from a display-gamma curve
         theta0 = np.log(np.maximum(np.diff(x0), 1e-6))
     # trial steps may overflow exp(); their non-finite cost rejects them
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
