@@ -15,6 +15,7 @@ import numpy as np
 from clblur.blur import blur
 from clblur.errors import InputError
 from clblur.io import atomic_write, write_image
+from clblur.responses import Gamma
 
 __all__ = ["BALL_MOTION", "STEP_HIGH", "STEP_LOW", "STEP_MOTION", "ball_scene", "render",
            "step_edge", "step_edge_closed_form"]
@@ -61,7 +62,8 @@ def ball_scene(height: int = 160, width: int = 240) -> np.ndarray:
     ball = albedo * (0.15 + 0.85 * lambert)[..., None] + spec[..., None]
     img = np.where(inside[..., None], ball, bg)
     # Store as an sRGB-like 8-bit photo: the demo's point is the highlight, not the encoding.
-    return np.clip(np.rint(np.clip(img, 0, 1) ** (1 / 2.2) * 255), 0, 255).astype(np.uint8)
+    encoded = Gamma(2.2).forward(np.clip(img, 0, 1))
+    return np.clip(np.rint(encoded * 255), 0, 255).astype(np.uint8)
 
 
 def render(out_dir: Path, backend: str = "auto", device: str | None = None) -> list[Path]:

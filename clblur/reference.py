@@ -22,6 +22,7 @@ from clblur.motion import PSF, Field, Uniform, sample_counts, uniform_taps
 from clblur.pixels import linearise as linearise_channel
 from clblur.pixels import normalise, quantise
 from clblur.request import BlurPlan
+from clblur.sampling import bilinear_corners
 
 __all__ = ["bilinear", "bilinear_at", "linearise", "integrate", "finish", "blur"]
 
@@ -42,14 +43,8 @@ def bilinear_at(img: np.ndarray, x: np.ndarray, y: np.ndarray, origin: tuple[int
     fh, fw = full_shape
     r0, c0 = origin
     h, w = img.shape[:2]
-    x = np.clip(x, 0.0, fw - 1.0)
-    y = np.clip(y, 0.0, fh - 1.0)
-    x0 = np.floor(x).astype(np.intp)
-    y0 = np.floor(y).astype(np.intp)
-    x1 = np.minimum(x0 + 1, fw - 1)
-    y1 = np.minimum(y0 + 1, fh - 1)
-    fx = (x - x0)[..., None]
-    fy = (y - y0)[..., None]
+    y0, y1, x0, x1, fx, fy = bilinear_corners(x, y, fh, fw)
+    fx, fy = fx[..., None], fy[..., None]
     x0, x1 = np.clip(x0 - c0, 0, w - 1), np.clip(x1 - c0, 0, w - 1)
     y0, y1 = np.clip(y0 - r0, 0, h - 1), np.clip(y1 - r0, 0, h - 1)
     top = img[y0, x0] * (1 - fx) + img[y0, x1] * fx

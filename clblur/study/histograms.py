@@ -19,6 +19,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from clblur.camera import normalised_radius2
+from clblur.sampling import bilinear_corners
 from clblur.study.model import CODES, Group
 
 
@@ -140,14 +141,9 @@ def _csr(entries, n, total) -> sp.csr_matrix:
 
 
 def _bilinear(x, y, h, w):
-    """(row index, flat source index, weight) of the four bilinear corners, clamp to edge."""
-    x = np.clip(x, 0.0, w - 1.0)
-    y = np.clip(y, 0.0, h - 1.0)
-    x0 = np.floor(x).astype(np.intp)
-    y0 = np.floor(y).astype(np.intp)
-    x1 = np.minimum(x0 + 1, w - 1)
-    y1 = np.minimum(y0 + 1, h - 1)
-    fx, fy = x - x0, y - y0
+    """(row index, flat source index, weight) of the four bilinear corners, clamp to edge
+    (``clblur.sampling.bilinear_corners``)."""
+    y0, y1, x0, x1, fx, fy = bilinear_corners(x, y, h, w)
     r = np.arange(x.size)
     return ((r, y0 * w + x0, (1 - fx) * (1 - fy)), (r, y0 * w + x1, fx * (1 - fy)),
             (r, y1 * w + x0, (1 - fx) * fy), (r, y1 * w + x1, fx * fy))

@@ -184,7 +184,7 @@ def shape_starts(groups: list[Group], start: dict[str, float],
     from scipy.optimize import least_squares
 
     from clblur.calibration.models import fit_cross_exposure
-    from clblur.responses import default_knots, warp_basis
+    from clblur.responses import MonotoneSpline, default_knots, warp_basis
 
     src, tgt, ratio = [], [], []
     for g in groups:
@@ -212,7 +212,7 @@ def shape_starts(groups: list[Group], start: dict[str, float],
     u = default_knots(16)
     theta = fit_cross_exposure(u, (uniq % 256.0) / 255.0, mean, pool_ratio,
                                np.sqrt(count) * 255.0, 0.3)
-    x_knots = np.concatenate([[0.0], np.cumsum(np.exp(theta))])
+    x_knots = MonotoneSpline.knot_exposures(theta)
     lo, hi = np.percentile(src, [1, 99]) / 255.0
     v = np.linspace(max(lo, start["black"] + 0.02), min(hi, 0.97), 48)
     target = np.log(np.maximum(np.interp(v, u, x_knots), 1e-12))
@@ -223,7 +223,7 @@ def shape_starts(groups: list[Group], start: dict[str, float],
     upper = [PARAMS[n][2] for n in names]
 
     def resid(q):  # log inverse of ExpShape, free exposure offset q[-1]
-        base = q[0] * np.log(-np.log1p(-q[1] * w) / q[1])
+        base = ExpShape.log_shape_inverse(w, q[0], q[1])
         return base + q[2:-1] @ basis + q[-1] - target
 
     out = []

@@ -1,5 +1,8 @@
 """Diagnose and extend: nested tests of each effect on held-out pixels, forward selection.
 
+Cross-fitting lives in ``clblur.study.crossfit``, the test statistics in
+``clblur.study.significance``; this module decides and reports.
+
 Conventions
 -----------
 * Target pixels are cut into square blocks; blocks alternate between two folds like a
@@ -33,11 +36,24 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import optimize, stats
 
+from clblur.study.crossfit import (
+    Folds,
+    applicable,
+    assign_blocks,
+    average_params,
+    fit,
+    heldout_scores,
+    physical_bounds,
+)
 from clblur.study.effects import EFFECTS, PARAMS, explain, readable_estimate
 from clblur.study.model import Group, null_params, time_ok
-from clblur.study.variants import darkest_code, has_variant, pixel_nll, predict, subset
+from clblur.study.significance import t_test, weighted_test
+from clblur.study.variants import pixel_nll
+
+__all__ = ["Finding", "Selection", "select", "intervals", "MIN_GAIN", "assign_blocks",
+           "applicable", "physical_bounds", "fit", "t_test", "weighted_test"]
+
 
 # Least held-out gain (nats per pixel value) that counts as a finding: with hundreds of
 # thousands of values, deviations far below any visible effect (a gain of 1.0001) are
@@ -75,195 +91,6 @@ class Selection:
     not_testable: dict[str, str] = field(default_factory=dict)
 
 
-def assign_blocks(groups: list[Group], blocks_per_group: int = 64) -> int:
-    """Give every target pixel a block id and a fold; returns the number of blocks."""
-    offset = 0
-    for gi, g in enumerate(groups):
-        h, w = g.shape
-        side = max(4, int(round(math.sqrt(h * w / blocks_per_group))))
-        br, bc = g.rows // side, g.cols // side
-        ncols = (w + side - 1) // side
-        g.block = offset + br * ncols + bc
-        g.fold = ((br + bc + gi) % 2).astype(np.int8)
-        g.__dict__["gid"] = gi  # psf_orientation is chosen per group
-        offset += ((h + side - 1) // side) * ncols
-    return offset
-
-
-def applicable(groups: list[Group]) -> dict[str, str]:
-    """Effects the data cannot show, with the reason."""
-    out = {}
-    if not any(g.source_clipped for g in groups):
-        out["saturation"] = "no source pixel is clipped (code 255)"
-    if not any((1, 0) in g.hist for g in groups):
-        out["nonuniform_motion"] = "no time order along the motion (PSF, or exposure series)"
-    if not any((0, 1) in g.hist for g in groups):
-        out["vignetting"] = ("source and target share sensor positions, so a fixed falloff "
-                             "cancels in Eq. 8")
-    if groups[0].channels < 2:
-        out["channel_gain"] = "single-channel images"
-    if not has_variant(groups, "psf_orientation"):
-        out["psf_orientation"] = "the motion path is its own 180-degree turn (centred path)"
-    if not has_variant(groups, "psf_scale"):
-        out["psf_scale"] = "no motion between source and target (stack or series)"
-    if not has_variant(groups, "misregistration"):
-        out["misregistration"] = "groups built without shifted histograms"
-    return out
-
-
-def physical_bounds(groups: list[Group]) -> dict[str, tuple[float, float]]:
-    """Parameter bounds the data impose: a black level cannot exceed the darkest code seen."""
-    dark = min(darkest_code(g) for g in groups)
-    return {"black": (0.0, min(PARAMS["black"][2], max(dark, 0) / 255.0))}
-
-
-class _Folds:
-    def __init__(self, groups: list[Group], nblocks: int):
-        self.nblocks = nblocks
-        self.part = [[subset(g, g.fold == f) for g in groups] for f in (0, 1)]
-        self.nvalid = [sum(int(g.valid.sum()) for g in part) for part in self.part]
-        self.cache: dict[frozenset, list[dict]] = {}
-        self.bounds = physical_bounds(groups)
-
-    def fit(self, effects: frozenset, start: list[dict], channels: int) -> list[dict]:
-        if effects not in self.cache:
-            free = [n for e in sorted(effects) for n in EFFECTS[e].params(channels)]
-            self.cache[effects] = [fit(self.part[f], free, start[f], self.nvalid[f],
-                                       self.bounds) for f in (0, 1)]
-        return self.cache[effects]
-
-    def block_score(self, base: list[dict], ext: list[dict]) -> tuple[np.ndarray, ...]:
-        """Per block: held-out gain ``D_b``, its noise ``U_b`` and expected size ``A_b``.
-
-        ``D_b = sum_p (r_S^2 - r_E^2) / (2 var)`` = ``sum_p delta (y - mid) / var`` with
-        ``delta = pred_E - pred_S`` computed from the *other* fold's parameters and the held-
-        out pixel's source codes only, so every pixel is weighted by how much the two models
-        differ there, and blocks where they agree contribute nothing.  ``U_b = sum_p delta
-        (y - pred_E) / var``: the noise of ``D_b`` measured on the extended model's residuals
-        (pure noise when ``E`` is right; inflated by ``delta^2`` when ``S`` is right, which
-        makes the test conservative under the null).  ``A_b = sum_p delta^2 / var``: the
-        block's share of the information, for the degrees of freedom.
-        """
-        d = np.zeros(self.nblocks)
-        u = np.zeros(self.nblocks)
-        a = np.zeros(self.nblocks)
-        for f in (0, 1):
-            for g in self.part[f]:
-                pb, var = predict(g, base[1 - f])
-                pe, _ = predict(g, ext[1 - f])
-                delta = np.where(g.valid, pe - pb, 0.0)
-                y = g.target
-                d += np.bincount(g.block, (delta * (y - 0.5 * (pb + pe)) / var).sum(axis=1),
-                                 minlength=self.nblocks)
-                u += np.bincount(g.block, (delta * (y - pe) / var).sum(axis=1),
-                                 minlength=self.nblocks)
-                a += np.bincount(g.block, (delta * delta / var).sum(axis=1),
-                                 minlength=self.nblocks)
-        return d, u, a
-
-    def block_nll(self, params: list[dict]) -> np.ndarray:
-        """Held-out NLL per block: fold f scored with the parameters fitted on the other."""
-        out = np.zeros(self.nblocks)
-        for f in (0, 1):
-            for g in self.part[f]:
-                out += np.bincount(g.block, weights=pixel_nll(g, params[1 - f]),
-                                   minlength=self.nblocks)
-        return out
-
-
-def fit(groups: list[Group], free: list[str], start: dict, nvalid: int,
-        bounds: dict[str, tuple[float, float]] | None = None) -> dict:
-    """Maximum-likelihood fit of the ``free`` parameters from ``start``.
-
-    ``flip`` (``psf_orientation``) is discrete and separate per group: it is chosen by the
-    group's likelihood given the other parameters, alternating with the continuous fit.
-    """
-    if "flip" not in free:
-        return _fit_continuous(groups, free, start, nvalid, bounds)
-    rest = [n for n in free if n != "flip"]
-    p = dict(start)
-    for _ in range(3):
-        chosen = _choose_flips(groups, p)
-        if all(p.get(k) == v for k, v in chosen.items()) and _ > 0:
-            break
-        p.update(chosen)
-        p = _fit_continuous(groups, rest, p, nvalid, bounds)
-    return p
-
-
-def _choose_flips(groups: list[Group], p: dict) -> dict:
-    out = {}
-    for g in groups:
-        if "psf_orientation" not in g.__dict__.get("variants", {}):
-            continue
-        key = f"flip:{g.__dict__.get('gid', 0)}"
-        nll = [float(pixel_nll(g, {**p, key: v}).sum()) for v in (0.0, 1.0)]
-        out[key] = float(nll[1] < nll[0])
-    return out
-
-
-def _fit_continuous(groups: list[Group], free: list[str], start: dict, nvalid: int,
-                    bounds: dict[str, tuple[float, float]] | None = None) -> dict:
-    names = list(dict.fromkeys(free))
-    if not names:
-        return dict(start)
-    bounds = bounds or {}
-    lo = np.array([bounds.get(n, PARAMS[n][1:])[0] for n in names])
-    hi = np.array([bounds.get(n, PARAMS[n][1:])[1] for n in names])
-    hi = np.maximum(hi, lo + 1e-9)
-    starts = [dict(start)]
-    if "na" in free and (start["na"] > 1e-6 or start["nb"] > 1e-8):
-        # a noise model inflated by a wrong mean flattens the likelihood; restart without it
-        starts.append({**start, "na": 0.0, "nb": 0.0})
-    if "gamma" in free and start["gamma"] == 1.0 and start["rho"] == 1.0:
-        # also start from the power-law corner: linear and display gamma
-        starts += [{**s, "gamma": g, "rho": 0.05} for s in list(starts) for g in (1.0, 2.2)]
-    best, best_val = None, math.inf
-    for s0 in starts:
-        def objective(z, s0=s0):
-            p = dict(s0)
-            p.update(zip(names, lo + (hi - lo) * z, strict=True))
-            if not time_ok(p):
-                return 1e3
-            return sum(float(pixel_nll(g, p).sum()) for g in groups) / max(nvalid, 1)
-
-        z0 = np.clip((np.array([s0[n] for n in names]) - lo) / (hi - lo), 0.0, 1.0)
-        res = optimize.minimize(objective, z0, method="L-BFGS-B", bounds=[(0, 1)] * len(z0),
-                                options={"maxiter": 300, "ftol": 1e-7, "gtol": 1e-5})
-        if res.fun < best_val:
-            best_val = res.fun
-            best = dict(s0)
-            best.update(zip(names, lo + (hi - lo) * res.x, strict=True))
-    return best
-
-
-def t_test(d: np.ndarray) -> tuple[float, float]:
-    """One-sided t statistic and p-value that the mean of ``d`` is > 0."""
-    if d.size < 3:
-        return 0.0, 1.0
-    sd = float(d.std(ddof=1))
-    if sd <= 1e-12 * max(1.0, float(np.abs(d).max())):
-        return 0.0, 1.0
-    t = float(d.mean()) / (sd / math.sqrt(d.size))
-    return t, float(stats.t.sf(t, d.size - 1))
-
-
-def weighted_test(d: np.ndarray, u: np.ndarray, a: np.ndarray) -> tuple[float, float]:
-    """One-sided test that the summed held-out gain ``sum d`` is > 0, block-robust.
-
-    ``T = sum d_b / sqrt(sum u_b^2)`` (a cluster-robust Wald statistic: pixels inside a block
-    may be correlated, blocks are nearly independent); Student's t with Satterthwaite's
-    degrees of freedom ``(sum a)^2 / sum a^2 - 1``, so a gain carried by a few blocks is
-    judged with the few degrees of freedom those blocks give.  See ``_Folds.block_score``.
-    """
-    if d.size < 2:
-        return 0.0, 1.0
-    v = float((u * u).sum())
-    if v <= 1e-300 or float(a.sum()) <= 0:
-        return 0.0, 1.0
-    t = float(d.sum()) / math.sqrt(v)
-    df = max(1.0, min(d.size - 1.0, float(a.sum()) ** 2 / float((a * a).sum()) - 1.0))
-    return t, float(stats.t.sf(t, df))
 
 
 def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
@@ -271,7 +98,7 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
     """Run the whole diagnosis (see the module docstring)."""
     nblocks = assign_blocks(groups)
     channels = groups[0].channels
-    folds = _Folds(groups, nblocks)
+    folds = Folds(groups, nblocks)
     used = np.zeros(nblocks, bool)
     for part in folds.part:
         for g in part:
@@ -301,7 +128,7 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
             d = d[reach]
             t, pv = weighted_test(d, u[reach], a[reach])
         gain = float(d.sum()) / max(nvalid, 1)
-        est = readable_estimate(effect, _average(p_e), channels)
+        est = readable_estimate(effect, average_params(p_e), channels)
         findings[effect] = Finding(effect, False, t, pv, est, explain(effect, est, False, gain),
                                    gain, rnd)
         if progress is not None:
@@ -340,14 +167,14 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
         (f for e, f in findings.items() if e not in order), key=lambda f: -f.statistic)
     base_p = folds.fit(frozenset(), [null, null], channels)
     full = fit(groups, [n for e in sorted(current) for n in EFFECTS[e].params(channels)],
-               _average(cur_params), sum(int(g.valid.sum()) for g in groups), folds.bounds)
+               average_params(cur_params), sum(int(g.valid.sum()) for g in groups), folds.bounds)
     for f in ranked:
         if f.significant:
             f.estimate = readable_estimate(f.effect, full, channels)
             f.explanation = explain(f.effect, f.estimate, True, f.nll_gain)
             f.interval = intervals(groups, full, f.effect, channels, folds.bounds)
-    b_rmse, b_nll, b_pred = _heldout(groups, base_p)
-    x_rmse, x_nll, x_pred = _heldout(groups, cur_params)
+    b_rmse, b_nll, b_pred = heldout_scores(groups, base_p)
+    x_rmse, x_nll, x_pred = heldout_scores(groups, cur_params)
     return Selection(order, ranked, full, b_rmse, x_rmse, b_nll, x_nll, b_pred, x_pred, skip)
 
 
@@ -432,25 +259,3 @@ def intervals(groups: list[Group], p: dict, effect: str, channels: int,
     return out
 
 
-def _average(params: list[dict]) -> dict:
-    return {k: 0.5 * (params[0][k] + params[1][k]) for k in params[0]}
-
-
-def _heldout(groups: list[Group], params: list[dict]):
-    """Cross-fitted RMSE (codes), NLL per valid value, and predictions per group."""
-    se = nll = 0.0
-    count = 0
-    preds = []
-    for g in groups:
-        pred = np.zeros_like(g.target)
-        for f in (0, 1):
-            rows = g.fold == f
-            sub = subset(g, rows)
-            pr, var = predict(sub, params[1 - f])
-            pred[rows] = pr
-            r = np.where(sub.valid, sub.target - pr, 0.0)
-            se += float((r * r).sum())
-            nll += float(pixel_nll(sub, params[1 - f]).sum())
-            count += int(sub.valid.sum())
-        preds.append(pred)
-    return math.sqrt(se / max(count, 1)), nll / max(count, 1), preds

@@ -20,6 +20,7 @@ import numpy as np
 
 from clblur.io import data_dir, read_image, write_image
 from clblur.manifest import write_manifest
+from clblur.responses import SRGB, Exp, Gamma
 
 GOPRO_STACK = 8  # 240 fps frames per 30 fps exposure
 GOPRO_STEP = 4  # start of consecutive stacks, frames
@@ -55,14 +56,6 @@ GOPRO_AVERAGES = ("code", "gamma22", "srgb")  # space the frames are averaged in
 GOPRO_STORAGE = ("round", "trunc")  # how the mean is stored as 8 bits
 
 
-def _srgb_to_linear(v: np.ndarray) -> np.ndarray:
-    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
-
-
-def _linear_to_srgb(x: np.ndarray) -> np.ndarray:
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-
-
 def average_frames(codes: np.ndarray, how: str, storage: str) -> np.ndarray:
     """8-bit long exposure from a stack of 8-bit frames (F x H x W x C), as a dataset
     generator would make it: the mean taken in code values (``code``), in gamma-2.2 linear
@@ -74,12 +67,15 @@ def average_frames(codes: np.ndarray, how: str, storage: str) -> np.ndarray:
     if how == "code":  # in code units, so exact halves stay halves (round half to even)
         mean = codes.astype(np.float64).mean(axis=0) / 255.0
     elif how == "gamma22":
-        mean = (v ** 2.2).mean(axis=0) ** (1 / 2.2)
+        curve = Gamma(2.2)
+        mean = curve.forward(curve.inverse(v).mean(axis=0))
     elif how == "srgb":
-        mean = _linear_to_srgb(_srgb_to_linear(v).mean(axis=0))
+        curve = SRGB()
+        mean = curve.forward(curve.inverse(v).mean(axis=0))
     elif how == "paper":  # Eq. 3 + Eq. 8 exactly (real null data); 255 as clblur.pixels
         top = 1.0 - 1.0 / (4 * 255)
-        mean = -np.expm1(np.log1p(-np.minimum(v, top)).mean(axis=0))
+        curve = Exp(1.0)
+        mean = curve.forward(curve.inverse(np.minimum(v, top)).mean(axis=0))
     else:
         raise ValueError(f"unknown average {how!r}; use code, gamma22, srgb or paper")
     # code values; 1e-9 so exact code-mean halves do not fall a hair under the integer

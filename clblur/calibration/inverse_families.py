@@ -1,0 +1,201 @@
+"""Families fitted in the inverse direction, as their authors specify.
+
+``polynomial`` (Mitsunaga & Nayar 1999: inverse response a polynomial with ``g(1) = 1``,
+fitted on exposure ratios of consecutive images) and ``nonparametric`` (Debevec & Malik 1997:
+a smooth free inverse on the code grid), both then made monotone and exported as ``Table``.
+
+Conventions
+-----------
+``tau``: nominal relative exposures, longest = 1; values normalised to [0, 1].
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.optimize import isotonic_regression
+from scipy.sparse.linalg import spsolve
+
+from clblur.calibration.forward_families import (
+    CURVE_LOW,
+    TABLE_SIZE,
+    TIME_PRIOR_SCALE,
+    TIME_SIGMA,
+    FamilyFit,
+    _refined_tau,
+    _table,
+    time_deviation_basis,
+)
+from clblur.responses import (
+    Polynomial,
+)
+
+__all__ = ["PolynomialFamily", "NonparametricFamily"]
+
+
+def _consecutive_pairs(samples, tau):
+    """(v_dark, v_bright, ratio index) for every sample valid in two neighbouring exposures."""
+    order = np.argsort(tau)
+    out = []
+    for q in range(order.size - 1):
+        a, b = order[q], order[q + 1]
+        both = samples.valid[:, a] & samples.valid[:, b]
+        out.append((samples.values[both, a], samples.values[both, b]))
+    return order, out
+
+
+class PolynomialFamily:
+    """Mitsunaga & Nayar 1999: inverse response ``g(v) = sum_n c_n v**n`` with ``g(1) = 1``.
+
+    ``c_0`` is fixed at 0 (no exposure at code 0): with a free constant the exposure-domain
+    error is minimised by flattening the curve wherever the samples are sparse (measured on
+    the Memorial stack: non-monotone curves and held-out errors near 100 DN).
+    Minimises ``sum (g(v_q) - R_q g(v_q+1))**2`` over neighbouring exposures; with
+    ``refine_times`` the ratios ``R_q`` are re-estimated from the curve and the fit repeated.
+    Exposure convention: full scale at exposure 1.
+    """
+
+    name = "polynomial"
+    default_low = CURVE_LOW
+
+    def fit(self, samples, tau, *, full_scale, refine_times=False, order: int = 6,
+            iterations: int = 30, **opts) -> FamilyFit:
+        if opts:
+            raise TypeError(f"unknown option(s) for the polynomial model: {sorted(opts)}")
+        if not isinstance(order, (int, np.integer)) or not 1 <= order <= 12:
+            raise ValueError(f"polynomial order must be an integer in 1..12, got {order!r}")
+        sorted_idx, pairs = _consecutive_pairs(samples, tau)
+        ratios = tau[sorted_idx[:-1]] / tau[sorted_idx[1:]]
+        nominal = ratios.copy()
+        basis = time_deviation_basis(np.log(tau[sorted_idx])) if refine_times else None
+        if sum(a.size for a, _ in pairs) <= order:
+            raise ValueError("too few samples valid in neighbouring exposures for the "
+                             f"polynomial model of order {order}")
+        powers = np.arange(1, order + 1)
+        coef = None
+        for _ in range(iterations if refine_times else 1):
+            rows, rhs = [], []
+            for (va, vb), r in zip(pairs, ratios, strict=True):
+                d = va[:, None] ** powers - r * vb[:, None] ** powers
+                rows.append(d[:, :-1] - d[:, -1:])
+                rhs.append(-d[:, -1])
+            c, *_ = np.linalg.lstsq(np.concatenate(rows), np.concatenate(rhs), rcond=None)
+            coef = np.concatenate([[0.0], c, [1.0 - c.sum()]])
+            if not refine_times:
+                break
+            new = np.array([_ratio(coef, va, vb, r) for (va, vb), r
+                            in zip(pairs, ratios, strict=True)])
+            new = _project_ratios(new, nominal, basis)
+            done = np.max(np.abs(np.log(new / ratios))) < 1e-6
+            ratios = new
+            if done:
+                break
+        tau_fit = np.empty_like(tau)
+        tau_fit[sorted_idx] = np.exp(_log_tau_from_ratios(ratios))
+        v = np.linspace(0.0, 1.0, TABLE_SIZE)
+        g = Polynomial(tuple(coef)).inverse(v)
+        params = {"order": int(order), "coefficients": coef.tolist()}
+        if refine_times:
+            params["exposure_ratios"] = ratios.tolist()
+        return FamilyFit(_table(g, v, self.name, params), params,
+                         order + (basis.shape[1] if refine_times else 0), tau_fit)
+
+
+def _log_tau_from_ratios(ratios: np.ndarray) -> np.ndarray:
+    """Neighbour ratios (ascending exposures) -> ln tau with the longest at 0."""
+    return np.concatenate([np.cumsum(np.log(ratios)[::-1])[::-1], [0.0]])
+
+
+def _project_ratios(ratios, nominal, basis) -> np.ndarray:
+    """Keep only the learnable part of the ratio update (see ``time_deviation_basis``)."""
+    dev = _log_tau_from_ratios(ratios) - _log_tau_from_ratios(nominal)
+    log_tau = _log_tau_from_ratios(nominal) + basis @ (basis.T @ dev)
+    return np.exp(-np.diff(log_tau))
+
+
+def _ratio(coef, va, vb, fallback):
+    curve = Polynomial(tuple(coef))
+    ga, gb = curve.inverse(va), curve.inverse(vb)
+    ok = (ga > 0) & (gb > 0)
+    return float(np.mean(ga[ok] / gb[ok])) if ok.sum() >= 3 else float(fallback)
+
+
+def _hat(v: np.ndarray) -> np.ndarray:
+    """Debevec & Malik's hat weight on normalised values, floored so no row vanishes."""
+    return np.maximum(np.minimum(v, 1.0 - v) * 2.0, 0.02)
+
+
+class NonparametricFamily:
+    """Debevec & Malik 1997: ``ln g`` at every code level with a smoothness term, made monotone.
+
+    Solves ``w(v)(ln g(v) - ln E_p - ln tau_i) = 0`` and ``lam w(z) (ln g)''(z) = 0`` jointly
+    (``ln g`` interpolated linearly between levels), then projects ``ln g`` onto
+    non-decreasing sequences (isotonic regression).  With ``refine_times`` the ``ln tau_i`` are
+    unknowns too, tied to the nominal times by a Gaussian prior of ``time_sigma`` (log units;
+    the prior also fixes the ``g -> g**a, tau -> tau**a`` ambiguity).  Exposure convention:
+    full scale at 1.
+    """
+
+    name = "nonparametric"
+    default_low = CURVE_LOW
+
+    def fit(self, samples, tau, *, full_scale, refine_times=False, smoothness: float = 30.0,
+            levels: int | None = None, time_sigma: float = TIME_SIGMA, **opts) -> FamilyFit:
+        if opts:
+            raise TypeError(f"unknown option(s) for the nonparametric model: {sorted(opts)}")
+        if not smoothness > 0:
+            raise ValueError(f"smoothness must be positive, got {smoothness!r}")
+        if not time_sigma > 0:
+            raise ValueError(f"time_sigma must be positive, got {time_sigma!r}")
+        if levels is not None:
+            n_lev = int(levels)
+        else:  # one level per code value for uint8, 1024 bins for deeper or float images
+            n_lev = min(int(full_scale) + 1, 1024) if full_scale > 1 else 256
+        if n_lev < 16:
+            raise ValueError(f"levels must be at least 16, got {levels!r}")
+        v, ok = samples.values, samples.valid
+        n_s, n_e = v.shape
+        basis = time_deviation_basis(np.log(tau)) if refine_times else np.zeros((n_e, 0))
+        n_t = basis.shape[1]
+        n_var = n_lev + n_s + n_t
+        pi, ii = np.nonzero(ok)
+        pos = v[pi, ii] * (n_lev - 1)
+        z0 = np.clip(np.floor(pos).astype(int), 0, n_lev - 2)
+        a = pos - z0
+        w = _hat(v[pi, ii])
+        r = np.arange(pi.size)
+        cols = [z0, z0 + 1, n_lev + pi]
+        vals = [w * (1 - a), w * a, -w]
+        data = sp.csr_matrix((np.concatenate(vals), (np.tile(r, len(cols)),
+                                                     np.concatenate(cols))),
+                             shape=(pi.size, n_var))
+        if n_t:  # ln tau_i = nominal + (B z)_i: dense coefficients on the n - 2 unknowns z
+            data = data + sp.hstack([sp.csr_matrix((pi.size, n_lev + n_s)),
+                                     sp.csr_matrix(-w[:, None] * basis[ii])]).tocsr()
+        zc = np.arange(1, n_lev - 1)
+        # second differences shrink with the level spacing squared; keep lam per uint8 step
+        ws = smoothness * _hat(zc / (n_lev - 1)) * ((n_lev - 1) / 255.0) ** 2
+        rs = np.arange(zc.size)
+        smooth = sp.csr_matrix(
+            (np.concatenate([ws, -2 * ws, ws]),
+             (np.concatenate([rs, rs, rs]), np.concatenate([zc - 1, zc, zc + 1]))),
+            shape=(zc.size, n_var))
+        blocks = [data, smooth, sp.csr_matrix(([1.0], ([0], [n_lev // 2])), shape=(1, n_var))]
+        rhs = [w * np.log(tau[ii]), np.zeros(zc.size + 1)]
+        if n_t:
+            blocks.append(sp.hstack([sp.csr_matrix((n_t, n_lev + n_s)),
+                                     TIME_PRIOR_SCALE / time_sigma * sp.identity(n_t)]))
+            rhs.append(np.zeros(n_t))
+        mat = sp.vstack(blocks).tocsr()
+        sol = spsolve((mat.T @ mat).tocsc(), mat.T @ np.concatenate(rhs))
+        log_g = sol[:n_lev]
+        tau_fit = _refined_tau(tau, basis, sol[n_lev + n_s:])
+        counts = np.bincount(np.clip(np.rint(pos).astype(int), 0, n_lev - 1),
+                             minlength=n_lev).astype(float)
+        log_g = isotonic_regression(log_g, weights=counts + 1.0).x
+        value = np.arange(n_lev) / (n_lev - 1)
+        params = {"smoothness": float(smoothness), "levels": n_lev}
+        if n_t:
+            params["relative_exposures"] = tau_fit.tolist()
+        return FamilyFit(_table(np.exp(log_g - log_g[-1]), value, self.name, params), params,
+                         n_lev - 1 + n_t, tau_fit)

@@ -1,0 +1,318 @@
+"""Response families fitted by ``clblur.calibration`` and ``clblur.study``.
+
+``ExpOffset`` (Eq. 3 above a black level), ``GammaOffset``, ``ExpShape`` (Eq. 3 generalised:
+black level, power, curvature and a free smooth warp, nested so that its null parameters give
+Eq. 3 exactly), ``Polynomial`` (Mitsunaga & Nayar 1999) and ``MonotoneSpline`` (a free monotone
+piecewise-linear curve, itself a ``Table``).  Families without a kernel code run on the device
+as their dense ``Table`` (``clblur.responses.for_device``).
+
+Conventions
+-----------
+Exposure ``x >= 0`` in arbitrary units (full scale at ``x = 1`` where a family normalises);
+values ``v`` normalised to [0, 1].
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from clblur.responses.base import (
+    Parametric,
+    Response,
+    _in_range,
+    _positive_finite,
+    _strictly_increasing,
+)
+from clblur.responses.kernel_curves import Table
+
+__all__ = ["ExpOffset", "GammaOffset", "ExpShape", "Polynomial", "MonotoneSpline", "default_knots",
+           "warp_basis"]
+
+
+# Value grid on which families without a closed-form forward are inverted numerically.
+_GRID = np.linspace(0.0, 1.0, 4097)
+
+
+class _Sampled(Parametric):
+    """A family defined by its inverse; the forward interpolates a dense value grid."""
+
+    def _grid_exposure(self) -> np.ndarray:
+        cache = self.__dict__.get("_grid_x")
+        if cache is None:
+            cache = _strictly_increasing(np.maximum(self.inverse(_GRID), 0.0))
+            object.__setattr__(self, "_grid_x", cache)
+        return cache
+
+    def forward(self, x):
+        return np.interp(np.asarray(x, dtype=np.float64), self._grid_exposure(), _GRID)
+
+
+@dataclass(frozen=True, eq=False, repr=False)
+class ExpOffset(Parametric):
+    """Eq. 3 above a black level ``b``: ``v = b + (1 - b)(1 - exp(-k x))``."""
+
+    black: float = 0.0
+    k: float = 1.0
+    kind = "exp-offset"
+    param_names = ("black", "k")
+
+    def __post_init__(self):
+        object.__setattr__(self, "black", _in_range("black level", float(self.black), "black"))
+        object.__setattr__(self, "k", _positive_finite("exp response k", self.k, "k"))
+
+    def forward(self, x):
+        b = self.black
+        return b - (1.0 - b) * np.expm1(-self.k * np.asarray(x, dtype=np.float64))
+
+    def inverse(self, v):
+        w = np.clip((np.asarray(v, dtype=np.float64) - self.black) / (1.0 - self.black), 0, 1)
+        with np.errstate(divide="ignore"):
+            return -np.log1p(-w) / self.k
+
+
+@dataclass(frozen=True, eq=False, repr=False)
+class GammaOffset(Parametric):
+    """A power law above a black level: ``v = b + (1 - b) min(x, 1) ** (1 / gamma)``."""
+
+    black: float = 0.0
+    gamma: float = 2.2
+    kind = "gamma-offset"
+    param_names = ("black", "gamma")
+
+    def __post_init__(self):
+        object.__setattr__(self, "black", _in_range("black level", float(self.black), "black"))
+        object.__setattr__(self, "gamma", _positive_finite("gamma exponent", self.gamma,
+                                                           "gamma"))
+
+    def forward(self, x):
+        b = self.black
+        x = np.clip(np.asarray(x, dtype=np.float64), 0.0, 1.0)
+        return b + (1.0 - b) * np.power(x, 1.0 / self.gamma)
+
+    def inverse(self, v):
+        w = np.clip((np.asarray(v, dtype=np.float64) - self.black) / (1.0 - self.black), 0, 1)
+        return np.power(w, self.gamma)
+
+
+def warp_basis(w: np.ndarray, n: int) -> np.ndarray:
+    """``n`` smooth functions of ``w`` in [0, 1] that vanish at ``w = 1`` (n x len(w)).
+
+    Shifted Legendre polynomials minus their value at 1: a constant would only rescale the
+    exposure unit (which cancels in every prediction), so it is left out.
+    """
+    t = 2.0 * np.clip(np.asarray(w, dtype=np.float64), 0.0, 1.0) - 1.0
+    return np.stack([np.polynomial.legendre.legval(t, [0.0] * m + [1.0]) - 1.0
+                     for m in range(1, n + 1)]) if n else np.zeros((0, t.size))
+
+
+@dataclass(frozen=True, eq=False, repr=False)
+class ExpShape(_Sampled):
+    """Eq. 3 generalised, nested so that the null parameters give Eq. 3 exactly.
+
+    Inverse: ``x = (-ln(1 - rho w) / rho) ** gamma * exp(sum_m c_m B_m(w))`` with
+    ``w = (v - b) / (1 - b)``, ``B_m`` from ``warp_basis``.  ``black = 0, gamma = rho = 1,
+    c = 0`` is Eq. 3 (k = 1); ``rho -> 0`` gives a power law; the warp coefficients ``c`` bend
+    the shape freely (toe and shoulder of S-shaped camera curves) while staying smooth.
+    Monotone by construction of the sampled forward (non-increasing stretches are flattened).
+    """
+
+    black: float = 0.0
+    gamma: float = 1.0
+    rho: float = 1.0
+    warp: tuple[float, ...] = ()
+    kind = "exp-shape"
+    param_names = ("black", "gamma", "rho")
+
+    def __post_init__(self):
+        object.__setattr__(self, "black", _in_range("black level", float(self.black), "black"))
+        object.__setattr__(self, "gamma", _in_range("exp-shape gamma", float(self.gamma),
+                                                    "gamma"))
+        object.__setattr__(self, "rho", _in_range("exp-shape rho", float(self.rho), "rho"))
+        warp = tuple(float(c) for c in self.warp)
+        if not all(math.isfinite(c) for c in warp):
+            raise ValueError(f"exp-shape warp coefficients must be finite, got {warp}")
+        object.__setattr__(self, "warp", warp)
+
+    def vector(self) -> np.ndarray:
+        return np.concatenate([super().vector(), self.warp])
+
+    @classmethod
+    def from_vector(cls, theta, **fixed) -> ExpShape:
+        theta = [float(t) for t in theta]
+        return cls(*theta[:3], warp=tuple(theta[3:]), **fixed)
+
+    def params(self):
+        return {"black": self.black, "gamma": self.gamma, "rho": self.rho,
+                "warp": list(self.warp)}
+
+    @staticmethod
+    def shape_inverse(w, gamma: float, rho: float, warp=()) -> np.ndarray:
+        """The inverse above the black level, on ``w`` in [0, 1) (inf at 1 when rho = 1)."""
+        w = np.asarray(w, dtype=np.float64)
+        with np.errstate(divide="ignore"):
+            base = np.power(-np.log1p(-rho * w) / rho, gamma)
+        if len(warp):
+            base = base * np.exp(np.asarray(warp) @ warp_basis(w.ravel(), len(warp))
+                                 ).reshape(w.shape)
+        return base
+
+    @staticmethod
+    def log_shape_inverse(w, gamma: float, rho: float) -> np.ndarray:
+        """``ln`` of ``shape_inverse`` without warp, ``gamma ln(-ln(1 - rho w) / rho)``, on
+        ``w`` in (0, 1): the form ``clblur.study`` fits by least squares (the warp adds
+        ``c @ warp_basis(w)`` to it)."""
+        return gamma * np.log(-np.log1p(-rho * w) / rho)
+
+    def inverse(self, v):
+        v = np.asarray(v, dtype=np.float64)
+        w = np.clip((v - self.black) / (1.0 - self.black), 0.0, 1.0)
+        x = self.shape_inverse(w, self.gamma, self.rho, self.warp)
+        if not self.warp:
+            return x
+        # a strongly bent warp may turn back: keep the running maximum along the value axis
+        flat = x.ravel()
+        order = np.argsort(w.ravel(), kind="stable")
+        flat[order] = np.maximum.accumulate(np.nan_to_num(flat[order], nan=0.0))
+        return flat.reshape(x.shape)
+
+    def forward(self, x):
+        if self.warp:
+            return super().forward(x)
+        x = np.maximum(np.asarray(x, dtype=np.float64), 0.0)
+        w = -np.expm1(-self.rho * np.power(x, 1.0 / self.gamma)) / self.rho
+        return self.black + (1.0 - self.black) * np.minimum(w, 1.0)
+
+    def forward_slope(self, x) -> tuple[np.ndarray, np.ndarray]:
+        """Value and its slope ``dv/dx`` at exposures ``x`` (analytic without warp, else the
+        slope of the sampled segment)."""
+        x = np.maximum(np.asarray(x, dtype=np.float64), 1e-12)
+        scale = 1.0 - self.black
+        if not self.warp:
+            root = np.power(x, 1.0 / self.gamma)
+            w = -np.expm1(-self.rho * root) / self.rho
+            slope = np.exp(-self.rho * root) * root / (self.gamma * x)
+            over = w > 1.0
+            return (self.black + scale * np.where(over, 1.0, w),
+                    scale * np.where(over, 0.0, slope))
+        gx = self._grid_exposure()
+        seg = np.clip(np.searchsorted(gx, x, side="right") - 1, 0, gx.size - 2)
+        slope = np.where(x < gx[-1], (_GRID[seg + 1] - _GRID[seg]) / (gx[seg + 1] - gx[seg]),
+                         0.0)
+        return self.forward(x), slope
+
+    def _grid_exposure(self) -> np.ndarray:
+        cache = self.__dict__.get("_grid_x")
+        if cache is None:
+            x = self.inverse(_GRID[:-1])
+            x = np.concatenate([x, [x[-1] * 2.0 + 1.0]])  # finite stand-in for I^-1(1)
+            cache = _strictly_increasing(np.maximum(x, 0.0))
+            object.__setattr__(self, "_grid_x", cache)
+        return cache
+
+
+@dataclass(frozen=True, eq=False, repr=False)
+class Polynomial(_Sampled):
+    """Mitsunaga & Nayar (1999): inverse ``g(v) = sum_n c_n v**n``, full scale at ``g(1)``.
+
+    ``coefficients`` start at ``c_0``.  The forward inverts ``g`` on a dense value grid; a
+    non-monotone stretch is flattened (the curve is made non-decreasing).
+    """
+
+    coefficients: tuple[float, ...] = (0.0, 1.0)
+    kind = "polynomial"
+
+    def __post_init__(self):
+        c = tuple(float(t) for t in self.coefficients)
+        if not 2 <= len(c) <= 13 or not all(math.isfinite(t) for t in c):
+            raise ValueError("polynomial response needs 2..13 finite coefficients "
+                             f"(c_0 first), got {c}")
+        object.__setattr__(self, "coefficients", c)
+
+    @property
+    def param_names(self):  # type: ignore[override]
+        return tuple(f"c{n}" for n in range(len(self.coefficients)))
+
+    def vector(self) -> np.ndarray:
+        return np.array(self.coefficients)
+
+    @classmethod
+    def from_vector(cls, theta, **fixed) -> Polynomial:
+        return cls(tuple(float(t) for t in theta), **fixed)
+
+    def params(self):
+        return {"coefficients": list(self.coefficients)}
+
+    def inverse(self, v):
+        v = np.clip(np.asarray(v, dtype=np.float64), 0.0, 1.0)
+        return np.polyval(self.coefficients[::-1], v)
+
+
+
+class MonotoneSpline(Table):
+    """A free monotone curve: piecewise linear in (exposure, value) through ``knots``.
+
+    ``knots`` are value positions ``0 = u_0 < ... < u_K = 1``; the exposure at ``u_k`` is
+    ``x_k = sum_{m <= k} exp(theta_m)`` (``x_0 = 0``), normalised so ``x_K = 1``.  Positive
+    increments make it monotone by construction; codes below a black level get increments
+    near zero (the toe).  It *is* a ``Table`` (kind ``table``), so the kernels run it exactly.
+    """
+
+    family = "monotone-spline"
+
+    def __init__(self, knots: Sequence[float], log_increments: Sequence[float],
+                 meta: dict | None = None):
+        u = np.asarray(knots, dtype=np.float64).ravel()
+        th = np.asarray(log_increments, dtype=np.float64).ravel()
+        if u.size < 3 or th.size != u.size - 1:
+            raise ValueError(f"monotone spline needs K + 1 >= 3 knots and K log increments, got "
+                             f"{u.size} and {th.size}")
+        if not (np.all(np.isfinite(u)) and np.all(np.isfinite(th))):
+            raise ValueError("monotone spline parameters must be finite")
+        if u[0] != 0.0 or u[-1] != 1.0 or np.any(np.diff(u) <= 0):
+            raise ValueError("monotone spline knots must increase strictly from 0 to 1")
+        total = float(np.log(np.sum(np.exp(th - th.max()))) + th.max())
+        if abs(total) > 1e-12:  # x_K = 1 (the exposure unit); a saved curve already has it
+            th = th - total
+        x = self.knot_exposures(th)
+        self.knots, self.log_increments = u, th
+        info = {"family": self.family, "knots": u.tolist(), "log_increments": th.tolist()}
+        super().__init__(_strictly_increasing(x / x[-1]), u, meta={**info, **(meta or {})})
+
+    param_names = property(lambda self: tuple(f"t{m}" for m in range(self.log_increments.size)))
+
+    @staticmethod
+    def knot_exposures(log_increments: np.ndarray) -> np.ndarray:
+        """Unnormalised exposures at the knots, ``x_k = sum_{m <= k} exp(theta_m)``, ``x_0 = 0``.
+
+        The one place the spline's parametrisation is written; ``clblur.calibration`` fits
+        ``log_increments`` through it and ``clblur.study`` reads fitted curves through it.
+        """
+        return np.concatenate([[0.0], np.cumsum(np.exp(log_increments))])
+
+    def vector(self) -> np.ndarray:
+        return self.log_increments.copy()
+
+    @classmethod
+    def from_vector(cls, theta, knots=None, **fixed) -> MonotoneSpline:
+        theta = np.asarray(theta, dtype=np.float64)
+        if knots is None:
+            knots = default_knots(theta.size)
+        return cls(knots, theta, **fixed)
+
+    @classmethod
+    def fit_to(cls, resp: Response, knots) -> MonotoneSpline:
+        """The spline through another response's inverse at ``knots`` (top knot finite)."""
+        u = np.asarray(knots, dtype=np.float64)
+        x = np.asarray(resp.inverse(np.minimum(u, 1.0 - 1e-4)), dtype=np.float64)
+        x = _strictly_increasing(np.maximum(x - x[0], 0.0))
+        return cls(u, np.log(np.maximum(np.diff(x), 1e-9 * x[-1])))
+
+
+def default_knots(k: int) -> np.ndarray:
+    """``k + 1`` value knots, denser towards black (``u_m = (m / k) ** 2``): the toe bends
+    most and dark codes stand for the widest range of exposure."""
+    return (np.arange(k + 1) / k) ** 2
