@@ -122,17 +122,10 @@ def finish_args(rt: Runtime, plan: BlurPlan, cbase: int, cg: int, out_buf) -> di
 
 
 def _grid_args(rt: Runtime, plan: BlurPlan, cbase: int, cg: int) -> dict:
-    """The box kernels' code grid (``quantisation.quantisation_grid``); ``cells = 0`` (the
-    search) where there is none."""
-    grid = None
-    if plan.dtype == np.uint8:
-        group = response_pack.four_channels(plan.responses[cbase:cbase + cg])
-        grid = quantisation.quantisation_grid(
-            quantisation.quantisation_thresholds(group, plan.dtype))
-    if grid is None:
-        return {"grid": rt.upload("grid", np.zeros(1, np.int32)), "cells": 0, "gstride": 0,
-                "gscale": 0.0}
-    table, cells, scale, stride = grid
+    """The box kernels' code grid (``quantisation.box_code_grid``); ``cells = 0`` (the search)
+    where there is none."""
+    grid = quantisation.box_code_grid(plan.responses[cbase:cbase + cg], plan.dtype)
+    table, cells, scale, stride = grid or (np.zeros(1, np.int32), 0, 0.0, 0)
     return {"grid": rt.upload("grid", table), "cells": cells, "gstride": stride,
             "gscale": float(scale)}
 

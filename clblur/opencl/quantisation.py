@@ -14,12 +14,13 @@ import functools
 
 import numpy as np
 
+from clblur.opencl import response_pack
 from clblur.opencl.constants import GRID_SEARCH, QHEAD
 from clblur.pixels import imax
 from clblur.responses import Table
 
-__all__ = ["BUCKET_MAX_STEPS", "GRID_CELLS", "GRID_MAX_SEARCH", "THRESHOLD_PAD", "grid_cells",
-           "quantisation_buckets", "quantisation_grid", "quantisation_thresholds"]
+__all__ = ["BUCKET_MAX_STEPS", "GRID_CELLS", "GRID_MAX_SEARCH", "THRESHOLD_PAD", "box_code_grid",
+           "grid_cells", "quantisation_buckets", "quantisation_grid", "quantisation_thresholds"]
 
 THRESHOLD_PAD = 64  # +inf entries after each row: no probe of the search leaves its row
 BUCKET_SHIFT = {8: 16, 16: 12}  # keeps 7 (uint8) or 11 (uint16) mantissa bits per bucket
@@ -177,3 +178,12 @@ def quantisation_grid(thresholds: np.ndarray):
     if t.shape[1] - THRESHOLD_PAD != 256:
         return None
     return _grid_cached(t.tobytes(), t.shape)
+
+
+def box_code_grid(responses, dtype: np.dtype):
+    """The code grid of one group of up to four channels (``quantisation_grid``), or None
+    where the box kernels keep the threshold search (outputs other than uint8)."""
+    if np.dtype(dtype) != np.uint8:
+        return None
+    group = response_pack.four_channels(responses)
+    return quantisation_grid(quantisation_thresholds(group, dtype))
