@@ -41,6 +41,9 @@ from clblur.blur import blur
 from clblur.pixels import quantise
 from clblur.responses import Exp, Response, response
 
+__all__ = ["Camera", "accelerating_weights", "normalised_radius2", "random_scene", "shift_image",
+           "vignette"]
+
 
 @dataclass(frozen=True)
 class Camera:

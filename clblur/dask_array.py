@@ -28,6 +28,8 @@ from clblur.halo import fixed_halo, halo_for_reach, tiled_motion
 from clblur.motion import PSF, Uniform, anchor_value
 from clblur.request import make_plan
 
+__all__ = ["blur"]
+
 
 def blur(array, motion, response="exp", *, anchor: str = "center", samples: int | None = None,
          weights=None, backend: str = "auto", saturation: float = 1.0,

@@ -23,6 +23,8 @@ from pathlib import Path
 
 from distributed import WorkerPlugin
 
+__all__ = ["PoclCachePerWorker", "client_for", "parse_scheduler"]
+
 
 def parse_scheduler(text: str) -> tuple[str, int | None]:
     """``"local"``/``"local:N"`` -> ("local", N or None); an address -> (address, None)."""

@@ -24,6 +24,8 @@ import numpy as np
 from clblur.io import read_flow, resolve_inside, write_flow
 from clblur.pixels import quantise
 
+__all__ = ["METHODS", "FlowEstimator", "FlowFolder", "flow_path", "grey8", "save_flows"]
+
 METHODS = ("dis", "farneback")
 
 

@@ -23,6 +23,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+__all__ = ["ANCHORS", "FLOW_LIMIT", "PSF", "Field", "Uniform", "anchor_value", "check_flow",
+           "flow_error", "parse_motion", "psf", "sample_counts", "sample_fractions",
+           "time_weights", "uniform_taps"]
+
 ANCHORS = {"start": 0.0, "center": 0.5, "end": 1.0}
 # Largest flow component accepted, in px: far beyond any image, small enough that sample
 # positions keep 2^-8 px in float32 and the per-pixel sample count stays bounded.

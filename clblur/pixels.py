@@ -28,6 +28,9 @@ import numpy as np
 
 from clblur.responses import Response
 
+__all__ = ["SUPPORTED_DTYPES", "code_step", "full_scale_exposure", "imax", "linearisation_table",
+           "linearise", "normalise", "quantise", "top_value", "validate_saturation"]
+
 SUPPORTED_DTYPES = (np.uint8, np.uint16, np.float32, np.float64)
 
 

@@ -48,6 +48,9 @@ from clblur.pipeline import run_numpy
 from clblur.request import check_image, make_plan
 from clblur.responses import per_channel
 
+__all__ = ["DEFAULT_RESPONSE", "DEFAULT_SHUTTER", "VideoResult", "bent_path", "blur_frame",
+           "blur_video", "half_paths", "shutter_fraction"]
+
 # Chosen from docs/studies/video.md (GoPro 240 fps ground truth).
 DEFAULT_RESPONSE = "srgb"
 DEFAULT_SHUTTER = 180.0

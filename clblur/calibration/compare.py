@@ -16,6 +16,8 @@ from clblur.calibration.models import MODELS, EmorBasis
 from clblur.calibration.sampling import VALID_LOW, sample_series
 from clblur.calibration.series import ExposureSeries, load_series
 
+__all__ = ["Calibration", "available_models", "calibrate"]
+
 
 @dataclass
 class Calibration:

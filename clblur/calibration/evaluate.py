@@ -28,6 +28,8 @@ from tqdm import tqdm
 from clblur.calibration.fitting import ResponseFit, fit, transfer
 from clblur.calibration.series import ExposureSeries
 
+__all__ = ["DIRECTIONS", "EVAL_HIGH", "EVAL_LOW", "FLAT_TOLERANCE", "evaluate"]
+
 FLAT_TOLERANCE = 0.03
 # Codes 3..252 of 255 are valid: code 0..2 may be a clipped black, 253..255 a clipped white.
 EVAL_LOW = 2.5 / 255.0

@@ -29,6 +29,9 @@ from clblur.calibration.sampling import VALID_HIGH, VALID_LOW, SampleSet, Sampli
 from clblur.calibration.series import ExposureSeries
 from clblur.responses import Exp, Response
 
+__all__ = ["LIKELIHOOD_LOW", "ResponseFit", "fit", "fit_radiances", "forward_residuals",
+           "radiance_map", "transfer"]
+
 # Low end of the sample values on which every model's likelihood (and fit RMSE) is computed.
 LIKELIHOOD_LOW = 0.1
 

@@ -19,6 +19,10 @@ from clblur.calibration.fitting import LIKELIHOOD_LOW, ResponseFit, fit_radiance
 from clblur.calibration.series import ExposureSeries
 from clblur.io import atomic_write, atomic_write_text
 
+__all__ = ["CHANNEL_NAMES", "COLOURS", "comparison_table", "curve_table",
+           "figure_normalised_curves", "figure_residuals", "figure_values_vs_time", "series_table",
+           "write_report"]
+
 CHANNEL_NAMES = {1: ["grey"], 3: ["red", "green", "blue"]}
 COLOURS = ["tab:red", "tab:green", "tab:blue"]
 

@@ -25,6 +25,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+__all__ = ["MONOTONE_TOLERANCE", "N_PIXELS", "VALID_HIGH", "VALID_LOW", "SampleSet", "Sampling",
+           "sample_series", "valid_mask"]
+
 VALID_LOW = 0.02
 VALID_HIGH = 0.98
 # A patch whose value drops by more than this (normalised) while the exposure grows is not a

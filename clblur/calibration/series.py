@@ -25,6 +25,9 @@ from clblur.io import read_image, resolve_inside
 from clblur.manifest import load_manifest
 from clblur.pixels import imax
 
+__all__ = ["IMAGE_SUFFIXES", "ExposureSeries", "exif_exposure", "load_series", "parse_time",
+           "read_times_file"]
+
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
 _EXIF_IFD, _EXPOSURE_TIME, _F_NUMBER = 0x8769, 0x829A, 0x829D
 

@@ -35,6 +35,10 @@ from clblur.io.images import read_image, write_image
 from clblur.io.paths import resolve_inside
 from clblur.pixels import quantise
 
+__all__ = ["DEFAULT_CRF", "IMAGE_SUFFIXES", "VIDEO_CODECS", "Frame", "ImageSequenceSink",
+           "ImageSequenceSource", "VideoFileSink", "VideoFileSource", "VideoReadError",
+           "is_image_sequence", "open_sink", "open_source"]
+
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp")
 # Default encoder per output container; libx264 at CRF 17 is visually lossless for most content.
 VIDEO_CODECS = {".mp4": "libx264", ".mov": "libx264", ".mkv": "libx264", ".avi": "mpeg4",

@@ -30,6 +30,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+__all__ = ["EFFECTS", "EFFECT_NAMES", "PARAMS", "Effect", "channel_gains", "explain",
+           "readable_estimate"]
+
 # name: (null value, lower bound, upper bound)
 PARAMS: dict[str, tuple[float, float, float]] = {
     "black": (0.0, 0.0, 0.3),

@@ -22,6 +22,8 @@ from clblur.camera import normalised_radius2
 from clblur.sampling import bilinear_corners
 from clblur.study.model import CODES, Group
 
+__all__ = ["Taps", "as_hwc", "build_group", "sample_grid", "shifted"]
+
 
 @dataclass(frozen=True)
 class Taps:

@@ -33,6 +33,9 @@ import scipy.sparse as sp
 from clblur.responses import ExpShape
 from clblur.study.effects import PARAMS, channel_gains
 
+__all__ = ["CODES", "TOP", "WARP_KEYS", "Group", "forward", "inverse_table", "null_params",
+           "pixel_nll", "predict", "shape", "shape_starts", "time_ok"]
+
 CODES = 256
 # Free-shape warp coefficients of the response (``clblur.responses.ExpShape``); absent keys
 # are 0, so the paper's Eq. 3 stays the null of ``response_shape``.

@@ -10,6 +10,8 @@ from clblur.study.histograms import Taps, as_hwc, build_group, sample_grid, shif
 from clblur.study.model import Group
 from clblur.study.variants import SCALES, SHIFTS
 
+__all__ = ["best_shift", "pair_group", "shift_kernel"]
+
 
 def pair_group(static: np.ndarray, blurred: np.ndarray, motion, *, anchor: str = "center",
                exposure_ratio: float = 1.0, max_pixels: int = 60000,

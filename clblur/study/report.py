@@ -11,6 +11,8 @@ from clblur.study.effects import EFFECT_NAMES
 from clblur.study.model import Group, inverse_table, null_params
 from clblur.study.select import Selection
 
+__all__ = ["BASELINE_MODEL", "build_report", "figures", "grid_image", "markdown"]
+
 BASELINE_MODEL = ("paper: Eq. 3 response v = 1 - exp(-k x) (k cancels), Eq. 9 linear-domain "
                   "average, clipped pixels at the least clipping exposure; quantisation only")
 

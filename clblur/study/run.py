@@ -16,6 +16,8 @@ from clblur.study.select import Selection, select
 from clblur.study.series import series_groups
 from clblur.study.stacks import stack_group
 
+__all__ = ["DEFAULT_PIXELS", "StudyResult", "groups_from_manifest", "study", "study_groups"]
+
 DEFAULT_PIXELS = 60000  # target pixels used in all (split evenly over pairs/stacks/steps)
 
 

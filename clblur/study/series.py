@@ -13,6 +13,8 @@ from clblur.study.histograms import Taps, as_hwc, build_group, sample_grid, shif
 from clblur.study.model import Group
 from clblur.study.variants import SHIFTS
 
+__all__ = ["series_groups"]
+
 
 def series_groups(images: list[np.ndarray], exposures: list[float],
                   f_numbers: list[float | None] | None = None, *,

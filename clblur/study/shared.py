@@ -22,6 +22,9 @@ from clblur.io import data_dir, read_image, write_image
 from clblur.manifest import write_manifest
 from clblur.responses import SRGB, Exp, Gamma
 
+__all__ = ["GOPRO_AVERAGES", "GOPRO_STACK", "GOPRO_STEP", "GOPRO_STORAGE", "average_frames",
+           "canon", "gopro", "levin", "main", "memorial"]
+
 GOPRO_STACK = 8  # 240 fps frames per 30 fps exposure
 GOPRO_STEP = 4  # start of consecutive stacks, frames
 

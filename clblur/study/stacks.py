@@ -12,6 +12,8 @@ from clblur.study.histograms import Taps, as_hwc, build_group, sample_grid, shif
 from clblur.study.model import Group
 from clblur.study.variants import SHIFTS
 
+__all__ = ["stack_group"]
+
 
 def stack_group(frames: list[np.ndarray], long: np.ndarray, *, max_pixels: int = 60000,
                 name: str = "stack") -> Group:

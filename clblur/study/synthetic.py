@@ -26,6 +26,8 @@ from clblur.study.pairs import pair_group
 from clblur.study.series import series_groups
 from clblur.study.stacks import stack_group
 
+__all__ = ["CLIP", "RANGES", "Scenario", "null_stack", "random_psf", "scenario"]
+
 # effect: (low, high) of the hidden magnitude, in the units of ``magnitude`` below
 RANGES = {
     "black_level": (0.02, 0.08),  # normalised black offset (5 to 20 codes)
