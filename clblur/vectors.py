@@ -182,7 +182,7 @@ def read_vectors(path: str | os.PathLike, convention: str) -> dict[str, np.ndarr
         if a.ndim == 3 and a.shape[2] == 4:
             return {"forward": a[..., :2], "backward": a[..., 2:]}
         return {"forward": _field(a, f"Nuke forward vectors {path}", 2)}
-    from clblur import exr
+    from clblur.io import exr
 
     chans = exr.read_channels(path)
     if convention == "blender":

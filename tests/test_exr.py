@@ -1,4 +1,4 @@
-"""OpenEXR input/output (clblur.exr) and renderer vector passes through the command line."""
+"""OpenEXR input/output (clblur.io.exr) and renderer vector passes through the command line."""
 
 from __future__ import annotations
 
@@ -8,9 +8,15 @@ import pytest
 pytest.importorskip("OpenEXR", reason="OpenEXR bindings not installed (pip install clblur[exr])")
 
 import clblur  # noqa: E402
-from clblur import exr, scenes, vectors  # noqa: E402
+from clblur import scenes, vectors  # noqa: E402
 from clblur.cli import main  # noqa: E402
-from clblur.io import read_flow, read_image, write_flow, write_image  # noqa: E402
+from clblur.io import (  # noqa: E402
+    exr,  # noqa: E402
+    read_flow,
+    read_image,
+    write_flow,
+    write_image,
+)
 
 
 @pytest.fixture(scope="module")

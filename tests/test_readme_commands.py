@@ -60,7 +60,7 @@ def make_inputs(root: Path) -> Path:
     write_image(work / "huge.tif", img)
     write_flow(work / "huge_flow.npy", rng.normal(0, 3, (24, 32, 2)))
     try:  # the EXR / render-pass commands
-        from clblur import exr
+        from clblur.io import exr
     except ImportError:
         exr = None
     if exr is not None:

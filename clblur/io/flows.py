@@ -54,7 +54,7 @@ def read_flow(path: str | os.PathLike) -> np.ndarray:
     if not path.is_file():
         raise InputError(f"flow file not found: {path}")
     if path.suffix.lower() == ".exr":
-        from clblur import exr
+        from clblur.io import exr
 
         return exr.read_flow(path)
     if path.suffix.lower() == ".flo":
@@ -89,7 +89,7 @@ def write_flow(path: str | os.PathLike, flow: np.ndarray) -> None:
     """Write a flow field as .flo, .exr or .npy (by suffix), atomically."""
     path = Path(path)
     if path.suffix.lower() == ".exr":
-        from clblur import exr
+        from clblur.io import exr
 
         exr.write_flow(path, flow)
         return
@@ -139,11 +139,11 @@ def read_depth(path: str | os.PathLike) -> np.ndarray:
     path = os.fspath(path)
     head, sep, channel = path.rpartition(":")
     if sep and head.lower().endswith(".exr"):
-        from clblur.exr import read_depth as read_exr_depth
+        from clblur.io.exr import read_depth as read_exr_depth
 
         return read_exr_depth(head, channel)
     if path.lower().endswith(".exr"):
-        from clblur.exr import read_depth as read_exr_depth
+        from clblur.io.exr import read_depth as read_exr_depth
 
         return read_exr_depth(path)
     if not path.lower().endswith(".npy"):

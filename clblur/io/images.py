@@ -123,7 +123,7 @@ def probe_image(path: str | os.PathLike) -> ImageHeader:
             with path.open("rb") as f:
                 header = _jpeg_header(f)
         elif fmt == "exr":
-            from clblur.exr import probe
+            from clblur.io.exr import probe
 
             header = ImageHeader(*probe(path))
         else:
@@ -184,8 +184,8 @@ def read_image(path: str | os.PathLike, max_bytes: int | None = None) -> np.ndar
     if not path.is_file():
         raise InputError(f"image file not found: {path}")
     check_decodable(path, max_bytes)
-    if image_format(path) == "exr":  # linear float channels: clblur.exr
-        from clblur import exr
+    if image_format(path) == "exr":  # linear float channels: clblur.io.exr
+        from clblur.io import exr
 
         return exr.read_image(path)
     if image_format(path) == "tiff":
@@ -245,7 +245,7 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
     path = Path(path)
     fmt = image_format(path)
     if fmt == "exr":
-        from clblur import exr
+        from clblur.io import exr
 
         exr.write_image(path, image)
         return

@@ -89,7 +89,7 @@ def write_channels(path: str | os.PathLike, channels: dict[str, np.ndarray], *,
     float16 (colour usually; depth and vectors keep float32 precision).  ``compression``:
     ``none``, ``zip``, ``piz``, ``zips``, ``rle``.
     """
-    from clblur.io import atomic_write
+    from clblur.io.atomic import atomic_write
 
     exr = _openexr()
     if not channels:
