@@ -152,8 +152,11 @@ def predict(g: Group, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
         s = scale * dv
         hq = g.hist_sq[c]
         source = hq @ (dq + na2 * t + nb2)
-        var[:, c] = (1.0 / 12.0 + s * s * (na2 * x + nb2)
-                     + (s * m) ** 2 * source)
+        # never below the stored code's own rounding variance (1/12 code^2): the optimiser
+        # explores negative noise coefficients, where the sum would go to zero or below and
+        # the likelihood to NaN; with physical (non-negative) coefficients this changes nothing
+        var[:, c] = np.maximum(1.0 / 12.0 + s * s * (na2 * x + nb2) + (s * m) ** 2 * source,
+                               1.0 / 12.0)
     return pred, var
 
 
