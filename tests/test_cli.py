@@ -167,3 +167,17 @@ def test_library_never_imports_the_command_line():
             if any(n == "clblur.cli" or n.startswith("clblur.cli.") for n in names):
                 offenders.append(str(path.relative_to(root)))
     assert offenders == []
+
+
+def test_depth_exr_channel_is_never_overwritten(tmp_path, scene, capsys):
+    """``--depth FILE.exr:CHANNEL`` names FILE.exr as an input: OUT = FILE.exr is refused."""
+    exr = pytest.importorskip("clblur.io.exr")
+    pytest.importorskip("OpenEXR")
+    src, img = scene
+    depth = tmp_path / "d.exr"
+    exr.write_channels(depth, {"Z": np.ones(img.shape[:2], np.float32)})
+    before = depth.read_bytes()
+    assert run("blur", src, depth, "--motion=3,0", "--depth", f"{depth}:Z",
+               "--backend", "numpy") == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    assert depth.read_bytes() == before

@@ -46,9 +46,10 @@ def register(sub) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from clblur.io import IMAGE_FORMATS, check_output, probe_image
+    from clblur.io.flows import depth_source
     from clblur.tiling import blur_file, parse_size
 
-    depth_file = None if args.depth is None else args.depth.split(".exr:")[0]
+    depth_file = None if args.depth is None else depth_source(args.depth)[0]
     check_output(args.output, args.input, args.flow, args.psf, depth_file,
                  suffixes=tuple(IMAGE_FORMATS))
     parse_size(args.memory_budget)

@@ -21,8 +21,8 @@ from clblur.io.atomic import atomic_write
 from clblur.io.images import read_image
 from clblur.io.raster import MappedRaster
 
-__all__ = ["FLO_MAGIC", "MAX_PSF_SIDE", "open_flow", "read_depth", "read_flow", "read_psf",
-           "write_flow"]
+__all__ = ["FLO_MAGIC", "MAX_PSF_SIDE", "depth_source", "open_flow", "read_depth", "read_flow",
+           "read_psf", "write_flow"]
 
 FLO_MAGIC = 202021.25  # Middlebury .flo tag
 MAX_PSF_SIDE = 4096
@@ -130,22 +130,27 @@ def read_psf(path: str | os.PathLike) -> np.ndarray:
     return k
 
 
+def depth_source(spec: str | os.PathLike) -> tuple[str, str | None]:
+    """``(file, EXR channel or None)`` of a depth spec: ``FILE.npy``, ``FILE.exr`` or
+    ``FILE.exr:CHANNEL`` (the one parser for readers and output checks)."""
+    spec = os.fspath(spec)
+    head, sep, channel = spec.rpartition(":")
+    if sep and head.lower().endswith(".exr"):
+        return head, channel
+    return spec, None
+
+
 def read_depth(path: str | os.PathLike) -> np.ndarray:
     """A depth map or layer IDs, H x W, from a ``.npy`` file or a channel of an EXR file.
 
     ``FILE.exr`` finds ``Z`` / ``depth.Z`` / ``<layer>.Depth.Z``; ``FILE.exr:CHANNEL`` names
     the channel.  Smaller is nearer (see ``clblur.blur``'s ``depth``).
     """
-    path = os.fspath(path)
-    head, sep, channel = path.rpartition(":")
-    if sep and head.lower().endswith(".exr"):
-        from clblur.io.exr import read_depth as read_exr_depth
-
-        return read_exr_depth(head, channel)
+    path, channel = depth_source(path)
     if path.lower().endswith(".exr"):
         from clblur.io.exr import read_depth as read_exr_depth
 
-        return read_exr_depth(path)
+        return read_exr_depth(path, channel)
     if not path.lower().endswith(".npy"):
         raise InputError(f"depth must be a .npy file (H x W) or an EXR depth channel "
                          f"(FILE.exr or FILE.exr:CHANNEL), got {path}")
