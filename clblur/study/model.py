@@ -34,7 +34,7 @@ from clblur.responses import ExpShape
 from clblur.study.effects import PARAMS, channel_gains
 
 __all__ = ["CODES", "TOP", "WARP_KEYS", "Group", "forward", "inverse_table", "null_params",
-           "pixel_nll", "predict", "shape", "shape_starts", "time_ok"]
+           "gaussian_nll", "predict", "shape", "time_ok"]
 
 CODES = 256
 # Free-shape warp coefficients of the response (``clblur.responses.ExpShape``); absent keys
@@ -164,9 +164,9 @@ def _rowsum(h: sp.csr_matrix) -> np.ndarray:
     return np.asarray(h.sum(axis=1)).ravel()
 
 
-def pixel_nll(g: Group, p: dict[str, float]) -> np.ndarray:
-    """Gaussian negative log-likelihood per target pixel (summed over valid channels)."""
-    pred, var = predict(g, p)
+def gaussian_nll(g: Group, pred: np.ndarray, var: np.ndarray) -> np.ndarray:
+    """Gaussian negative log-likelihood of ``g``'s targets under ``(pred, var)`` (n, C), per
+    target pixel, summed over its valid channels."""
     r = g.target - pred
     nll = 0.5 * (_LOG2PI + np.log(var) + r * r / var)
     return np.where(g.valid, nll, 0.0).sum(axis=1)
@@ -174,67 +174,3 @@ def pixel_nll(g: Group, p: dict[str, float]) -> np.ndarray:
 
 def null_params() -> dict[str, float]:
     return {k: v[0] for k, v in PARAMS.items()}
-
-
-def shape_starts(groups: list[Group], start: dict[str, float],
-                 min_pools: int = 24) -> list[dict[str, float]]:
-    """Starting points for ``response_shape`` from a quick calibration on the data itself.
-
-    Target pixels whose source histogram sits on one code (every exposure-series step; the
-    still parts of pairs and stacks) give (source code, target code, exposure ratio) triples:
-    exactly the cross-exposure objective of ``clblur calibrate``'s ``spline`` model, fitted
-    with the same function (``clblur.calibration.models.fit_cross_exposure``).  The fitted
-    curve is then projected onto the study's ``ExpShape`` family (least squares on the log
-    inverse over the observed codes).  Empty when too few such pixels exist.
-    """
-    from scipy.optimize import least_squares
-
-    from clblur.calibration.models import fit_cross_exposure
-    from clblur.responses import MonotoneSpline, default_knots, warp_basis
-
-    src, tgt, ratio = [], [], []
-    for g in groups:
-        h = g.hist.get((0, 0))
-        if h is None:
-            continue
-        for c in range(g.channels):
-            m = h[c].tocsr()
-            single = np.diff(m.indptr) == 1
-            ok = single & g.valid[:, c]
-            code = m.indices[m.indptr[:-1][ok]]
-            keep = (code > 2) & (code < 253) & (g.target[ok, c] > 2) & (g.target[ok, c] < 253)
-            src.append(code[keep].astype(np.float64))
-            tgt.append(g.target[ok, c][keep])
-            ratio.append(np.full(int(keep.sum()), g.ratio))
-    if not src:
-        return []
-    src, tgt, ratio = (np.concatenate(a) for a in (src, tgt, ratio))
-    key = src + 256.0 * np.unique(ratio, return_inverse=True)[1]
-    uniq, inv, count = np.unique(key, return_inverse=True, return_counts=True)
-    if uniq.size < min_pools or np.unique(ratio).size < 1:
-        return []
-    mean = np.bincount(inv, weights=tgt) / count / 255.0
-    pool_ratio = np.bincount(inv, weights=ratio) / count
-    u = default_knots(16)
-    theta = fit_cross_exposure(u, (uniq % 256.0) / 255.0, mean, pool_ratio,
-                               np.sqrt(count) * 255.0, 0.3)
-    x_knots = MonotoneSpline.knot_exposures(theta)
-    lo, hi = np.percentile(src, [1, 99]) / 255.0
-    v = np.linspace(max(lo, start["black"] + 0.02), min(hi, 0.97), 48)
-    target = np.log(np.maximum(np.interp(v, u, x_knots), 1e-12))
-    w = np.clip((v - start["black"]) / (1.0 - start["black"]), 1e-6, 1 - 1e-6)
-    basis = warp_basis(w, len(WARP_KEYS))
-    names = ("gamma", "rho", *WARP_KEYS)
-    lower = [PARAMS[n][1] for n in names]
-    upper = [PARAMS[n][2] for n in names]
-
-    def resid(q):  # log inverse of ExpShape, free exposure offset q[-1]
-        base = ExpShape.log_shape_inverse(w, q[0], q[1])
-        return base + q[2:-1] @ basis + q[-1] - target
-
-    out = []
-    for g0, r0 in ((1.0, 1.0), (2.2, 0.05)):
-        sol = least_squares(resid, [g0, r0, 0, 0, 0, 0, 0.0],
-                            bounds=(lower + [-np.inf], upper + [np.inf]))
-        out.append({**start, **dict(zip(names, (float(t) for t in sol.x[:-1]), strict=True))})
-    return out

@@ -6,7 +6,7 @@ Cross-fitting lives in ``clblur.study.crossfit``, the test statistics in
 Conventions
 -----------
 * Target pixels are cut into square blocks; blocks alternate between two folds like a
-  checkerboard.  A model is fitted (maximum likelihood, ``model.pixel_nll``) on one fold and
+  checkerboard.  A model is fitted (maximum likelihood, ``variants.pixel_nll``) on one fold and
   scored on the other, both ways round, so every block is scored by parameters that never saw
   it (cross-fitting).
 * Test of effect ``e`` given the current model ``S``: ``d_b`` = held-out improvement of

@@ -31,12 +31,11 @@ import dataclasses
 import numpy as np
 import scipy.sparse as sp
 
-from clblur.study.model import Group
+from clblur.study.model import Group, gaussian_nll
 from clblur.study.model import predict as _model_predict
 
 __all__ = ["attach", "darkest_code", "has_variant", "pixel_nll", "predict", "subset"]
 
-_LOG2PI = float(np.log(2 * np.pi))
 SCALES = (0.8, 1.25)  # psf_scale histograms besides 1
 SHIFTS = ((1, 0), (-1, 0), (0, 1), (0, -1))  # misregistration histograms besides (0, 0)
 
@@ -130,7 +129,4 @@ def predict(g: Group, p: dict) -> tuple[np.ndarray, np.ndarray]:
 
 def pixel_nll(g: Group, p: dict) -> np.ndarray:
     """Gaussian negative log-likelihood per target pixel (summed over valid channels)."""
-    pred, var = predict(g, p)
-    r = g.target - pred
-    nll = 0.5 * (_LOG2PI + np.log(var) + r * r / var)
-    return np.where(g.valid, nll, 0.0).sum(axis=1)
+    return gaussian_nll(g, *predict(g, p))
