@@ -242,6 +242,18 @@ def test_exported_responses_round_trip_and_blur(tmp_path, rng):
     assert meta["family"] == "exp-offset" and "black_level" in meta["params"]
 
 
+@pytest.mark.parametrize("seed", [1, 3])
+def test_spline_fit_does_not_stall_in_a_flat_curve(seed):
+    # seeds whose 3-channel stacks sent the single display-gamma start into a curve nearly
+    # flat below its last knot (20 stops off); every channel is one curve, scaled radiance
+    series, _ = make_stack(film_curve, np.random.default_rng(seed), channels=3)
+    result = fit(series, "spline")
+    v = np.linspace(0.15, 0.85, 15)
+    truth = np.log2(0.08 * (v / (1 - v)) ** (1 / 0.75))  # film_curve's inverse
+    for curve in result.responses:
+        assert np.ptp(np.log2(curve.inverse(v)) - truth) < 0.3  # stops, up to a common unit
+
+
 def test_spline_cross_exposure_fit_recovers_an_s_curve(rng):
     """The cross-exposure spline takes the S-shaped curve no parametric family here holds,
     with a black level (toe) of 12 DN, and is scored on all valid pixels."""

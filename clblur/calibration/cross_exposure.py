@@ -171,11 +171,23 @@ def fit_cross_exposure(u: np.ndarray, src: np.ndarray, target: np.ndarray, ratio
         return np.vstack([jac, smoothness * diff2, (e / e.sum())[None, :]])
 
     if theta0 is None:
-        x0 = Gamma(2.2).inverse(u)  # start from a display-gamma curve
-        theta0 = np.log(np.maximum(np.diff(x0), 1e-6))
+        # The objective has degenerate local minima (a curve nearly flat below its last knot
+        # predicts every target inside one segment); a display gamma, a straight line and a
+        # steep power law start in different basins, and the lowest cost wins.
+        starts = [np.log(np.maximum(np.diff(Gamma(g).inverse(u)), 1e-6))
+                  for g in (2.2, 1.0, 4.0)]
+    else:
+        starts = [np.asarray(theta0, dtype=np.float64)]
+    best, best_cost = None, np.inf
     # trial steps may overflow exp(); their non-finite cost rejects them
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        return _levenberg_marquardt(residuals, jacobian, np.asarray(theta0, dtype=np.float64))
+        for start in starts:
+            theta = _levenberg_marquardt(residuals, jacobian, start)
+            r = residuals(theta)
+            cost = float(r @ r)
+            if cost < best_cost:
+                best, best_cost = theta, cost
+    return best
 
 
 def _levenberg_marquardt(residuals, jacobian, theta: np.ndarray, iterations: int = 200,
