@@ -16,7 +16,7 @@ import numpy as np
 from clblur.halo import reach
 from clblur.layering import layer_labels
 
-__all__ = ["INPAINT_RADIUS", "Layers", "MID_EXTEND_PX", "SPLIT_PRIOR", "prepare",
+__all__ = ["INPAINT_RADIUS", "Layers", "MID_EXTEND_PX", "SPLIT_PRIOR", "distance_to", "prepare",
            "split_coverage"]
 
 INPAINT_RADIUS = 3
@@ -43,6 +43,33 @@ class Layers:
     linear: np.ndarray
     region: np.ndarray
     present: np.ndarray
+
+
+# cv2's exact transform returns float32 distances; squared, they round back to the exact
+# integer squared distance while d * ulp(d) < 1/2 (about 2000 px; half that kept as margin)
+_EXACT_FLOAT32_PX = 1024.0
+
+
+def distance_to(inside: np.ndarray) -> np.ndarray:
+    """Euclidean distance (float64, H x W) from every pixel to the nearest ``inside`` pixel:
+    ``scipy.ndimage.distance_transform_edt(~inside)`` bit for bit, several times faster.
+
+    Why: the distance bands of :func:`prepare` and ``region_mask`` ask only for distances.
+    OpenCV's exact transform (Felzenszwalb and Huttenlocher, "Distance transforms of sampled
+    functions", 2012; ``cv2.DIST_MASK_PRECISE``) gives them in float32; squaring and rounding
+    recovers the exact integer squared distance, whose float64 square root is what scipy
+    returns.  Farther than ``_EXACT_FLOAT32_PX`` (where float32 could round the square to the
+    wrong integer) scipy answers.  ``inside`` must hold at least one True pixel.
+    """
+    import cv2
+
+    d = cv2.distanceTransform((~inside).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    if float(d.max(initial=0.0)) > _EXACT_FLOAT32_PX:
+        from scipy.ndimage import distance_transform_edt
+
+        return distance_transform_edt(~inside)
+    d = d.astype(np.float64)
+    return np.sqrt(np.rint(d * d))
 
 
 def _inpaint(lin: np.ndarray, known: np.ndarray, depth: float,
@@ -183,7 +210,7 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     # inpainting radius, so that what is read is inpainted from a filled neighbourhood), and
     # around the mixed pixels of layer k - 1, which take it as what lies behind them.  The
     # vectors of layer k all come from pixels at or behind it.
-    from_region = distance_transform_edt(~region[crop])
+    from_region = distance_to(region[crop])
     pad = 2.0 + INPAINT_RADIUS + 1
     l2 = v_c[..., 0] * v_c[..., 0] + v_c[..., 1] * v_c[..., 1]
     # reach() of the vectors at or behind each layer: the largest square, rearmost first

@@ -60,7 +60,7 @@ import math
 import numpy as np
 
 from clblur.halo import reach
-from clblur.layer_planes import SPLIT_PRIOR, Layers, prepare, split_coverage
+from clblur.layer_planes import SPLIT_PRIOR, Layers, distance_to, prepare, split_coverage
 from clblur.layering import (
     DEPTH_TAU,
     GAP_FRACTION,
@@ -94,16 +94,13 @@ def boundary_mask(v: np.ndarray, anchor: float, tile: int = TILE,
 
     h, w = v.shape[:2]
     th, tw = -(-h // tile), -(-w // tile)
-    pad = ((0, th * tile - h), (0, tw * tile - w))
-    tmax = np.empty((th, tw, 2), v.dtype)
-    tmin = np.empty((th, tw, 2), v.dtype)
-    for c in range(2):  # per component, one axis at a time: contiguous, hence fast
-        comp = np.ascontiguousarray(v[..., c])
-        if th * tile != h or tw * tile != w:
-            comp = np.pad(comp, pad, mode="edge")
-        comp = comp.reshape(th, tile, tw, tile)
-        tmax[..., c] = comp.max(axis=3).max(axis=1)
-        tmin[..., c] = comp.min(axis=3).min(axis=1)
+    if th * tile != h or tw * tile != w:
+        v = np.pad(v, ((0, th * tile - h), (0, tw * tile - w), (0, 0)), mode="edge")
+    # rows of a tile first (whole rows at a time: contiguous, hence fast), then its columns
+    # on the 1/tile as large result
+    rows = v.reshape(th, tile, tw * tile, 2)
+    tmax = rows.max(axis=1).reshape(th, tw, tile, 2).max(axis=2)
+    tmin = rows.min(axis=1).reshape(th, tw, tile, 2).min(axis=2)
     size = 2 * math.ceil((reach(v, anchor) + 2.0) / tile) + 1
     nmax = maximum_filter(tmax, size=(size, size, 1), mode="nearest")
     nmin = minimum_filter(tmin, size=(size, size, 1), mode="nearest")
@@ -117,7 +114,7 @@ def region_mask(v: np.ndarray, anchor: float, tile: int = TILE,
     narrowed to the pixels within ``R + 2`` of a motion edge (a pixel whose 3 x 3
     neighbourhood's vectors differ by more than ``spread`` in x or y).  Farther away, every
     surface that can reach a pixel moves as the pixel does, and the gather is kept."""
-    from scipy.ndimage import distance_transform_edt, maximum_filter, minimum_filter
+    from scipy.ndimage import maximum_filter, minimum_filter
 
     tiles = boundary_mask(v, anchor, tile, spread)
     if not tiles.any():
@@ -135,7 +132,7 @@ def region_mask(v: np.ndarray, anchor: float, tile: int = TILE,
                  - minimum_filter(crop[..., c], size=3, mode="nearest")) > spread
     out = np.zeros_like(tiles)
     if edge.any():
-        near = distance_transform_edt(~edge) <= r + 2.0
+        near = distance_to(edge) <= r + 2.0
         out[r0:r1, c0:c1] = near & tiles[r0:r1, c0:c1]
     return out
 
