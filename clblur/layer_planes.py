@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from clblur.halo import reach
+from clblur.halo import halo_for_reach, reach
 from clblur.layering import layer_labels
 
 __all__ = ["INPAINT_RADIUS", "Layers", "MID_EXTEND_PX", "SPLIT_PRIOR", "distance_to", "prepare",
@@ -28,12 +28,14 @@ SPLIT_PRIOR = 1e-4  # (linear light)^2: below this contrast a mixed pixel stays 
 class Layers:
     """The layers of a crop of the image, ready to composite (module Conventions).
 
-    ``origin``: (row, col) of the crop in the full image; ``planes``: K x h x w x (C + 1)
-    premultiplied ``(M L, M)``; ``vectors``: K x h x w x 2 float32 ``D_k``; ``flow`` and
-    ``linear``: the crop of the image's own vectors and linear image (for uncovered light);
-    ``region``: h x w bool, the pixels to composite; ``present``: K x h x w bool, whether
-    layer ``k`` can cover the pixel at any sample (farther than its reach plus the bilinear
-    footprint it reads only zeros, so skipping it changes nothing but the sample count).
+    ``origin``: (row, col) of the crop in the full image (the region's bounding box plus the
+    halo its samples reach, ``clblur.halo``); ``planes``: K x h x w x (C + 1) premultiplied
+    ``(M L, M)``; ``vectors``: K x h x w x 2 float32 ``D_k``; ``flow`` and ``linear``: the
+    crop of the image's own vectors and linear image (for uncovered light); ``region``: h x w
+    bool, the pixels to composite; ``present``: K x h x w bool, whether layer ``k`` can cover
+    the pixel at any sample (farther than its reach plus the bilinear footprint it reads only
+    zeros, so skipping it changes nothing but the sample count).  ``vectors`` and ``present``
+    hold values at the region's pixels only (0 and False elsewhere: nothing reads them).
     """
 
     origin: tuple[int, int]
@@ -242,6 +244,15 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
             fills[k] = _inpaint(lin_c, labels >= k, depth, behind_edt(k), needed(k))
         return fills[k]
 
+    # The composite reads the layers only within the reach of the region's pixels, plus the
+    # bilinear neighbour and a margin for float32 positions (the halo rule of clblur.halo):
+    # the planes are built on that window of the crop, and the vectors and the presence of
+    # each layer at the region's pixels only (nothing else reads them).
+    hal = halo_for_reach(r)
+    win = (slice(max(rows[0] - hal, r0) - r0, min(rows[-1] + hal + 1, r1) - r0),
+           slice(max(cols[0] - hal, c0) - c0, min(cols[-1] + hal + 1, c1) - c0))
+    reg = region[crop][win]
+    at = np.nonzero(reg)
     planes, vectors, present = [], [], []
     for k in range(last + 1):
         at_or_behind = labels >= k
@@ -268,22 +279,32 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
                 behind = (background[crop] if background is not None and k == last - 1
                           else fill(k + 1))
                 cover[mine] = split_coverage(lin_c[mine], pure[mine], behind[mine])
-        if not ext.any():
-            continue
-        m = (ext * cover).astype(lin_c.dtype)[..., None]
-        light = colour * m
-        if mine.any():
+        ext_w = ext[win]
+        if not ext_w.any():
+            continue  # no sample of the region reads this layer
+        m = (ext_w * cover[win]).astype(lin_c.dtype)[..., None]
+        light = colour[win] * m
+        mine_w = mine[win]
+        if mine_w.any():
             # premultiplied: what the pixel holds beyond the light behind it, so the
             # composite at the anchor time is the image itself
-            light[mine] = ((lin_c[mine] - (1.0 - cover[mine][:, None]) * behind[mine])
-                           * ext[mine][:, None])
+            light[mine_w] = ((lin_c[win][mine_w]
+                              - (1.0 - cover[win][mine_w][:, None]) * behind[win][mine_w])
+                             * ext_w[mine_w][:, None])
         planes.append(np.concatenate([light, m], axis=2))
-        # D_k: the vector of the nearest pixel of the (extended) layer, everywhere.
-        dist, nearest = distance_transform_edt(~ext, return_indices=True)
-        d = vec[nearest[0], nearest[1]].astype(np.float32)
+        # D_k: the vector of the nearest pixel of the (extended) layer.  A layer nearer to a
+        # region pixel than its reach plus 1.5 lies inside the window, so the transform of
+        # the window finds it.
+        dist, nearest = distance_transform_edt(~ext_w, return_indices=True)
+        vec_w = vec[win]
+        d_at = vec_w[nearest[0][at], nearest[1][at]].astype(np.float32)
+        d = np.zeros(reg.shape + (2,), np.float32)
+        d[at] = d_at
         vectors.append(d)
-        farthest = np.hypot(d[..., 0], d[..., 1]) * max(anchor, 1.0 - anchor)
-        present.append(dist <= farthest + 1.5)  # a bilinear footprint reaches sqrt(2) px
-    return Layers(origin=(int(r0), int(c0)), planes=np.stack(planes),
-                  vectors=np.stack(vectors), flow=own, linear=lin_c,
-                  region=region[crop], present=np.stack(present))
+        farthest = np.hypot(d_at[:, 0], d_at[:, 1]) * max(anchor, 1.0 - anchor)
+        there = np.zeros(reg.shape, bool)
+        there[at] = dist[at] <= farthest + 1.5  # a bilinear footprint reaches sqrt(2) px
+        present.append(there)
+    return Layers(origin=(int(r0 + win[0].start), int(c0 + win[1].start)),
+                  planes=np.stack(planes), vectors=np.stack(vectors), flow=own[win],
+                  linear=lin_c[win], region=reg, present=np.stack(present))
