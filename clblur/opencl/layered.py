@@ -23,7 +23,7 @@ import numpy as np
 
 from clblur import layered_exposure as layered
 from clblur import reference
-from clblur.opencl.constants import LAYERED_MAXK, build_defines
+from clblur.opencl.constants import LANES, LAYERED_MAXK, build_defines
 from clblur.opencl.device import pyopencl_module
 from clblur.opencl.program import Program
 from clblur.request import BlurPlan
@@ -33,6 +33,7 @@ __all__ = ["OpenCLStages", "composite", "integrator"]
 
 MAXC = 16  # channels + coverage a work-item holds in registers (layered.cl)
 GROUP = 64
+LANE_GROUP = 16  # work-items (of LANES pixels each) per group of the CPU kernel
 
 
 def _program(rt, channels: int) -> Program:
@@ -115,17 +116,38 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
                          hostbuf=np.ascontiguousarray(a))
     with rt.lock:
         program = _program(rt, channels)
-        out_buf = cl.Buffer(rt.context, mf.WRITE_ONLY, max(out.nbytes, 16))
-        pix = np.stack([rows, cols], axis=1).astype(np.int32)
         fh, fw = full_shape
         r0, c0 = layers.origin
-        program.run("composite_layers", rt.queue, (-(-n // GROUP) * GROUP,), (GROUP,),
-                    planes=buf(layers.planes.astype(np.float32)),
+        args = dict(planes=buf(layers.planes.astype(np.float32)),
                     vectors=buf(layers.vectors.astype(np.float32)),
                     flow=buf(layers.flow.astype(np.float32)), linear=buf(linear),
-                    present=buf(layers.present.astype(np.uint8)), pix=buf(pix),
-                    counts=buf(counts), weights=buf(wts), weighted=weighted, n=n, layers=k,
-                    h=h, w=w, r0=r0, c0=c0, fh=fh, fw=fw, anchor=anchor, out=out_buf)
+                    present=buf(layers.present.astype(np.uint8)), weights=buf(wts),
+                    weighted=weighted, layers=k, h=h, w=w, r0=r0, c0=c0, fh=fh, fw=fw,
+                    anchor=anchor)
+        if cp == 4 and not rt.gpu:
+            # CPU: LANES consecutive pixels of a row per work-item (layered.cl); the chunks
+            # of LANES columns that hold region pixels, row-major
+            chunk = np.unique(rows * (-(-w // LANES)) + cols // LANES)
+            crow, ccol = chunk // (-(-w // LANES)), chunk % (-(-w // LANES)) * LANES
+            lane_c = ccol[:, None] + np.arange(LANES)
+            lane_r = np.broadcast_to(crow[:, None], lane_c.shape)
+            inside = lane_c < w
+            on = np.zeros(lane_c.shape, bool)
+            on[inside] = layers.region[lane_r[inside], lane_c[inside]]
+            lane_n = np.zeros(lane_c.shape, np.int32)
+            lane_n[on] = counts  # row-major, as (rows, cols)
+            lanes_out = np.empty((chunk.size * LANES, channels), np.float32)
+            out_buf = cl.Buffer(rt.context, mf.WRITE_ONLY, lanes_out.nbytes)
+            items = -(-chunk.size // LANE_GROUP) * LANE_GROUP
+            program.run("composite_lanes", rt.queue, (items,), (LANE_GROUP,),
+                        chunks=buf(np.stack([crow, ccol], axis=1).astype(np.int32)),
+                        counts=buf(lane_n), n=chunk.size, out=out_buf, **args)
+            cl.enqueue_copy(rt.queue, lanes_out, out_buf, is_blocking=True)
+            return lanes_out[on.ravel()]
+        out_buf = cl.Buffer(rt.context, mf.WRITE_ONLY, max(out.nbytes, 16))
+        pix = np.stack([rows, cols], axis=1).astype(np.int32)
+        program.run("composite_layers", rt.queue, (-(-n // GROUP) * GROUP,), (GROUP,),
+                    pix=buf(pix), counts=buf(counts), n=n, out=out_buf, **args)
         cl.enqueue_copy(rt.queue, out, out_buf, is_blocking=True)
     return out
 
