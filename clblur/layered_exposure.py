@@ -145,12 +145,17 @@ def counts(layers: Layers, samples: int | None,
     shape = layers.region.shape if at is None else at[0].shape
     if samples is not None:
         return np.full(shape, samples, np.int32)
-    pick = (Ellipsis,) if at is None else (slice(None),) + tuple(at)
-    d = layers.vectors[pick]
-    flow = layers.flow if at is None else layers.flow[at]
-    own = sample_counts(flow[..., 0], flow[..., 1])
-    per_layer = np.where(layers.present[pick], sample_counts(d[..., 0], d[..., 1]), 1)
-    return np.maximum(own, per_layer.max(axis=0))
+    pick = (Ellipsis,) if at is None else tuple(at)
+    flow = layers.flow[pick]
+    n = sample_counts(flow[..., 0], flow[..., 1])
+    for d, there in zip(layers.vectors, layers.present, strict=True):
+        # a layer that can reach the pixel: its D_k there (one layer at a time, only where
+        # it is present: far fewer pixels than the crop times the layers)
+        there = there[pick]
+        if there.any():
+            dk = d[pick][there]
+            n[there] = np.maximum(n[there], sample_counts(dk[:, 0], dk[:, 1]))
+    return n
 
 
 def composite(layers: Layers, anchor: float, samples: int | None, weights: np.ndarray | None,

@@ -127,21 +127,21 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
         if cp == 4 and not rt.gpu:
             # CPU: LANES consecutive pixels of a row per work-item (layered.cl); the chunks
             # of LANES columns that hold region pixels, row-major
-            chunk = np.unique(rows * (-(-w // LANES)) + cols // LANES)
-            crow, ccol = chunk // (-(-w // LANES)), chunk % (-(-w // LANES)) * LANES
-            lane_c = ccol[:, None] + np.arange(LANES)
-            lane_r = np.broadcast_to(crow[:, None], lane_c.shape)
-            inside = lane_c < w
-            on = np.zeros(lane_c.shape, bool)
-            on[inside] = layers.region[lane_r[inside], lane_c[inside]]
-            lane_n = np.zeros(lane_c.shape, np.int32)
+            wide = -(-w // LANES) * LANES
+            occupied = np.zeros((h, wide), bool)
+            occupied[:, :w] = layers.region
+            occupied = occupied.reshape(h, wide // LANES, LANES)
+            crow, cchunk = np.nonzero(occupied.any(axis=2))
+            on = occupied[crow, cchunk]  # lanes on the region (none past the crop)
+            ccol = cchunk * LANES
+            lane_n = np.zeros(on.shape, np.int32)
             lane_n[on] = counts  # row-major, as (rows, cols)
-            lanes_out = np.empty((chunk.size * LANES, channels), np.float32)
+            lanes_out = np.empty((crow.size * LANES, channels), np.float32)
             out_buf = cl.Buffer(rt.context, mf.WRITE_ONLY, lanes_out.nbytes)
-            items = -(-chunk.size // LANE_GROUP) * LANE_GROUP
+            items = -(-crow.size // LANE_GROUP) * LANE_GROUP
             program.run("composite_lanes", rt.queue, (items,), (LANE_GROUP,),
                         chunks=buf(np.stack([crow, ccol], axis=1).astype(np.int32)),
-                        counts=buf(lane_n), n=chunk.size, out=out_buf, **args)
+                        counts=buf(lane_n), n=crow.size, out=out_buf, **args)
             cl.enqueue_copy(rt.queue, lanes_out, out_buf, is_blocking=True)
             return lanes_out[on.ravel()]
         out_buf = cl.Buffer(rt.context, mf.WRITE_ONLY, max(out.nbytes, 16))
