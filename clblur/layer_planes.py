@@ -253,58 +253,66 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
            slice(max(cols[0] - hal, c0) - c0, min(cols[-1] + hal + 1, c1) - c0))
     reg = region[crop][win]
     at = np.nonzero(reg)
-    planes, vectors, present = [], [], []
+    lab_w, split_w, lin_w, v_w = labels[win], split[win], lin_c[win], v_c[win]
+    hw, ch = reg.shape, lin_c.shape[2]
+    planes = np.empty((last + 1,) + hw + (ch + 1,), lin_c.dtype)
+    vectors = np.zeros((last + 1,) + hw + (2,), np.float32)
+    present = np.zeros((last + 1,) + hw, bool)
+    kept = 0
     for k in range(last + 1):
-        at_or_behind = labels >= k
         if k == last and background is not None:
             # the clean plate is what lies behind everything, and it does not move
-            ext = np.ones_like(at_or_behind)
-            colour = np.where(at_or_behind[..., None], lin_c, background[crop])
-            vec = np.where(at_or_behind[..., None], v_c, np.float32(0))
-            cover = np.ones(ext.shape)
-            mine = np.zeros(ext.shape, bool)
+            at_or_behind = (lab_w >= k)[..., None]
+            ext_w = np.ones(hw, bool)
+            colour_w = np.where(at_or_behind, lin_w, background[crop][win])
+            vec_w = np.where(at_or_behind, v_w, np.float32(0))
+            mine_w = np.zeros(hw, bool)
         else:
             if k == 0:
-                ext, colour, vec = labels == 0, lin_c, v_c
+                ext_w, colour_w, vec_w = lab_w == 0, lin_w, v_w
             else:
                 dist, idx = behind_edt(k)
-                source = (idx[0], idx[1])  # nearest pixel at or behind layer k (itself there)
+                # nearest pixel at or behind layer k (itself there)
+                sy, sx = idx[0][win], idx[1][win]
                 # only the rearmost layer is assumed to continue far under what hides it
-                ext = (labels[source] == k) & (dist <= (band if k == last else MID_EXTEND_PX))
-                colour = fill(k)
-                vec = v_c[source]
-            mine = split & (labels == k)
-            cover = np.ones(ext.shape)
-            if mine.any():
-                behind = (background[crop] if background is not None and k == last - 1
-                          else fill(k + 1))
-                cover[mine] = split_coverage(lin_c[mine], pure[mine], behind[mine])
-        ext_w = ext[win]
+                ext_w = (labels[sy, sx] == k) & (dist[win] <= (band if k == last
+                                                               else MID_EXTEND_PX))
+                colour_w = fill(k)[win]
+                vec_w = v_c[sy, sx]
+            mine_w = split_w & (lab_w == k)
         if not ext_w.any():
             continue  # no sample of the region reads this layer
-        m = (ext_w * cover[win]).astype(lin_c.dtype)[..., None]
-        light = colour[win] * m
-        mine_w = mine[win]
+        cover_w = np.ones(hw)
+        if mine_w.any():
+            behind_w = (background[crop][win] if background is not None and k == last - 1
+                        else fill(k + 1)[win])
+            cover_w[mine_w] = split_coverage(lin_w[mine_w], pure[win][mine_w],
+                                             behind_w[mine_w])
+        m = (ext_w * cover_w).astype(lin_c.dtype)
+        plane = planes[kept]
+        np.multiply(colour_w, m[..., None], out=plane[..., :ch])
+        plane[..., ch] = m
         if mine_w.any():
             # premultiplied: what the pixel holds beyond the light behind it, so the
             # composite at the anchor time is the image itself
-            light[mine_w] = ((lin_c[win][mine_w]
-                              - (1.0 - cover[win][mine_w][:, None]) * behind[win][mine_w])
-                             * ext_w[mine_w][:, None])
-        planes.append(np.concatenate([light, m], axis=2))
+            plane[..., :ch][mine_w] = ((lin_w[mine_w]
+                                        - (1.0 - cover_w[mine_w][:, None]) * behind_w[mine_w])
+                                       * ext_w[mine_w][:, None])
         # D_k: the vector of the nearest pixel of the (extended) layer.  A layer nearer to a
         # region pixel than its reach plus 1.5 lies inside the window, so the transform of
-        # the window finds it.
-        dist, nearest = distance_transform_edt(~ext_w, return_indices=True)
-        vec_w = vec[win]
-        d_at = vec_w[nearest[0][at], nearest[1][at]].astype(np.float32)
-        d = np.zeros(reg.shape + (2,), np.float32)
-        d[at] = d_at
-        vectors.append(d)
+        # the window finds it.  A layer in rigid translation (one vector) needs only the
+        # distance: every nearest pixel carries that vector.
+        moves = vec_w[ext_w]
+        if (moves == moves[0]).all():
+            dist = distance_to(ext_w)
+            d_at = np.broadcast_to(moves[0].astype(np.float32), (at[0].size, 2))
+        else:
+            dist, nearest = distance_transform_edt(~ext_w, return_indices=True)
+            d_at = vec_w[nearest[0][at], nearest[1][at]].astype(np.float32)
+        vectors[kept][at] = d_at
         farthest = np.hypot(d_at[:, 0], d_at[:, 1]) * max(anchor, 1.0 - anchor)
-        there = np.zeros(reg.shape, bool)
-        there[at] = dist[at] <= farthest + 1.5  # a bilinear footprint reaches sqrt(2) px
-        present.append(there)
+        present[kept][at] = dist[at] <= farthest + 1.5  # a bilinear footprint reaches sqrt(2) px
+        kept += 1
     return Layers(origin=(int(r0 + win[0].start), int(c0 + win[1].start)),
-                  planes=np.stack(planes), vectors=np.stack(vectors), flow=own[win],
-                  linear=lin_c[win], region=reg, present=np.stack(present))
+                  planes=planes[:kept], vectors=vectors[:kept], flow=own[win],
+                  linear=lin_w, region=reg, present=present[:kept])
