@@ -78,46 +78,65 @@ def distance_to(inside: np.ndarray) -> np.ndarray:
 
 def _inpaint(lin: np.ndarray, known: np.ndarray, depth: float,
              nearest: tuple[np.ndarray, tuple[np.ndarray, np.ndarray]] | None = None,
-             needed: np.ndarray | None = None) -> np.ndarray:
+             needed: np.ndarray | None = None,
+             window: tuple[slice, slice] = (slice(None), slice(None))) -> np.ndarray:
     """``lin`` with the pixels outside ``known`` reconstructed from the known ones
     (Navier-Stokes inpainting, Bertalmio et al. 2001, as ``cv2.inpaint``; per channel) up to
     ``depth`` pixels from them; deeper pixels, which no sample reads, take their nearest known
     pixel (so the inpainting only walks the band that can be uncovered).  ``nearest``: the
     distance transform of ``~known`` with its indices, if already computed; ``needed``: the
     pixels any sample can read (others take their nearest known pixel too), and the
-    inpainting runs only on the bounding box of the hole they leave, plus a margin."""
+    inpainting runs only on the bounding box of the hole they leave, plus a margin.
+    Returns the result on ``window`` only (the part the caller reads)."""
     import cv2
     from scipy.ndimage import distance_transform_edt
 
     if not known.any():
-        return lin.copy()
+        return lin[window].copy()
     dist, idx = nearest if nearest is not None else \
         distance_transform_edt(~known, return_indices=True)
     deep = dist > depth + INPAINT_RADIUS + 1
     if needed is not None:
         deep |= ~needed
-    base = lin[idx[0], idx[1]] if deep.any() else lin
     hole = ~known & ~deep
-    out = np.array(base, copy=True)
+    # known pixels are their own nearest known pixel: everywhere but in the hole, the
+    # nearest known pixel's light is the result (the hole's is inpainting's first guess)
+    out = lin[idx[0][window], idx[1][window]]
     if not hole.any():
-        return np.where(known[..., None], lin, out)
+        return out
     # cv2.inpaint marches over the whole array it is given: give it only the hole's box
     # plus the radius it reads (and one pixel of border) around it.
     m = INPAINT_RADIUS + 2
     rows, cols = np.nonzero(hole.any(axis=1))[0], np.nonzero(hole.any(axis=0))[0]
     box = (slice(max(rows[0] - m, 0), rows[-1] + m + 1),
            slice(max(cols[0] - m, 0), cols[-1] + m + 1))
+    # inpainting's input (float32): as the result outside the hole, and in it too where
+    # there is anything deep (else the image itself, as the fill has always been given)
+    base = (lin[idx[0][box], idx[1][box]] if deep.any() else lin[box]).astype(np.float32)
     hole8 = hole[box].astype(np.uint8)
+    # the box's part of the window, in window and in box coordinates
+    h, w = known.shape
+    (wr0, wr1, _), (wc0, wc1, _) = window[0].indices(h), window[1].indices(w)
+    (br0, br1, _), (bc0, bc1, _) = box[0].indices(h), box[1].indices(w)
+    r_lo, r_hi, c_lo, c_hi = max(wr0, br0), min(wr1, br1), max(wc0, bc0), min(wc1, bc1)
+    if r_lo >= r_hi or c_lo >= c_hi:
+        return out
+    in_win = (slice(r_lo - wr0, r_hi - wr0), slice(c_lo - wc0, c_hi - wc0))
+    in_box = (slice(r_lo - br0, r_hi - br0), slice(c_lo - bc0, c_hi - bc0))
+    # in the box, whatever is not known comes back from cv2: inpainted (the hole) or its
+    # nearest known pixel's light rounded to float32 (deep); known pixels keep lin exactly
+    fresh = ~known[box][in_box]
 
     def channel(c: int) -> None:
-        out[box + (c,)] = cv2.inpaint(np.ascontiguousarray(base[box + (c,)], np.float32),
-                                      hole8, INPAINT_RADIUS, cv2.INPAINT_NS)
+        filled = cv2.inpaint(np.ascontiguousarray(base[..., c]), hole8, INPAINT_RADIUS,
+                             cv2.INPAINT_NS)
+        out[in_win + (c,)][fresh] = filled[in_box][fresh]
 
     # the channels are independent and cv2 releases the interpreter lock: one thread each
     # (the wall time of the largest host step, on a machine with cores to spare)
     with ThreadPoolExecutor(min(lin.shape[2], os.cpu_count() or 1)) as pool:
         list(pool.map(channel, range(lin.shape[2])))
-    return np.where(known[..., None], lin, out)
+    return out
 
 
 # offsets within 3 px, nearest first (ties in a fixed order)
@@ -244,12 +263,13 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
         return nearest_at_or_behind[k]
 
     def fill(k: int) -> np.ndarray:
-        """The linear image with everything nearer than layer ``k`` reconstructed."""
+        """The linear image with everything nearer than layer ``k`` reconstructed (on the
+        window ``win``)."""
         if k not in fills:
             # an intermediate layer extends MID_EXTEND_PX under what hides it, and a mixed
             # pixel lies within 2 px of what is behind it: deeper, nothing reads the fill
             depth = band if k == last else MID_EXTEND_PX + 2.0
-            fills[k] = _inpaint(lin_c, labels >= k, depth, behind_edt(k), needed(k))
+            fills[k] = _inpaint(lin_c, labels >= k, depth, behind_edt(k), needed(k), win)
         return fills[k]
 
     # The composite reads the layers only within the reach of the region's pixels, plus the
@@ -285,7 +305,7 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
                 # only the rearmost layer is assumed to continue far under what hides it
                 ext_w = (labels[sy, sx] == k) & (dist[win] <= (band if k == last
                                                                else MID_EXTEND_PX))
-                colour_w = fill(k)[win]
+                colour_w = fill(k)
                 vec_w = v_c[sy, sx]
             mine_w = split_w & (lab_w == k)
         if not ext_w.any():
@@ -293,7 +313,7 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
         cover_w = np.ones(hw)
         if mine_w.any():
             behind_w = (background[crop][win] if background is not None and k == last - 1
-                        else fill(k + 1)[win])
+                        else fill(k + 1))
             cover_w[mine_w] = split_coverage(lin_w[mine_w], pure[win][mine_w],
                                              behind_w[mine_w])
         m = (ext_w * cover_w).astype(lin_c.dtype)
