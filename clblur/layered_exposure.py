@@ -82,14 +82,9 @@ SPREAD_PX = 1.0
 TILE = 16
 
 
-def boundary_mask(v: np.ndarray, anchor: float, tile: int = TILE,
-                  spread: float = SPREAD_PX) -> np.ndarray:
-    """Pixels whose neighbourhood moves non-uniformly: the ones that need the layered path.
-
-    Per tile the min and max of each vector component; a tile is flagged when, over the tiles
-    within ``ceil((R + 2) / tile)`` of it, max minus min exceeds ``spread`` pixels (module
-    Conventions).  Returns an H x W bool mask (whole tiles).
-    """
+def _flagged_tiles(v: np.ndarray, r: float, tile: int, spread: float) -> np.ndarray:
+    """The tile-level mask of :func:`boundary_mask` (``ceil(H / tile) x ceil(W / tile)``),
+    for vectors ``v`` of reach ``r``."""
     from scipy.ndimage import maximum_filter, minimum_filter
 
     h, w = v.shape[:2]
@@ -101,10 +96,22 @@ def boundary_mask(v: np.ndarray, anchor: float, tile: int = TILE,
     rows = v.reshape(th, tile, tw * tile, 2)
     tmax = rows.max(axis=1).reshape(th, tw, tile, 2).max(axis=2)
     tmin = rows.min(axis=1).reshape(th, tw, tile, 2).min(axis=2)
-    size = 2 * math.ceil((reach(v, anchor) + 2.0) / tile) + 1
+    size = 2 * math.ceil((r + 2.0) / tile) + 1
     nmax = maximum_filter(tmax, size=(size, size, 1), mode="nearest")
     nmin = minimum_filter(tmin, size=(size, size, 1), mode="nearest")
-    flagged = ((nmax - nmin) > spread).any(axis=2)
+    return ((nmax - nmin) > spread).any(axis=2)
+
+
+def boundary_mask(v: np.ndarray, anchor: float, tile: int = TILE,
+                  spread: float = SPREAD_PX) -> np.ndarray:
+    """Pixels whose neighbourhood moves non-uniformly: the ones that need the layered path.
+
+    Per tile the min and max of each vector component; a tile is flagged when, over the tiles
+    within ``ceil((R + 2) / tile)`` of it, max minus min exceeds ``spread`` pixels (module
+    Conventions).  Returns an H x W bool mask (whole tiles).
+    """
+    h, w = v.shape[:2]
+    flagged = _flagged_tiles(v, reach(v, anchor), tile, spread)
     return np.repeat(np.repeat(flagged, tile, axis=0), tile, axis=1)[:h, :w]
 
 
@@ -114,26 +121,36 @@ def region_mask(v: np.ndarray, anchor: float, tile: int = TILE,
     narrowed to the pixels within ``R + 2`` of a motion edge (a pixel whose 3 x 3
     neighbourhood's vectors differ by more than ``spread`` in x or y).  Farther away, every
     surface that can reach a pixel moves as the pixel does, and the gather is kept."""
+    import cv2
     from scipy.ndimage import maximum_filter, minimum_filter
 
-    tiles = boundary_mask(v, anchor, tile, spread)
-    if not tiles.any():
-        return tiles
+    h, w = v.shape[:2]
+    out = np.zeros((h, w), bool)
     r = reach(v, anchor)
+    flagged = _flagged_tiles(v, r, tile, spread)
+    if not flagged.any():
+        return out
     margin = int(math.ceil(r)) + 4
-    rows, cols = np.nonzero(tiles.any(axis=1))[0], np.nonzero(tiles.any(axis=0))[0]
-    h, w = tiles.shape
-    r0, r1 = max(rows[0] - margin, 0), min(rows[-1] + margin + 1, h)
-    c0, c1 = max(cols[0] - margin, 0), min(cols[-1] + margin + 1, w)
+    rows, cols = np.nonzero(flagged.any(axis=1))[0], np.nonzero(flagged.any(axis=0))[0]
+    r0, r1 = max(rows[0] * tile - margin, 0), min((rows[-1] + 1) * tile + margin, h)
+    c0, c1 = max(cols[0] * tile - margin, 0), min((cols[-1] + 1) * tile + margin, w)
     crop = v[r0:r1, c0:c1]
     edge = np.zeros(crop.shape[:2], bool)
+    square = np.ones((3, 3), np.uint8)
     for c in range(2):
-        edge |= (maximum_filter(crop[..., c], size=3, mode="nearest")
-                 - minimum_filter(crop[..., c], size=3, mode="nearest")) > spread
-    out = np.zeros_like(tiles)
+        comp = np.ascontiguousarray(crop[..., c])
+        if comp.dtype in (np.float32, np.float64):
+            # OpenCV's 3 x 3 max / min: outside the image it ignores the border, which for
+            # a 3 x 3 window is what repeating the edge gives (scipy's "nearest")
+            spread_c = cv2.dilate(comp, square) - cv2.erode(comp, square)
+        else:
+            spread_c = (maximum_filter(comp, size=3, mode="nearest")
+                        - minimum_filter(comp, size=3, mode="nearest"))
+        edge |= spread_c > spread
     if edge.any():
         near = distance_to(edge) <= r + 2.0
-        out[r0:r1, c0:c1] = near & tiles[r0:r1, c0:c1]
+        tiles = flagged[(np.arange(r0, r1) // tile)[:, None], (np.arange(c0, c1) // tile)]
+        out[r0:r1, c0:c1] = near & tiles
     return out
 
 
