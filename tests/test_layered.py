@@ -359,3 +359,41 @@ def test_command_line_depth_and_alpha(tmp_path, capsys):
                  "--depth", str(tmp_path / "flow.npy")]) == 2
     assert "depth has shape" in capsys.readouterr().err
     assert not (tmp_path / "x.png").exists()
+
+
+def test_opencl_cpu_layout_is_the_one_pixel_kernel_bit_for_bit(opencl, crossing):
+    """composite_lanes (8 pixels of a row per work-item) against composite_layers, on
+    non-rigid layers (varying vectors), a clean plate, time weights and a start anchor."""
+    from clblur.layer_planes import prepare
+    from clblur.opencl.layered import composite
+
+    sc, frame, truth, flow, depth, swept = crossing
+    h, w = depth.shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    bend = np.stack([np.sin(yy / 9.0), np.cos(xx / 7.0)], -1).astype(np.float32)
+    flow = flow + bend * (depth < np.max(depth))[..., None]
+    lin = SRGB.inverse(frame)
+    for anchor, samples, weights, plate in ((0.5, None, None, None),
+                                            (0.0, 5, np.array([1, 2, 3, 2, 1]) / 9.0,
+                                             lin[::-1].copy())):
+        region = layered.region_mask(flow, anchor)
+        layers = prepare(lin, flow, depth, anchor, region, plate)
+        one = composite(layers, anchor, samples, weights, (h, w), lanes=False)
+        eight = composite(layers, anchor, samples, weights, (h, w), lanes=True)
+        assert one.shape == (region.sum(), 3)
+        np.testing.assert_array_equal(eight, one)
+
+
+def test_distance_to_is_scipys_transform_bit_for_bit():
+    from scipy.ndimage import distance_transform_edt
+
+    from clblur.layer_planes import distance_to
+
+    rng = np.random.default_rng(7)
+    for density in (0.0005, 0.02, 0.4):
+        inside = rng.random((97, 131)) < density
+        inside[50, 60] = True
+        want = distance_transform_edt(~inside)
+        np.testing.assert_array_equal(distance_to(inside), want)
+        at = np.nonzero(rng.random(inside.shape) < 0.3)
+        np.testing.assert_array_equal(distance_to(inside, at), want[at])

@@ -85,9 +85,12 @@ class OpenCLStages:
 
 def composite(layers: layered.Layers, anchor: float, samples: int | None,
               weights: np.ndarray | None, full_shape: tuple[int, int],
-              device: str | None = None) -> np.ndarray:
+              device: str | None = None, lanes: bool | None = None) -> np.ndarray:
     """:func:`clblur.layered_exposure.composite` on the device, for ``layers.region`` only.
 
+    ``lanes``: use the CPU layout (``composite_lanes``, LANES pixels of a row per work-item;
+    three light channels only) or not (``composite_layers``, one pixel per work-item); the
+    default picks it for three channels on a CPU device.  Both give the same bits.
     Returns the exposures of the region's pixels (n x C float32, row-major order of the
     region)."""
     from clblur.opencl import runtime
@@ -124,7 +127,9 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
                     present=buf(layers.present.astype(np.uint8)), weights=buf(wts),
                     weighted=weighted, layers=k, h=h, w=w, r0=r0, c0=c0, fh=fh, fw=fw,
                     anchor=anchor)
-        if cp == 4 and not rt.gpu:
+        if lanes and cp != 4:
+            raise ValueError("the CPU compositing layout takes three light channels")
+        if lanes or (lanes is None and cp == 4 and not rt.gpu):
             # CPU: LANES consecutive pixels of a row per work-item (layered.cl); the chunks
             # of LANES columns that hold region pixels, row-major
             wide = -(-w // LANES) * LANES
