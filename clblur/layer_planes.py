@@ -336,7 +336,7 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
         # the window finds it.  A layer in rigid translation (one vector) needs only the
         # distance: every nearest pixel carries that vector.
         first = vec_w[np.unravel_index(np.argmax(ext_w), hw)]
-        if not ((vec_w != first).any(axis=2) & ext_w).any():
+        if not (((vec_w[..., 0] != first[0]) | (vec_w[..., 1] != first[1])) & ext_w).any():
             dist_at = distance_to(ext_w, at)
             d_at = np.broadcast_to(first.astype(np.float32), (at[0].size, 2))
         else:

@@ -397,3 +397,23 @@ def test_distance_to_is_scipys_transform_bit_for_bit():
         np.testing.assert_array_equal(distance_to(inside), want)
         at = np.nonzero(rng.random(inside.shape) < 0.3)
         np.testing.assert_array_equal(distance_to(inside, at), want[at])
+
+
+def test_grid_components_number_as_scipy_does():
+    """layering._components (OpenCV on a twice-as-fine grid) against the sparse graph."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from clblur.layering import _components
+
+    rng = np.random.default_rng(11)
+    for h, w, p in ((1, 1, 0.5), (1, 9, 0.5), (7, 1, 0.5), (40, 57, 0.6), (63, 35, 0.95)):
+        right, down = rng.random((h, w - 1)) < p, rng.random((h - 1, w)) < p
+        idx = np.arange(h * w).reshape(h, w)
+        rows = np.concatenate([idx[:, :-1][right], idx[:-1, :][down]])
+        cols = np.concatenate([idx[:, 1:][right], idx[1:, :][down]])
+        graph = coo_matrix((np.ones(rows.size), (rows, cols)), shape=(h * w,) * 2)
+        n, comp = connected_components(graph, directed=False)
+        got_n, got = _components(right, down)
+        assert got_n == n
+        np.testing.assert_array_equal(got, comp.reshape(h, w))
