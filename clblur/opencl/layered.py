@@ -122,9 +122,10 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
         fh, fw = full_shape
         r0, c0 = layers.origin
         args = dict(planes=buf(layers.planes.astype(np.float32)),
-                    vectors=buf(layers.vectors.astype(np.float32)),
-                    flow=buf(layers.flow.astype(np.float32)), linear=buf(linear),
-                    present=buf(layers.present.astype(np.uint8)), weights=buf(wts),
+                    vectors=buf(layers.vectors.astype(np.float32, copy=False)),
+                    flow=buf(layers.flow.astype(np.float32, copy=False)), linear=buf(linear),
+                    present=buf(np.ascontiguousarray(layers.present, bool).view(np.uint8)),
+                    weights=buf(wts),
                     weighted=weighted, layers=k, h=h, w=w, r0=r0, c0=c0, fh=fh, fw=fw,
                     anchor=anchor)
         if lanes and cp != 4:
