@@ -260,24 +260,51 @@ __kernel void composite_lanes(__global const float *planes, __global const float
     float8 px = (float8)((float)(c0 + col0)) + (float8)(0.0f, 1.0f, 2.0f, 3.0f, 4.0f, 5.0f, 6.0f, 7.0f);
     float8 py = (float8)((float)(r0 + row));
     float8 wn = 1.0f / convert_float8(N);
+    /* A layer (or the image's own vectors) standing still in every lane samples at the
+     * pixel itself at every j (px - (0 * num) / den is px exactly): sampled once. */
+    bool still[MAXK];
+    float16 still_lo[MAXK], still_hi[MAXK];
+    for (int q = 0; q < m; ++q) {
+        still[q] = all(vx[q] == 0.0f) && all(vy[q] == 0.0f);
+        if (still[q]) {
+            sample8(planes + use[q] * plane, h, w, r0, c0, fh, fw, px, py, &still_lo[q],
+                    &still_hi[q]);
+            still_lo[q] = select((float16)(0.0f), still_lo[q], SPREAD_LO(there[q]));
+            still_hi[q] = select((float16)(0.0f), still_hi[q], SPREAD_HI(there[q]));
+        }
+    }
+    bool own_still = all(fx == 0.0f) && all(fy == 0.0f);
+    float16 own_lo = 0.0f, own_hi = 0.0f;
+    if (own_still)
+        sample8(linear, h, w, r0, c0, fh, fw, px, py, &own_lo, &own_hi);
     float16 acc_lo = 0.0f, acc_hi = 0.0f;
     for (int j = 0; j < nmax; ++j) {
         float8 num = (float8)((float)j) - anchor * n1;
         float8 left = 1.0f;
         float16 e_lo = 0.0f, e_hi = 0.0f, s_lo, s_hi;
         for (int q = 0; q < m; ++q) {
-            float8 x = px - (vx[q] * num) / den;
-            float8 y = py - (vy[q] * num) / den;
-            sample8(planes + use[q] * plane, h, w, r0, c0, fh, fw, x, y, &s_lo, &s_hi);
-            s_lo = select((float16)(0.0f), s_lo, SPREAD_LO(there[q]));
-            s_hi = select((float16)(0.0f), s_hi, SPREAD_HI(there[q]));
+            if (still[q]) {
+                s_lo = still_lo[q];
+                s_hi = still_hi[q];
+            } else {
+                float8 x = px - (vx[q] * num) / den;
+                float8 y = py - (vy[q] * num) / den;
+                sample8(planes + use[q] * plane, h, w, r0, c0, fh, fw, x, y, &s_lo, &s_hi);
+                s_lo = select((float16)(0.0f), s_lo, SPREAD_LO(there[q]));
+                s_hi = select((float16)(0.0f), s_hi, SPREAD_HI(there[q]));
+            }
             e_lo += SPREAD_LO(left) * s_lo;
             e_hi += SPREAD_HI(left) * s_hi;
             left = left * (1.0f - COVER(s_lo, s_hi));
         }
-        float8 x = px - (fx * num) / den;
-        float8 y = py - (fy * num) / den;
-        sample8(linear, h, w, r0, c0, fh, fw, x, y, &s_lo, &s_hi);
+        if (own_still) {
+            s_lo = own_lo;
+            s_hi = own_hi;
+        } else {
+            float8 x = px - (fx * num) / den;
+            float8 y = py - (fy * num) / den;
+            sample8(linear, h, w, r0, c0, fh, fw, x, y, &s_lo, &s_hi);
+        }
         float8 wj = select((float8)(0.0f), weighted ? (float8)(weights[j]) : wn,
                            (int8)(j) < N);
         acc_lo += SPREAD_LO(wj) * (e_lo + SPREAD_LO(left) * s_lo);
