@@ -144,6 +144,8 @@ def _inpaint(lin: np.ndarray, known: np.ndarray, depth: float,
     return out
 
 
+_CROSS = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], np.uint8)  # 4-neighbours and the pixel
+
 # offsets within 3 px, nearest first (ties in a fixed order)
 _NEAR = sorted(((dy, dx) for dy in range(-3, 4) for dx in range(-3, 4) if dy or dx),
                key=lambda o: (o[0] * o[0] + o[1] * o[1], o))
@@ -197,12 +199,8 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     of a crop ``(row slice, col slice)`` (so only the crop is linearised).  None when the
     ordering gives one layer there: a single surface is what the gather integrates.
     ``rule``: how a float ``order`` becomes layers (:func:`layer_labels`)."""
-    from scipy.ndimage import (
-        binary_dilation,
-        distance_transform_edt,
-        maximum_filter,
-        minimum_filter,
-    )
+    import cv2
+    from scipy.ndimage import distance_transform_edt, maximum_filter, minimum_filter
 
     h, w = region.shape
     r = reach(v, anchor)
@@ -221,9 +219,17 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     # Mixed pixels: a pixel next to another layer holds light of both; it is split between the
     # nearer layer around it (coverage fitted to its light, split_coverage) and what lies
     # behind (reconstructed), so the composite at the anchor time is the image itself.
-    front = minimum_filter(labels, size=3, mode="nearest")
-    split = (front != maximum_filter(labels, size=3, mode="nearest")) if split_edges else \
-        np.zeros(labels.shape, bool)
+    if last < 256:
+        # OpenCV's 3 x 3 min / max on the labels as bytes: outside the image it ignores the
+        # border, which for a 3 x 3 window is scipy's "nearest"
+        square = np.ones((3, 3), np.uint8)
+        lab8 = labels.astype(np.uint8)
+        front = cv2.erode(lab8, square).astype(labels.dtype)
+        back = cv2.dilate(lab8, square).astype(labels.dtype)
+    else:
+        front = minimum_filter(labels, size=3, mode="nearest")
+        back = maximum_filter(labels, size=3, mode="nearest")
+    split = (front != back) if split_edges else np.zeros(labels.shape, bool)
     labels = np.where(split, front, labels)
     own = v_c  # the image's own vectors, for light no layer covers
     v_c = v_c.copy()
@@ -257,8 +263,11 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
         out = from_region <= reach_at_or_behind[k] + pad
         mixed = split & (labels == k - 1)
         if mixed.any():
-            out |= (binary_dilation(mixed, iterations=INPAINT_RADIUS + 1)
-                    & (from_region <= reach_at_or_behind[k - 1] + pad))
+            # scipy's binary_dilation(mixed, iterations=INPAINT_RADIUS + 1) (a cross, so
+            # an L1 ball), by OpenCV: outside the image counts as not mixed in both
+            near_mixed = cv2.dilate(mixed.view(np.uint8), _CROSS,
+                                    iterations=INPAINT_RADIUS + 1).view(bool)
+            out |= near_mixed & (from_region <= reach_at_or_behind[k - 1] + pad)
         return out
 
     def behind_edt(k: int) -> tuple:
