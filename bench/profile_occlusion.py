@@ -9,7 +9,9 @@ left out, so the same script profiles an older tree:
 ``PYTHONPATH=BEFORE python bench/profile_occlusion.py``.
 
 Run:  python bench/profile_occlusion.py [--scene static|panning] [--calls 10]
-Prints a Markdown table (per call, mean over the calls after one warm-up call).
+Prints a Markdown table (per call, mean over the calls after one warm-up call); the
+``kernel`` rows time each OpenCL launch to its completion (their CPU is all the process's
+threads, the device's included).
 """
 
 from __future__ import annotations
@@ -88,6 +90,21 @@ def main() -> None:
     for module, attr, label in rows:
         if hasattr(module, attr):
             setattr(module, attr, timed(label, getattr(module, attr)))
+    # each kernel launch waits for its event: the kernels' own time (wall) as rows too
+    from clblur.opencl.program import Program
+
+    launch = Program.run
+
+    def run_and_wait(self, name, queue, *a, **k):
+        t, c = time.perf_counter(), time.process_time()
+        event = launch(self, name, queue, *a, **k)
+        event.wait()
+        cell = totals.setdefault(f"kernel {name}", [0.0, 0.0])
+        cell[0] += time.perf_counter() - t
+        cell[1] += time.process_time() - c
+        return event
+
+    Program.run = run_and_wait
     futures.ThreadPoolExecutor = _Serial
     if hasattr(layer_planes, "ThreadPoolExecutor"):
         layer_planes.ThreadPoolExecutor = _Serial
@@ -108,6 +125,9 @@ def main() -> None:
             w, cpu = totals[label]
             name = label.replace("  ", "&nbsp;&nbsp;") if label.startswith(" ") else label
             print(f"| {name} | {1000 * w / n:.1f} | {1000 * cpu / n:.1f} |")
+    for label in sorted(k for k in totals if k.startswith("kernel ")):
+        w, cpu = totals[label]
+        print(f"| {label} | {1000 * w / n:.1f} | {1000 * cpu / n:.1f} |")
     print(f"| whole layered call | {1000 * whole[0] / n:.1f} | {1000 * whole[1] / n:.1f} |")
 
 
