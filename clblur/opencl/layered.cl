@@ -154,7 +154,8 @@ __kernel void composite_layers(__global const float *planes, __global const floa
  *   (select), which adds +-0 to e (never -0: it starts at +0) and leaves T as it is;
  * - a lane whose N samples are done, or that is not on the region (count 0), gets weight 0,
  *   which adds +-0 to its sum (never -0);
- * - past T = 0 the scalar kernel skips the rest; here they add T * s = +-0.
+ * - past T = 0 the scalar kernel skips the rest; here they add T * s = +-0 in a lane whose T
+ *   is 0 while another's is not, and are skipped once T = 0 in all eight lanes.
  * chunks: (row, first col) in the crop per work-item; counts: LANES per work-item (0 for
  * lanes off the region or past the crop); out: LANES x CHANNELS per work-item. */
 #define SPREAD_LO(v) shuffle((v), (uint16)(0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3))
@@ -296,6 +297,15 @@ __kernel void composite_lanes(__global const float *planes, __global const float
             e_lo += SPREAD_LO(left) * s_lo;
             e_hi += SPREAD_HI(left) * s_hi;
             left = left * (1.0f - COVER(s_lo, s_hi));
+            if (!any(left != 0.0f))
+                break;  /* opaque in every lane: the rest would add +-0 (as the scalar kernel) */
+        }
+        float8 wj = select((float8)(0.0f), weighted ? (float8)(weights[j]) : wn,
+                           (int8)(j) < N);
+        if (!any(left != 0.0f)) {  /* e + T * s with T = +-0 is e */
+            acc_lo += SPREAD_LO(wj) * e_lo;
+            acc_hi += SPREAD_HI(wj) * e_hi;
+            continue;
         }
         if (own_still) {
             s_lo = own_lo;
@@ -305,8 +315,6 @@ __kernel void composite_lanes(__global const float *planes, __global const float
             float8 y = py - (fy * num) / den;
             sample8(linear, h, w, r0, c0, fh, fw, x, y, &s_lo, &s_hi);
         }
-        float8 wj = select((float8)(0.0f), weighted ? (float8)(weights[j]) : wn,
-                           (int8)(j) < N);
         acc_lo += SPREAD_LO(wj) * (e_lo + SPREAD_LO(left) * s_lo);
         acc_hi += SPREAD_HI(wj) * (e_hi + SPREAD_HI(left) * s_hi);
     }
