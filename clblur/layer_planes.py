@@ -9,14 +9,16 @@ a coverage fitted to their light (:func:`split_coverage`).
 from __future__ import annotations
 
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 
-from clblur.halo import reach
+from clblur.halo import halo_for_reach, reach
 from clblur.layering import layer_labels
 
-__all__ = ["INPAINT_RADIUS", "Layers", "MID_EXTEND_PX", "SPLIT_PRIOR", "prepare",
+__all__ = ["INPAINT_RADIUS", "Layers", "MID_EXTEND_PX", "SPLIT_PRIOR", "distance_to", "prepare",
            "split_coverage"]
 
 INPAINT_RADIUS = 3
@@ -28,12 +30,14 @@ SPLIT_PRIOR = 1e-4  # (linear light)^2: below this contrast a mixed pixel stays 
 class Layers:
     """The layers of a crop of the image, ready to composite (module Conventions).
 
-    ``origin``: (row, col) of the crop in the full image; ``planes``: K x h x w x (C + 1)
-    premultiplied ``(M L, M)``; ``vectors``: K x h x w x 2 float32 ``D_k``; ``flow`` and
-    ``linear``: the crop of the image's own vectors and linear image (for uncovered light);
-    ``region``: h x w bool, the pixels to composite; ``present``: K x h x w bool, whether
-    layer ``k`` can cover the pixel at any sample (farther than its reach plus the bilinear
-    footprint it reads only zeros, so skipping it changes nothing but the sample count).
+    ``origin``: (row, col) of the crop in the full image (the region's bounding box plus the
+    halo its samples reach, ``clblur.halo``); ``planes``: K x h x w x (C + 1) premultiplied
+    ``(M L, M)``; ``vectors``: K x h x w x 2 float32 ``D_k``; ``flow`` and ``linear``: the
+    crop of the image's own vectors and linear image (for uncovered light); ``region``: h x w
+    bool, the pixels to composite; ``present``: K x h x w bool, whether layer ``k`` can cover
+    the pixel at any sample (farther than its reach plus the bilinear footprint it reads only
+    zeros, so skipping it changes nothing but the sample count).  ``vectors`` and ``present``
+    hold values at the region's pixels only (0 and False elsewhere: nothing reads them).
     """
 
     origin: tuple[int, int]
@@ -45,43 +49,102 @@ class Layers:
     present: np.ndarray
 
 
+# cv2's exact transform returns float32 distances; squared, they round back to the exact
+# integer squared distance while d * ulp(d) < 1/2 (about 2000 px; half that kept as margin)
+_EXACT_FLOAT32_PX = 1024.0
+
+
+def distance_to(inside: np.ndarray,
+                at: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Euclidean distance (float64, H x W) from every pixel to the nearest ``inside`` pixel:
+    ``scipy.ndimage.distance_transform_edt(~inside)`` bit for bit, several times faster.
+    With ``at`` (rows, cols), only at those pixels (a flat array).
+
+    Why: the distance bands of :func:`prepare` and ``region_mask`` ask only for distances.
+    OpenCV's exact transform (Felzenszwalb and Huttenlocher, "Distance transforms of sampled
+    functions", 2012; ``cv2.DIST_MASK_PRECISE``) gives them in float32; squaring and rounding
+    recovers the exact integer squared distance, whose float64 square root is what scipy
+    returns.  Farther than ``_EXACT_FLOAT32_PX`` (where float32 could round the square to the
+    wrong integer) scipy answers.  ``inside`` must hold at least one True pixel.
+    """
+    import cv2
+
+    d = cv2.distanceTransform((~inside).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    if at is not None:
+        d = d[at]
+    if float(d.max(initial=0.0)) > _EXACT_FLOAT32_PX:
+        from scipy.ndimage import distance_transform_edt
+
+        exact = distance_transform_edt(~inside)
+        return exact if at is None else exact[at]
+    d = d.astype(np.float64)
+    return np.sqrt(np.rint(d * d))
+
+
 def _inpaint(lin: np.ndarray, known: np.ndarray, depth: float,
              nearest: tuple[np.ndarray, tuple[np.ndarray, np.ndarray]] | None = None,
-             needed: np.ndarray | None = None) -> np.ndarray:
+             needed: np.ndarray | None = None,
+             window: tuple[slice, slice] = (slice(None), slice(None))) -> np.ndarray:
     """``lin`` with the pixels outside ``known`` reconstructed from the known ones
     (Navier-Stokes inpainting, Bertalmio et al. 2001, as ``cv2.inpaint``; per channel) up to
     ``depth`` pixels from them; deeper pixels, which no sample reads, take their nearest known
     pixel (so the inpainting only walks the band that can be uncovered).  ``nearest``: the
     distance transform of ``~known`` with its indices, if already computed; ``needed``: the
     pixels any sample can read (others take their nearest known pixel too), and the
-    inpainting runs only on the bounding box of the hole they leave, plus a margin."""
+    inpainting runs only on the bounding box of the hole they leave, plus a margin.
+    Returns the result on ``window`` only (the part the caller reads)."""
     import cv2
     from scipy.ndimage import distance_transform_edt
 
     if not known.any():
-        return lin.copy()
+        return lin[window].copy()
     dist, idx = nearest if nearest is not None else \
         distance_transform_edt(~known, return_indices=True)
     deep = dist > depth + INPAINT_RADIUS + 1
     if needed is not None:
         deep |= ~needed
-    base = lin[idx[0], idx[1]] if deep.any() else lin
     hole = ~known & ~deep
-    out = np.array(base, copy=True)
+    # known pixels are their own nearest known pixel: everywhere but in the hole, the
+    # nearest known pixel's light is the result (the hole's is inpainting's first guess)
+    out = lin[idx[0][window], idx[1][window]]
     if not hole.any():
-        return np.where(known[..., None], lin, out)
+        return out
     # cv2.inpaint marches over the whole array it is given: give it only the hole's box
     # plus the radius it reads (and one pixel of border) around it.
     m = INPAINT_RADIUS + 2
     rows, cols = np.nonzero(hole.any(axis=1))[0], np.nonzero(hole.any(axis=0))[0]
     box = (slice(max(rows[0] - m, 0), rows[-1] + m + 1),
            slice(max(cols[0] - m, 0), cols[-1] + m + 1))
+    # inpainting's input (float32): as the result outside the hole, and in it too where
+    # there is anything deep (else the image itself, as the fill has always been given)
+    base = (lin[idx[0][box], idx[1][box]] if deep.any() else lin[box]).astype(np.float32)
     hole8 = hole[box].astype(np.uint8)
-    for c in range(lin.shape[2]):
-        out[box + (c,)] = cv2.inpaint(np.ascontiguousarray(base[box + (c,)], np.float32),
-                                      hole8, INPAINT_RADIUS, cv2.INPAINT_NS)
-    return np.where(known[..., None], lin, out)
+    # the box's part of the window, in window and in box coordinates
+    h, w = known.shape
+    (wr0, wr1, _), (wc0, wc1, _) = window[0].indices(h), window[1].indices(w)
+    (br0, br1, _), (bc0, bc1, _) = box[0].indices(h), box[1].indices(w)
+    r_lo, r_hi, c_lo, c_hi = max(wr0, br0), min(wr1, br1), max(wc0, bc0), min(wc1, bc1)
+    if r_lo >= r_hi or c_lo >= c_hi:
+        return out
+    in_win = (slice(r_lo - wr0, r_hi - wr0), slice(c_lo - wc0, c_hi - wc0))
+    in_box = (slice(r_lo - br0, r_hi - br0), slice(c_lo - bc0, c_hi - bc0))
+    # in the box, whatever is not known comes back from cv2: inpainted (the hole) or its
+    # nearest known pixel's light rounded to float32 (deep); known pixels keep lin exactly
+    fresh = ~known[box][in_box]
 
+    def channel(c: int) -> None:
+        filled = cv2.inpaint(np.ascontiguousarray(base[..., c]), hole8, INPAINT_RADIUS,
+                             cv2.INPAINT_NS)
+        out[in_win + (c,)][fresh] = filled[in_box][fresh]
+
+    # the channels are independent and cv2 releases the interpreter lock: one thread each
+    # (the wall time of the largest host step, on a machine with cores to spare)
+    with ThreadPoolExecutor(min(lin.shape[2], os.cpu_count() or 1)) as pool:
+        list(pool.map(channel, range(lin.shape[2])))
+    return out
+
+
+_CROSS = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], np.uint8)  # 4-neighbours and the pixel
 
 # offsets within 3 px, nearest first (ties in a fixed order)
 _NEAR = sorted(((dy, dx) for dy in range(-3, 4) for dx in range(-3, 4) if dy or dx),
@@ -136,12 +199,8 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     of a crop ``(row slice, col slice)`` (so only the crop is linearised).  None when the
     ordering gives one layer there: a single surface is what the gather integrates.
     ``rule``: how a float ``order`` becomes layers (:func:`layer_labels`)."""
-    from scipy.ndimage import (
-        binary_dilation,
-        distance_transform_edt,
-        maximum_filter,
-        minimum_filter,
-    )
+    import cv2
+    from scipy.ndimage import distance_transform_edt, maximum_filter, minimum_filter
 
     h, w = region.shape
     r = reach(v, anchor)
@@ -160,9 +219,17 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     # Mixed pixels: a pixel next to another layer holds light of both; it is split between the
     # nearer layer around it (coverage fitted to its light, split_coverage) and what lies
     # behind (reconstructed), so the composite at the anchor time is the image itself.
-    front = minimum_filter(labels, size=3, mode="nearest")
-    split = (front != maximum_filter(labels, size=3, mode="nearest")) if split_edges else \
-        np.zeros(labels.shape, bool)
+    if last < 256:
+        # OpenCV's 3 x 3 min / max on the labels as bytes: outside the image it ignores the
+        # border, which for a 3 x 3 window is scipy's "nearest"
+        square = np.ones((3, 3), np.uint8)
+        lab8 = labels.astype(np.uint8)
+        front = cv2.erode(lab8, square).astype(labels.dtype)
+        back = cv2.dilate(lab8, square).astype(labels.dtype)
+    else:
+        front = minimum_filter(labels, size=3, mode="nearest")
+        back = maximum_filter(labels, size=3, mode="nearest")
+    split = (front != back) if split_edges else np.zeros(labels.shape, bool)
     labels = np.where(split, front, labels)
     own = v_c  # the image's own vectors, for light no layer covers
     v_c = v_c.copy()
@@ -183,7 +250,7 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     # inpainting radius, so that what is read is inpainted from a filled neighbourhood), and
     # around the mixed pixels of layer k - 1, which take it as what lies behind them.  The
     # vectors of layer k all come from pixels at or behind it.
-    from_region = distance_transform_edt(~region[crop])
+    from_region = distance_to(region[crop])
     pad = 2.0 + INPAINT_RADIUS + 1
     l2 = v_c[..., 0] * v_c[..., 0] + v_c[..., 1] * v_c[..., 1]
     # reach() of the vectors at or behind each layer: the largest square, rearmost first
@@ -196,8 +263,11 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
         out = from_region <= reach_at_or_behind[k] + pad
         mixed = split & (labels == k - 1)
         if mixed.any():
-            out |= (binary_dilation(mixed, iterations=INPAINT_RADIUS + 1)
-                    & (from_region <= reach_at_or_behind[k - 1] + pad))
+            # scipy's binary_dilation(mixed, iterations=INPAINT_RADIUS + 1) (a cross, so
+            # an L1 ball), by OpenCV: outside the image counts as not mixed in both
+            near_mixed = cv2.dilate(mixed.view(np.uint8), _CROSS,
+                                    iterations=INPAINT_RADIUS + 1).view(bool)
+            out |= near_mixed & (from_region <= reach_at_or_behind[k - 1] + pad)
         return out
 
     def behind_edt(k: int) -> tuple:
@@ -207,56 +277,85 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
         return nearest_at_or_behind[k]
 
     def fill(k: int) -> np.ndarray:
-        """The linear image with everything nearer than layer ``k`` reconstructed."""
+        """The linear image with everything nearer than layer ``k`` reconstructed (on the
+        window ``win``)."""
         if k not in fills:
             # an intermediate layer extends MID_EXTEND_PX under what hides it, and a mixed
             # pixel lies within 2 px of what is behind it: deeper, nothing reads the fill
             depth = band if k == last else MID_EXTEND_PX + 2.0
-            fills[k] = _inpaint(lin_c, labels >= k, depth, behind_edt(k), needed(k))
+            fills[k] = _inpaint(lin_c, labels >= k, depth, behind_edt(k), needed(k), win)
         return fills[k]
 
-    planes, vectors, present = [], [], []
+    # The composite reads the layers only within the reach of the region's pixels, plus the
+    # bilinear neighbour and a margin for float32 positions (the halo rule of clblur.halo):
+    # the planes are built on that window of the crop, and the vectors and the presence of
+    # each layer at the region's pixels only (nothing else reads them).
+    hal = halo_for_reach(r)
+    win = (slice(max(rows[0] - hal, r0) - r0, min(rows[-1] + hal + 1, r1) - r0),
+           slice(max(cols[0] - hal, c0) - c0, min(cols[-1] + hal + 1, c1) - c0))
+    reg = region[crop][win]
+    at = np.nonzero(reg)
+    lab_w, split_w, lin_w, v_w = labels[win], split[win], lin_c[win], v_c[win]
+    hw, ch = reg.shape, lin_c.shape[2]
+    planes = np.empty((last + 1,) + hw + (ch + 1,), lin_c.dtype)
+    vectors = np.zeros((last + 1,) + hw + (2,), np.float32)
+    present = np.zeros((last + 1,) + hw, bool)
+    kept = 0
     for k in range(last + 1):
-        at_or_behind = labels >= k
         if k == last and background is not None:
             # the clean plate is what lies behind everything, and it does not move
-            ext = np.ones_like(at_or_behind)
-            colour = np.where(at_or_behind[..., None], lin_c, background[crop])
-            vec = np.where(at_or_behind[..., None], v_c, np.float32(0))
-            cover = np.ones(ext.shape)
-            mine = np.zeros(ext.shape, bool)
+            at_or_behind = (lab_w >= k)[..., None]
+            ext_w = np.ones(hw, bool)
+            colour_w = np.where(at_or_behind, lin_w, background[crop][win])
+            vec_w = np.where(at_or_behind, v_w, np.float32(0))
+            mine_w = np.zeros(hw, bool)
         else:
             if k == 0:
-                ext, colour, vec = labels == 0, lin_c, v_c
+                ext_w, colour_w, vec_w = lab_w == 0, lin_w, v_w
             else:
                 dist, idx = behind_edt(k)
-                source = (idx[0], idx[1])  # nearest pixel at or behind layer k (itself there)
+                # nearest pixel at or behind layer k (itself there)
+                sy, sx = idx[0][win], idx[1][win]
                 # only the rearmost layer is assumed to continue far under what hides it
-                ext = (labels[source] == k) & (dist <= (band if k == last else MID_EXTEND_PX))
-                colour = fill(k)
-                vec = v_c[source]
-            mine = split & (labels == k)
-            cover = np.ones(ext.shape)
-            if mine.any():
-                behind = (background[crop] if background is not None and k == last - 1
-                          else fill(k + 1))
-                cover[mine] = split_coverage(lin_c[mine], pure[mine], behind[mine])
-        if not ext.any():
-            continue
-        m = (ext * cover).astype(lin_c.dtype)[..., None]
-        light = colour * m
-        if mine.any():
+                ext_w = (labels[sy, sx] == k) & (dist[win] <= (band if k == last
+                                                               else MID_EXTEND_PX))
+                colour_w = fill(k)
+                vec_w = v_c[sy, sx]
+            mine_w = split_w & (lab_w == k)
+        if not ext_w.any():
+            continue  # no sample of the region reads this layer
+        cover_w = np.ones(hw)
+        if mine_w.any():
+            behind_w = (background[crop][win] if background is not None and k == last - 1
+                        else fill(k + 1))
+            cover_w[mine_w] = split_coverage(lin_w[mine_w], pure[win][mine_w],
+                                             behind_w[mine_w])
+        m = (ext_w * cover_w).astype(lin_c.dtype)
+        plane = planes[kept]
+        np.multiply(colour_w, m[..., None], out=plane[..., :ch])
+        plane[..., ch] = m
+        if mine_w.any():
             # premultiplied: what the pixel holds beyond the light behind it, so the
             # composite at the anchor time is the image itself
-            light[mine] = ((lin_c[mine] - (1.0 - cover[mine][:, None]) * behind[mine])
-                           * ext[mine][:, None])
-        planes.append(np.concatenate([light, m], axis=2))
-        # D_k: the vector of the nearest pixel of the (extended) layer, everywhere.
-        dist, nearest = distance_transform_edt(~ext, return_indices=True)
-        d = vec[nearest[0], nearest[1]].astype(np.float32)
-        vectors.append(d)
-        farthest = np.hypot(d[..., 0], d[..., 1]) * max(anchor, 1.0 - anchor)
-        present.append(dist <= farthest + 1.5)  # a bilinear footprint reaches sqrt(2) px
-    return Layers(origin=(int(r0), int(c0)), planes=np.stack(planes),
-                  vectors=np.stack(vectors), flow=own, linear=lin_c,
-                  region=region[crop], present=np.stack(present))
+            plane[..., :ch][mine_w] = ((lin_w[mine_w]
+                                        - (1.0 - cover_w[mine_w][:, None]) * behind_w[mine_w])
+                                       * ext_w[mine_w][:, None])
+        # D_k: the vector of the nearest pixel of the (extended) layer.  A layer nearer to a
+        # region pixel than its reach plus 1.5 lies inside the window, so the transform of
+        # the window finds it.  A layer in rigid translation (one vector) needs only the
+        # distance: every nearest pixel carries that vector.
+        first = vec_w[np.unravel_index(np.argmax(ext_w), hw)]
+        if not (((vec_w[..., 0] != first[0]) | (vec_w[..., 1] != first[1])) & ext_w).any():
+            dist_at = distance_to(ext_w, at)
+            d_at = np.broadcast_to(first.astype(np.float32), (at[0].size, 2))
+        else:
+            dist, nearest = distance_transform_edt(~ext_w, return_indices=True)
+            dist_at = dist[at]
+            d_at = vec_w[nearest[0][at], nearest[1][at]].astype(np.float32)
+        vectors[kept][at] = d_at
+        farthest = np.hypot(d_at[:, 0], d_at[:, 1]) * max(anchor, 1.0 - anchor)
+        present[kept][at] = dist_at <= farthest + 1.5  # a bilinear footprint reaches sqrt(2) px
+        kept += 1
+    return Layers(origin=(int(r0 + win[0].start), int(c0 + win[1].start)),
+                  planes=planes[:kept], vectors=vectors[:kept], flow=own[win],
+                  linear=lin_w, region=reg, present=present[:kept])

@@ -60,7 +60,7 @@ import math
 import numpy as np
 
 from clblur.halo import reach
-from clblur.layer_planes import SPLIT_PRIOR, Layers, prepare, split_coverage
+from clblur.layer_planes import SPLIT_PRIOR, Layers, distance_to, prepare, split_coverage
 from clblur.layering import (
     DEPTH_TAU,
     GAP_FRACTION,
@@ -82,6 +82,26 @@ SPREAD_PX = 1.0
 TILE = 16
 
 
+def _flagged_tiles(v: np.ndarray, r: float, tile: int, spread: float) -> np.ndarray:
+    """The tile-level mask of :func:`boundary_mask` (``ceil(H / tile) x ceil(W / tile)``),
+    for vectors ``v`` of reach ``r``."""
+    from scipy.ndimage import maximum_filter, minimum_filter
+
+    h, w = v.shape[:2]
+    th, tw = -(-h // tile), -(-w // tile)
+    if th * tile != h or tw * tile != w:
+        v = np.pad(v, ((0, th * tile - h), (0, tw * tile - w), (0, 0)), mode="edge")
+    # rows of a tile first (whole rows at a time: contiguous, hence fast), then its columns
+    # on the 1/tile as large result
+    rows = v.reshape(th, tile, tw * tile, 2)
+    tmax = rows.max(axis=1).reshape(th, tw, tile, 2).max(axis=2)
+    tmin = rows.min(axis=1).reshape(th, tw, tile, 2).min(axis=2)
+    size = 2 * math.ceil((r + 2.0) / tile) + 1
+    nmax = maximum_filter(tmax, size=(size, size, 1), mode="nearest")
+    nmin = minimum_filter(tmin, size=(size, size, 1), mode="nearest")
+    return ((nmax - nmin) > spread).any(axis=2)
+
+
 def boundary_mask(v: np.ndarray, anchor: float, tile: int = TILE,
                   spread: float = SPREAD_PX) -> np.ndarray:
     """Pixels whose neighbourhood moves non-uniformly: the ones that need the layered path.
@@ -90,24 +110,8 @@ def boundary_mask(v: np.ndarray, anchor: float, tile: int = TILE,
     within ``ceil((R + 2) / tile)`` of it, max minus min exceeds ``spread`` pixels (module
     Conventions).  Returns an H x W bool mask (whole tiles).
     """
-    from scipy.ndimage import maximum_filter, minimum_filter
-
     h, w = v.shape[:2]
-    th, tw = -(-h // tile), -(-w // tile)
-    pad = ((0, th * tile - h), (0, tw * tile - w))
-    tmax = np.empty((th, tw, 2), v.dtype)
-    tmin = np.empty((th, tw, 2), v.dtype)
-    for c in range(2):  # per component, one axis at a time: contiguous, hence fast
-        comp = np.ascontiguousarray(v[..., c])
-        if th * tile != h or tw * tile != w:
-            comp = np.pad(comp, pad, mode="edge")
-        comp = comp.reshape(th, tile, tw, tile)
-        tmax[..., c] = comp.max(axis=3).max(axis=1)
-        tmin[..., c] = comp.min(axis=3).min(axis=1)
-    size = 2 * math.ceil((reach(v, anchor) + 2.0) / tile) + 1
-    nmax = maximum_filter(tmax, size=(size, size, 1), mode="nearest")
-    nmin = minimum_filter(tmin, size=(size, size, 1), mode="nearest")
-    flagged = ((nmax - nmin) > spread).any(axis=2)
+    flagged = _flagged_tiles(v, reach(v, anchor), tile, spread)
     return np.repeat(np.repeat(flagged, tile, axis=0), tile, axis=1)[:h, :w]
 
 
@@ -117,26 +121,36 @@ def region_mask(v: np.ndarray, anchor: float, tile: int = TILE,
     narrowed to the pixels within ``R + 2`` of a motion edge (a pixel whose 3 x 3
     neighbourhood's vectors differ by more than ``spread`` in x or y).  Farther away, every
     surface that can reach a pixel moves as the pixel does, and the gather is kept."""
-    from scipy.ndimage import distance_transform_edt, maximum_filter, minimum_filter
+    import cv2
+    from scipy.ndimage import maximum_filter, minimum_filter
 
-    tiles = boundary_mask(v, anchor, tile, spread)
-    if not tiles.any():
-        return tiles
+    h, w = v.shape[:2]
+    out = np.zeros((h, w), bool)
     r = reach(v, anchor)
+    flagged = _flagged_tiles(v, r, tile, spread)
+    if not flagged.any():
+        return out
     margin = int(math.ceil(r)) + 4
-    rows, cols = np.nonzero(tiles.any(axis=1))[0], np.nonzero(tiles.any(axis=0))[0]
-    h, w = tiles.shape
-    r0, r1 = max(rows[0] - margin, 0), min(rows[-1] + margin + 1, h)
-    c0, c1 = max(cols[0] - margin, 0), min(cols[-1] + margin + 1, w)
+    rows, cols = np.nonzero(flagged.any(axis=1))[0], np.nonzero(flagged.any(axis=0))[0]
+    r0, r1 = max(rows[0] * tile - margin, 0), min((rows[-1] + 1) * tile + margin, h)
+    c0, c1 = max(cols[0] * tile - margin, 0), min((cols[-1] + 1) * tile + margin, w)
     crop = v[r0:r1, c0:c1]
     edge = np.zeros(crop.shape[:2], bool)
+    square = np.ones((3, 3), np.uint8)
     for c in range(2):
-        edge |= (maximum_filter(crop[..., c], size=3, mode="nearest")
-                 - minimum_filter(crop[..., c], size=3, mode="nearest")) > spread
-    out = np.zeros_like(tiles)
+        comp = np.ascontiguousarray(crop[..., c])
+        if comp.dtype in (np.float32, np.float64):
+            # OpenCV's 3 x 3 max / min: outside the image it ignores the border, which for
+            # a 3 x 3 window is what repeating the edge gives (scipy's "nearest")
+            spread_c = cv2.dilate(comp, square) - cv2.erode(comp, square)
+        else:
+            spread_c = (maximum_filter(comp, size=3, mode="nearest")
+                        - minimum_filter(comp, size=3, mode="nearest"))
+        edge |= spread_c > spread
     if edge.any():
-        near = distance_transform_edt(~edge) <= r + 2.0
-        out[r0:r1, c0:c1] = near & tiles[r0:r1, c0:c1]
+        near = distance_to(edge) <= r + 2.0
+        tiles = flagged[(np.arange(r0, r1) // tile)[:, None], (np.arange(c0, c1) // tile)]
+        out[r0:r1, c0:c1] = near & tiles
     return out
 
 
@@ -148,12 +162,17 @@ def counts(layers: Layers, samples: int | None,
     shape = layers.region.shape if at is None else at[0].shape
     if samples is not None:
         return np.full(shape, samples, np.int32)
-    pick = (Ellipsis,) if at is None else (slice(None),) + tuple(at)
-    d = layers.vectors[pick]
-    flow = layers.flow if at is None else layers.flow[at]
-    own = sample_counts(flow[..., 0], flow[..., 1])
-    per_layer = np.where(layers.present[pick], sample_counts(d[..., 0], d[..., 1]), 1)
-    return np.maximum(own, per_layer.max(axis=0))
+    pick = (Ellipsis,) if at is None else tuple(at)
+    flow = layers.flow[pick]
+    n = sample_counts(flow[..., 0], flow[..., 1])
+    for d, there in zip(layers.vectors, layers.present, strict=True):
+        # a layer that can reach the pixel: its D_k there (one layer at a time, only where
+        # it is present: far fewer pixels than the crop times the layers)
+        there = there[pick]
+        if there.any():
+            dk = d[pick][there]
+            n[there] = np.maximum(n[there], sample_counts(dk[:, 0], dk[:, 1]))
+    return n
 
 
 def composite(layers: Layers, anchor: float, samples: int | None, weights: np.ndarray | None,

@@ -130,19 +130,11 @@ def depth_components(depth: np.ndarray) -> tuple[np.ndarray, int]:
     two surfaces) joins the nearest component it touches in front of it (and with it, where
     that is a sliver too), as ``prepare`` puts mixed pixels on the nearer layer.
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     w = _inverse_depth(depth)
     h, wd = w.shape
-    idx = np.arange(h * wd).reshape(h, wd)
     right = _continuous(w, 1)
     down = _continuous(w, 0)
-    rows = np.concatenate([idx[:, :-1][right], idx[:-1, :][down]])
-    cols = np.concatenate([idx[:, 1:][right], idx[1:, :][down]])
-    graph = coo_matrix((np.ones(rows.size, np.int8), (rows, cols)), shape=(h * wd,) * 2)
-    n, comp = connected_components(graph, directed=False)
-    comp = comp.reshape(h, wd).astype(np.int64)
+    n, comp = _components(right, down)
     if n == 1:
         return comp.astype(np.int32), 1
     # slivers: every pixel of the component is cut from both of its neighbours along a row or
@@ -179,6 +171,27 @@ def depth_components(depth: np.ndarray) -> tuple[np.ndarray, int]:
         comp = comp_new.reshape(h, wd)
         n = int(comp.max()) + 1
     return comp.astype(np.int32), n
+
+
+def _components(right: np.ndarray, down: np.ndarray) -> tuple[int, np.ndarray]:
+    """Connected components of the pixel grid whose 4-neighbours are joined where ``right``
+    (H x W-1) and ``down`` (H-1 x W) say: (n, H x W int64 labels numbered in raster order
+    of their first pixel, as ``scipy.sparse.csgraph.connected_components`` numbers them).
+
+    Why: a grid twice as fine, pixels at even positions and the joins between them in
+    between, labelled by OpenCV's sequential two-pass labelling (Wu et al., "Optimizing
+    two-pass connected-component labeling algorithms", 2009; ``cv2.CCL_SAUF``), which also
+    numbers components by their first pixel in raster order: an order of magnitude faster
+    than building the sparse graph."""
+    import cv2
+
+    h, wd = right.shape[0], down.shape[1]
+    grid = np.zeros((2 * h - 1, 2 * wd - 1), np.uint8)
+    grid[::2, ::2] = 1
+    grid[::2, 1::2] = right
+    grid[1::2, ::2] = down
+    n, lab = cv2.connectedComponentsWithAlgorithm(grid, 4, cv2.CV_32S, cv2.CCL_SAUF)
+    return n - 1, lab[::2, ::2].astype(np.int64) - 1  # 0 is the (absent) background
 
 
 def order_components(depth: np.ndarray, comp: np.ndarray, n: int) -> tuple[list[int], list[float]]:

@@ -22,8 +22,9 @@ Conventions
 * A *sparse* integrator (attribute ``sparse = True``) changes the plain result at a few pixels
   only: it is called with a function that returns the linear image on demand, and answers
   None (nothing differs from the gather) or ``(rows, cols, values)``, the exposures (n x C)
-  of those pixels.  :func:`run` then runs the plain pipeline and replaces those pixels by
-  their finished values, so every other pixel is the plain result bit for bit.
+  of those pixels.  :func:`run` runs the plain pipeline (on a second thread, beside the
+  integrator) and replaces those pixels by their finished values, so every other pixel is the
+  plain result bit for bit.
 """
 
 from __future__ import annotations
@@ -95,8 +96,14 @@ def run(plan: BlurPlan, backend: Backend = NUMPY,
             return fused(plan)
         integrate = backend.integrate
     if getattr(integrate, "sparse", False):
-        patch = integrate(lambda: backend.linearise(plan), plan)
-        out = run(plan, backend)
+        # The plain result does not depend on the patch: it runs on a second thread while
+        # this one prepares the patch (a device backend's kernels then overlap the host work).
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(1) as pool:
+            plain = pool.submit(run, plan, backend)
+            patch = integrate(lambda: backend.linearise(plan), plan)
+            out = plain.result()
         if patch is None:
             return out
         rows, cols, values = patch

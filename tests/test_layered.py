@@ -359,3 +359,61 @@ def test_command_line_depth_and_alpha(tmp_path, capsys):
                  "--depth", str(tmp_path / "flow.npy")]) == 2
     assert "depth has shape" in capsys.readouterr().err
     assert not (tmp_path / "x.png").exists()
+
+
+def test_opencl_cpu_layout_is_the_one_pixel_kernel_bit_for_bit(opencl, crossing):
+    """composite_lanes (8 pixels of a row per work-item) against composite_layers, on
+    non-rigid layers (varying vectors), a clean plate, time weights and a start anchor."""
+    from clblur.layer_planes import prepare
+    from clblur.opencl.layered import composite
+
+    sc, frame, truth, flow, depth, swept = crossing
+    h, w = depth.shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    bend = np.stack([np.sin(yy / 9.0), np.cos(xx / 7.0)], -1).astype(np.float32)
+    flow = flow + bend * (depth < np.max(depth))[..., None]
+    lin = SRGB.inverse(frame)
+    for anchor, samples, weights, plate in ((0.5, None, None, None),
+                                            (0.0, 5, np.array([1, 2, 3, 2, 1]) / 9.0,
+                                             lin[::-1].copy())):
+        region = layered.region_mask(flow, anchor)
+        layers = prepare(lin, flow, depth, anchor, region, plate)
+        one = composite(layers, anchor, samples, weights, (h, w), lanes=False)
+        eight = composite(layers, anchor, samples, weights, (h, w), lanes=True)
+        assert one.shape == (region.sum(), 3)
+        np.testing.assert_array_equal(eight, one)
+
+
+def test_distance_to_is_scipys_transform_bit_for_bit():
+    from scipy.ndimage import distance_transform_edt
+
+    from clblur.layer_planes import distance_to
+
+    rng = np.random.default_rng(7)
+    for density in (0.0005, 0.02, 0.4):
+        inside = rng.random((97, 131)) < density
+        inside[50, 60] = True
+        want = distance_transform_edt(~inside)
+        np.testing.assert_array_equal(distance_to(inside), want)
+        at = np.nonzero(rng.random(inside.shape) < 0.3)
+        np.testing.assert_array_equal(distance_to(inside, at), want[at])
+
+
+def test_grid_components_number_as_scipy_does():
+    """layering._components (OpenCV on a twice-as-fine grid) against the sparse graph."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from clblur.layering import _components
+
+    rng = np.random.default_rng(11)
+    for h, w, p in ((1, 1, 0.5), (1, 9, 0.5), (7, 1, 0.5), (40, 57, 0.6), (63, 35, 0.95)):
+        right, down = rng.random((h, w - 1)) < p, rng.random((h - 1, w)) < p
+        idx = np.arange(h * w).reshape(h, w)
+        rows = np.concatenate([idx[:, :-1][right], idx[:-1, :][down]])
+        cols = np.concatenate([idx[:, 1:][right], idx[1:, :][down]])
+        graph = coo_matrix((np.ones(rows.size), (rows, cols)), shape=(h * w,) * 2)
+        n, comp = connected_components(graph, directed=False)
+        got_n, got = _components(right, down)
+        assert got_n == n
+        np.testing.assert_array_equal(got, comp.reshape(h, w))

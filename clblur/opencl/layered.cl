@@ -144,3 +144,185 @@ __kernel void composite_layers(__global const float *planes, __global const floa
     for (int c = 0; c < channels; ++c)
         out[(size_t)i * channels + c] = acc[c];
 }
+
+#if CP == 4
+/* CPU layout (the gather's, clblur/opencl/integrate.cl): LANES = 8 consecutive pixels of a
+ * crop row per work-item, as vector lanes, so every position, weight and blend is one
+ * float8/float16 operation.  Per lane the arithmetic is the one of composite_layers, in the
+ * same order, so the two kernels agree bit for bit:
+ * - a layer is visited when any lane has it present; a lane without it samples zeros
+ *   (select), which adds +-0 to e (never -0: it starts at +0) and leaves T as it is;
+ * - a lane whose N samples are done, or that is not on the region (count 0), gets weight 0,
+ *   which adds +-0 to its sum (never -0);
+ * - past T = 0 the scalar kernel skips the rest; here they add T * s = +-0 in a lane whose T
+ *   is 0 while another's is not, and are skipped once T = 0 in all eight lanes.
+ * chunks: (row, first col) in the crop per work-item; counts: LANES per work-item (0 for
+ * lanes off the region or past the crop); out: LANES x CHANNELS per work-item. */
+#define SPREAD_LO(v) shuffle((v), (uint16)(0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3))
+#define SPREAD_HI(v) shuffle((v), (uint16)(4, 4, 4, 4, 5, 5, 5, 5, 6, 6, 6, 6, 7, 7, 7, 7))
+#define COVER(lo, hi) ((float8)((lo).s37bf, (hi).s37bf))
+
+/* Bilinear sample of 8 lanes at full-image (x, y): the per-lane taps of locate(), and
+ * sample() done per channel; 8 contiguous pixels per corner when the lanes' taps are. */
+static void sample8(__global const float *img, int h, int w, int r0, int c0, int fh, int fw,
+                    float8 x, float8 y, float16 *lo, float16 *hi)
+{
+    const int8 lane = (int8)(0, 1, 2, 3, 4, 5, 6, 7);
+    x = clamp(x, 0.0f, (float)(fw - 1));
+    y = clamp(y, 0.0f, (float)(fh - 1));
+    float8 fx0 = floor(x), fy0 = floor(y);
+    int8 x0 = convert_int8(fx0), y0 = convert_int8(fy0);
+    int8 x1 = min(x0 + 1, fw - 1), y1 = min(y0 + 1, fh - 1);
+    float8 tx = x - fx0, ty = y - fy0;
+    x0 = clamp(x0 - c0, 0, w - 1);
+    x1 = clamp(x1 - c0, 0, w - 1);
+    y0 = clamp(y0 - r0, 0, h - 1);
+    y1 = clamp(y1 - r0, 0, h - 1);
+    int8 a = y0 * w + x0, b = y0 * w + x1, c = y1 * w + x0, d = y1 * w + x1;
+    float16 a_lo, a_hi, b_lo, b_hi, c_lo, c_hi, d_lo, d_hi;
+    if (all(a == (int8)(a.s0) + lane) && all(b == a + 1) && all(c == (int8)(c.s0) + lane) &&
+        all(d == c + 1)) {
+        __global const float *pa = img + (size_t)a.s0 * CP, *pc = img + (size_t)c.s0 * CP;
+        a_lo = vload16(0, pa); a_hi = vload16(1, pa);
+        b_lo = vload16(0, pa + CP); b_hi = vload16(1, pa + CP);
+        c_lo = vload16(0, pc); c_hi = vload16(1, pc);
+        d_lo = vload16(0, pc + CP); d_hi = vload16(1, pc + CP);
+    } else {
+#define GATHER(t, lo_, hi_)                                                                   \
+        lo_ = (float16)(vload4(t.s0, img), vload4(t.s1, img), vload4(t.s2, img),              \
+                        vload4(t.s3, img));                                                   \
+        hi_ = (float16)(vload4(t.s4, img), vload4(t.s5, img), vload4(t.s6, img),              \
+                        vload4(t.s7, img));
+        GATHER(a, a_lo, a_hi)
+        GATHER(b, b_lo, b_hi)
+        GATHER(c, c_lo, c_hi)
+        GATHER(d, d_lo, d_hi)
+#undef GATHER
+    }
+    float16 fx_lo = SPREAD_LO(tx), fx_hi = SPREAD_HI(tx);
+    float16 fy_lo = SPREAD_LO(ty), fy_hi = SPREAD_HI(ty);
+    float16 top_lo = a_lo * (1.0f - fx_lo) + b_lo * fx_lo;
+    float16 top_hi = a_hi * (1.0f - fx_hi) + b_hi * fx_hi;
+    float16 bot_lo = c_lo * (1.0f - fx_lo) + d_lo * fx_lo;
+    float16 bot_hi = c_hi * (1.0f - fx_hi) + d_hi * fx_hi;
+    *lo = top_lo * (1.0f - fy_lo) + bot_lo * fy_lo;
+    *hi = top_hi * (1.0f - fy_hi) + bot_hi * fy_hi;
+}
+
+__kernel void composite_lanes(__global const float *planes, __global const float *vectors,
+                              __global const float *flow, __global const float *linear,
+                              __global const uchar *present, __global const int *chunks,
+                              __global const int *counts, __global const float *weights,
+                              int weighted, int n, int layers, int h, int w, int r0, int c0,
+                              int fh, int fw, float anchor, __global float *out)
+{
+    int i = get_global_id(0);
+    if (i >= n)
+        return;
+    int row = chunks[2 * i], col0 = chunks[2 * i + 1];
+    size_t plane = (size_t)h * w * CP;
+    int8 N = vload8(i, counts);
+    int ns[LANES];
+    vstore8(N, 0, ns);
+    float vxs[LANES], vys[LANES], fxs[LANES], fys[LANES];
+    size_t ats[LANES];
+    for (int l = 0; l < LANES; ++l) {
+        ats[l] = (size_t)row * w + min(col0 + l, w - 1);
+        fxs[l] = flow[2 * ats[l]];
+        fys[l] = flow[2 * ats[l] + 1];
+    }
+    float8 fx = vload8(0, fxs), fy = vload8(0, fys);
+    /* the layers that can reach any lane, front to back, with their vectors and lane masks */
+    int use[MAXK];
+    float8 vx[MAXK], vy[MAXK];
+    int8 there[MAXK];
+    int m = 0;
+    for (int k = 0; k < layers; ++k) {
+        int flags[LANES];
+        int any = 0;
+        for (int l = 0; l < LANES; ++l) {
+            size_t at = (size_t)k * h * w + ats[l];
+            flags[l] = present[at] && ns[l] > 0 ? -1 : 0;
+            any |= flags[l];
+            vxs[l] = vectors[2 * at];
+            vys[l] = vectors[2 * at + 1];
+        }
+        if (!any)
+            continue;
+        use[m] = k;
+        vx[m] = vload8(0, vxs);
+        vy[m] = vload8(0, vys);
+        there[m] = vload8(0, flags);
+        ++m;
+    }
+    int nmax = max(max(max(N.s0, N.s1), max(N.s2, N.s3)), max(max(N.s4, N.s5), max(N.s6, N.s7)));
+    float8 den = convert_float8(max(N - 1, 1));
+    float8 n1 = convert_float8(N - 1);
+    float8 px = (float8)((float)(c0 + col0)) + (float8)(0.0f, 1.0f, 2.0f, 3.0f, 4.0f, 5.0f, 6.0f, 7.0f);
+    float8 py = (float8)((float)(r0 + row));
+    float8 wn = 1.0f / convert_float8(N);
+    /* A layer (or the image's own vectors) standing still in every lane samples at the
+     * pixel itself at every j (px - (0 * num) / den is px exactly): sampled once. */
+    bool still[MAXK];
+    float16 still_lo[MAXK], still_hi[MAXK];
+    for (int q = 0; q < m; ++q) {
+        still[q] = all(vx[q] == 0.0f) && all(vy[q] == 0.0f);
+        if (still[q]) {
+            sample8(planes + use[q] * plane, h, w, r0, c0, fh, fw, px, py, &still_lo[q],
+                    &still_hi[q]);
+            still_lo[q] = select((float16)(0.0f), still_lo[q], SPREAD_LO(there[q]));
+            still_hi[q] = select((float16)(0.0f), still_hi[q], SPREAD_HI(there[q]));
+        }
+    }
+    bool own_still = all(fx == 0.0f) && all(fy == 0.0f);
+    float16 own_lo = 0.0f, own_hi = 0.0f;
+    if (own_still)
+        sample8(linear, h, w, r0, c0, fh, fw, px, py, &own_lo, &own_hi);
+    float16 acc_lo = 0.0f, acc_hi = 0.0f;
+    for (int j = 0; j < nmax; ++j) {
+        float8 num = (float8)((float)j) - anchor * n1;
+        float8 left = 1.0f;
+        float16 e_lo = 0.0f, e_hi = 0.0f, s_lo, s_hi;
+        for (int q = 0; q < m; ++q) {
+            if (still[q]) {
+                s_lo = still_lo[q];
+                s_hi = still_hi[q];
+            } else {
+                float8 x = px - (vx[q] * num) / den;
+                float8 y = py - (vy[q] * num) / den;
+                sample8(planes + use[q] * plane, h, w, r0, c0, fh, fw, x, y, &s_lo, &s_hi);
+                s_lo = select((float16)(0.0f), s_lo, SPREAD_LO(there[q]));
+                s_hi = select((float16)(0.0f), s_hi, SPREAD_HI(there[q]));
+            }
+            e_lo += SPREAD_LO(left) * s_lo;
+            e_hi += SPREAD_HI(left) * s_hi;
+            left = left * (1.0f - COVER(s_lo, s_hi));
+            if (!any(left != 0.0f))
+                break;  /* opaque in every lane: the rest would add +-0 (as the scalar kernel) */
+        }
+        float8 wj = select((float8)(0.0f), weighted ? (float8)(weights[j]) : wn,
+                           (int8)(j) < N);
+        if (!any(left != 0.0f)) {  /* e + T * s with T = +-0 is e */
+            acc_lo += SPREAD_LO(wj) * e_lo;
+            acc_hi += SPREAD_HI(wj) * e_hi;
+            continue;
+        }
+        if (own_still) {
+            s_lo = own_lo;
+            s_hi = own_hi;
+        } else {
+            float8 x = px - (fx * num) / den;
+            float8 y = py - (fy * num) / den;
+            sample8(linear, h, w, r0, c0, fh, fw, x, y, &s_lo, &s_hi);
+        }
+        acc_lo += SPREAD_LO(wj) * (e_lo + SPREAD_LO(left) * s_lo);
+        acc_hi += SPREAD_HI(wj) * (e_hi + SPREAD_HI(left) * s_hi);
+    }
+    float a[2 * 16];
+    vstore16(acc_lo, 0, a);
+    vstore16(acc_hi, 1, a);
+    for (int l = 0; l < LANES; ++l)
+        for (int c = 0; c < CHANNELS; ++c)
+            out[((size_t)i * LANES + l) * CHANNELS + c] = a[l * CP + c];
+}
+#endif

@@ -23,7 +23,7 @@ import numpy as np
 
 from clblur import layered_exposure as layered
 from clblur import reference
-from clblur.opencl.constants import LAYERED_MAXK, build_defines
+from clblur.opencl.constants import LANES, LAYERED_MAXK, build_defines
 from clblur.opencl.device import pyopencl_module
 from clblur.opencl.program import Program
 from clblur.request import BlurPlan
@@ -33,6 +33,7 @@ __all__ = ["OpenCLStages", "composite", "integrator"]
 
 MAXC = 16  # channels + coverage a work-item holds in registers (layered.cl)
 GROUP = 64
+LANE_GROUP = 16  # work-items (of LANES pixels each) per group of the CPU kernel
 
 
 def _program(rt, channels: int) -> Program:
@@ -84,9 +85,12 @@ class OpenCLStages:
 
 def composite(layers: layered.Layers, anchor: float, samples: int | None,
               weights: np.ndarray | None, full_shape: tuple[int, int],
-              device: str | None = None) -> np.ndarray:
+              device: str | None = None, lanes: bool | None = None) -> np.ndarray:
     """:func:`clblur.layered_exposure.composite` on the device, for ``layers.region`` only.
 
+    ``lanes``: use the CPU layout (``composite_lanes``, LANES pixels of a row per work-item;
+    three light channels only) or not (``composite_layers``, one pixel per work-item); the
+    default picks it for three channels on a CPU device.  Both give the same bits.
     Returns the exposures of the region's pixels (n x C float32, row-major order of the
     region)."""
     from clblur.opencl import runtime
@@ -115,17 +119,41 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
                          hostbuf=np.ascontiguousarray(a))
     with rt.lock:
         program = _program(rt, channels)
-        out_buf = cl.Buffer(rt.context, mf.WRITE_ONLY, max(out.nbytes, 16))
-        pix = np.stack([rows, cols], axis=1).astype(np.int32)
         fh, fw = full_shape
         r0, c0 = layers.origin
+        args = dict(planes=buf(layers.planes.astype(np.float32)),
+                    vectors=buf(layers.vectors.astype(np.float32, copy=False)),
+                    flow=buf(layers.flow.astype(np.float32, copy=False)), linear=buf(linear),
+                    present=buf(np.ascontiguousarray(layers.present, bool).view(np.uint8)),
+                    weights=buf(wts),
+                    weighted=weighted, layers=k, h=h, w=w, r0=r0, c0=c0, fh=fh, fw=fw,
+                    anchor=anchor)
+        if lanes and cp != 4:
+            raise ValueError("the CPU compositing layout takes three light channels")
+        if lanes or (lanes is None and cp == 4 and not rt.gpu):
+            # CPU: LANES consecutive pixels of a row per work-item (layered.cl); the chunks
+            # of LANES columns that hold region pixels, row-major
+            wide = -(-w // LANES) * LANES
+            occupied = np.zeros((h, wide), bool)
+            occupied[:, :w] = layers.region
+            occupied = occupied.reshape(h, wide // LANES, LANES)
+            crow, cchunk = np.nonzero(occupied.any(axis=2))
+            on = occupied[crow, cchunk]  # lanes on the region (none past the crop)
+            ccol = cchunk * LANES
+            lane_n = np.zeros(on.shape, np.int32)
+            lane_n[on] = counts  # row-major, as (rows, cols)
+            lanes_out = np.empty((crow.size * LANES, channels), np.float32)
+            out_buf = cl.Buffer(rt.context, mf.WRITE_ONLY, lanes_out.nbytes)
+            items = -(-crow.size // LANE_GROUP) * LANE_GROUP
+            program.run("composite_lanes", rt.queue, (items,), (LANE_GROUP,),
+                        chunks=buf(np.stack([crow, ccol], axis=1).astype(np.int32)),
+                        counts=buf(lane_n), n=crow.size, out=out_buf, **args)
+            cl.enqueue_copy(rt.queue, lanes_out, out_buf, is_blocking=True)
+            return lanes_out[on.ravel()]
+        out_buf = cl.Buffer(rt.context, mf.WRITE_ONLY, max(out.nbytes, 16))
+        pix = np.stack([rows, cols], axis=1).astype(np.int32)
         program.run("composite_layers", rt.queue, (-(-n // GROUP) * GROUP,), (GROUP,),
-                    planes=buf(layers.planes.astype(np.float32)),
-                    vectors=buf(layers.vectors.astype(np.float32)),
-                    flow=buf(layers.flow.astype(np.float32)), linear=buf(linear),
-                    present=buf(layers.present.astype(np.uint8)), pix=buf(pix),
-                    counts=buf(counts), weights=buf(wts), weighted=weighted, n=n, layers=k,
-                    h=h, w=w, r0=r0, c0=c0, fh=fh, fw=fw, anchor=anchor, out=out_buf)
+                    pix=buf(pix), counts=buf(counts), n=n, out=out_buf, **args)
         cl.enqueue_copy(rt.queue, out, out_buf, is_blocking=True)
     return out
 
@@ -142,7 +170,18 @@ def integrator(device: str | None = None):
         if not region.any():
             return None
         def crop_linear(crop):  # linearise only the crop the layers need
-            return reference.linearise(replace(plan, image=plan.image[crop], background=None))
+            image = plan.image[crop]
+            if plan.alpha or image.dtype.kind != "u":
+                return reference.linearise(replace(plan, image=image, background=None))
+            # integer codes: the reference's per-pixel function evaluated once per code
+            from clblur.pixels import linearisation_table
+
+            image = image.reshape(image.shape[:2] + (-1,))
+            out = np.empty(image.shape, np.float64)
+            for c in range(image.shape[2]):
+                table = linearisation_table(plan.responses[c], plan.dtype, plan.saturation)
+                out[..., c] = table[image[..., c]]
+            return out
         layers = layered.prepare(crop_linear, v, order, plan.anchor, region,
                                  layered.background_linear(plan), rule=rule)
         if layers is None:
