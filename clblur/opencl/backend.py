@@ -136,9 +136,10 @@ def _lut(src: DeviceInput, cbase: int, cg: int) -> np.ndarray:
 
 
 def linearise(rt: Runtime, prog: Program, src: DeviceInput, plan: BlurPlan, cbase: int,
-              cg: int, lin_buf) -> list:
-    """Stage 1: one channel group into the padded (h + 1) x (w + 1) RGBA intermediate, band by
-    band after each band's upload.  Returns the events of every band."""
+              cg: int, lin_buf, planes: bool = False) -> list:
+    """Stage 1: one channel group into the padded (h + 1) x (w + 1) RGBA intermediate, or
+    into ``cg`` channel planes of that size (``planes``: the CPU field kernel's layout), band
+    by band after each band's upload.  Returns the events of every band."""
     h, w = plan.image.shape[:2]
     table = _lut(src, cbase, cg)
     lut = rt.upload("lut", table)
@@ -147,7 +148,8 @@ def linearise(rt: Runtime, prog: Program, src: DeviceInput, plan: BlurPlan, cbas
         r1 = h + 1 if r1 == h else r1  # the last band also writes the padding row
         queue = rt.all_queues()[k % len(rt.all_queues())]
         events.append(prog.run(
-            "linearise", queue, _grid(w + 1, r1 - r0), (GROUP_SIZE, 1), global_offset=(0, r0),
+            "linearise_planes" if planes else "linearise", queue, _grid(w + 1, r1 - r0),
+            (GROUP_SIZE, 1), global_offset=(0, r0),
             wait_for=src.ready[k], image=src.buffer, in_kind=src.kind,
             channels=plan.image.shape[2], cbase=cbase, cg=cg, lut=lut,
             lut_len=table.shape[1], lin=lin_buf, w=w, h=h))
@@ -310,6 +312,9 @@ def run_plan(rt: Runtime, plan: BlurPlan, gpu: bool | None = None, *, half: bool
         half = gpu or tap_set is not None
     half = half and box is None and half_float.half_storage_ok(plan, src.luts)
     prog = rt.program(half, gpu)
+    # The CPU field kernel reads channel planes: a tap's weights then apply lane for lane
+    # (no shuffles, no idle fourth channel).  Same values, same size as the RGBA layout.
+    planes = tap_set is None and not gpu
     field = None
     lin_buf = None if box is not None else rt.buffer("linear",
                                                      (h + 1) * (w + 1) * 4 * (2 if half else 4))
@@ -319,7 +324,7 @@ def run_plan(rt: Runtime, plan: BlurPlan, gpu: bool | None = None, *, half: bool
         if box is not None:
             done = integrate_box(rt, prog, plan, src, box, finish, cbase, cg, done)
             continue
-        linear = linearise(rt, prog, src, plan, cbase, cg, lin_buf)
+        linear = linearise(rt, prog, src, plan, cbase, cg, lin_buf, planes)
         after = linear + done  # the next group reuses the intermediate
         if tap_set is None and field is None:  # queued behind the image: linearise first
             field = upload_flow(rt, plan, src, resident_flow)

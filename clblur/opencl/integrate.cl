@@ -70,6 +70,26 @@ __kernel void linearise(__global const uchar *image, int in_kind, int channels, 
     STORE4(e, (size_t)row * (w + 1) + col);
 }
 
+/* linearise() into channel planes for the CPU field kernel: plane c (c < cg) of the padded
+ * (h + 1) x (w + 1) intermediate starts at c * (h + 1) * (w + 1); the same values. */
+__kernel void linearise_planes(__global const uchar *image, int in_kind, int channels,
+                               int cbase, int cg, __global const float *lut, int lut_len,
+                               __global STORE_T *lin, int w, int h)
+{
+    int col = get_global_id(0), row = get_global_id(1);
+    if (col > w || row > h) return;
+    size_t base = ((size_t)min(row, h - 1) * w + min(col, w - 1)) * channels + cbase;
+    size_t at = (size_t)row * (w + 1) + col, plane_size = (size_t)(w + 1) * (size_t)(h + 1);
+    for (int c = 0; c < cg; ++c) {
+        float e = linear_channel(image, in_kind, base + c, c, lut, lut_len);
+#ifdef STORE_HALF
+        vstore_half_rte(e, at + c * plane_size, lin);
+#else
+        lin[at + c * plane_size] = e;
+#endif
+    }
+}
+
 /* Flow vector of pixel i (float32 or half pairs).  A component that is not finite or lies
  * beyond +-FLOW_LIMIT px is counted (bad[0], bad[1]; only when `count`: a lane that repeats
  * the last pixel does not count twice) and read as 0, so a bad flow can never make the tap
@@ -212,55 +232,140 @@ static void store_row8(float16 lo, float16 hi, size_t pixel, int valid, STORE_PA
  * both variants below do exactly this, so they agree bit for bit. */
 #ifndef GPU_VARIANT
 
-/* Spread one weight per pixel (float8) to its four channels, pixels 0-3 or 4-7. */
-#define SPREAD_LO(v) shuffle((v), (uint16)(0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3))
-#define SPREAD_HI(v) shuffle((v), (uint16)(4, 4, 4, 4, 5, 5, 5, 5, 6, 6, 6, 6, 7, 7, 7, 7))
+/* The CPU variant reads the intermediate as channel planes (linearise_planes): plane c of
+ * (h + 1) x (w + 1) values starts at c * plane_size.  Eight neighbouring pixels of one
+ * channel are one float8, so a tap's four bilinear weights apply lane for lane: no
+ * channel-spreading shuffles, and no fourth lane computed for three-channel groups. */
+#ifdef STORE_HALF
+/* Element by element: PoCL compiles vload_half8 at an arbitrary half offset into an aligned
+ * 16-byte load (a crash where it is not aligned).  Half planes are not this kernel's default
+ * (float storage is faster here, run_plan), so they only have to be right. */
+#define PLOAD1(p, i) vload_half((size_t)(i), (p))
+#define PLOAD8(p, i)                                                                      \
+    (float8)(PLOAD1(p, (i)), PLOAD1(p, (i) + 1), PLOAD1(p, (i) + 2), PLOAD1(p, (i) + 3),      \
+             PLOAD1(p, (i) + 4), PLOAD1(p, (i) + 5), PLOAD1(p, (i) + 6), PLOAD1(p, (i) + 7))
+#else
+#define PLOAD8(p, i) vload8(0, (p) + (size_t)(i))
+#define PLOAD1(p, i) ((p)[(size_t)(i)])
+#endif
 
-/* One tap of the CPU field kernel for its 8 lanes, given base, fx, upper and lower. */
-#define FIELD_TAP                                                                         \
+/* Whether every lane of v is 0: an OR tree (all() and any() scalarise into chains of
+ * branches on PoCL). */
+static bool zero8(int8 v)
+{
+    int4 o4 = v.lo | v.hi;
+    int2 o2 = o4.lo | o4.hi;
+    return (o2.x | o2.y) == 0;
+}
+
+/* Eight lanes' values of plane p at the indices in `at` (one load each). */
+#define PGATHER8(p, at)                                                                   \
+    (float8)(PLOAD1(p, (at).s0), PLOAD1(p, (at).s1), PLOAD1(p, (at).s2), PLOAD1(p, (at).s3), \
+             PLOAD1(p, (at).s4), PLOAD1(p, (at).s5), PLOAD1(p, (at).s6), PLOAD1(p, (at).s7))
+
+/* One tap of channel C from contiguous loads (CONTIG) or one load per lane (GATHER):
+ * left += tl w_tl, left += bl w_bl, right += tr w_tr, right += br w_br (the per-pixel order
+ * of every variant). */
+#define PLANE_ACC(C)                                                                      \
+    left##C = fma(tl, w_tl, left##C);                                                     \
+    left##C = fma(bl, w_bl, left##C);                                                     \
+    right##C = fma(tr, w_tr, right##C);                                                   \
+    right##C = fma(br, w_br, right##C);
+
+#define CONTIG(C)                                                                         \
+    {                                                                                     \
+        __global const STORE_T *p = lin + (size_t)(C) * plane_size;                       \
+        float8 tl = PLOAD8(p, b), tr = PLOAD8(p, b + 1);                                  \
+        float8 bl = PLOAD8(p, b + ws), br = PLOAD8(p, b + ws + 1);                        \
+        PLANE_ACC(C)                                                                      \
+    }
+
+/* Lanes at two offsets (d = base - lane is d.s0 in the lanes `first`, d.s7 in the others:
+ * a smooth flow whose integer offset steps once across the 8 pixels): two contiguous loads
+ * per corner and a select. */
+#define TWO(C)                                                                            \
+    {                                                                                     \
+        __global const STORE_T *p = lin + (size_t)(C) * plane_size;                       \
+        float8 tl = select(PLOAD8(p, b7), PLOAD8(p, b), first);                           \
+        float8 tr = select(PLOAD8(p, b7 + 1), PLOAD8(p, b + 1), first);                   \
+        float8 bl = select(PLOAD8(p, b7 + ws), PLOAD8(p, b + ws), first);                 \
+        float8 br = select(PLOAD8(p, b7 + ws + 1), PLOAD8(p, b + ws + 1), first);         \
+        PLANE_ACC(C)                                                                      \
+    }
+
+#define GATHER(C)                                                                         \
+    {                                                                                     \
+        __global const STORE_T *p = lin + (size_t)(C) * plane_size;                       \
+        float8 tl = PGATHER8(p, base), tr = PGATHER8(p, base + 1);                        \
+        float8 bl = PGATHER8(p, base + ws), br = PGATHER8(p, base + ws + 1);              \
+        PLANE_ACC(C)                                                                      \
+    }
+
+/* One tap of the CPU field kernel for its 8 lanes and CG channels (a constant), given base,
+ * fx, upper and lower.  When the 8 lanes' samples are 8 consecutive pixels (most taps of a
+ * smooth flow) each corner of each channel is one contiguous load; otherwise each lane
+ * loads its own. */
+#define FIELD_TAP(CG)                                                                     \
     {                                                                                     \
         float8 w_tl = (1.0f - fx) * upper, w_tr = fx * upper;                             \
         float8 w_bl = (1.0f - fx) * lower, w_br = fx * lower;                             \
-        float16 tl_lo, tl_hi, tr_lo, tr_hi, bl_lo, bl_hi, br_lo, br_hi;                   \
-        if (all(base == (int8)(base.s0) + lane)) {                                        \
-            /* base.s0 .. base.s0 + 8 lie in one padded row (w + 1 > w columns) */        \
-            size_t b = base.s0;                                                           \
-            tl_lo = LOAD16(b); tl_hi = LOAD16(b + 4);                                     \
-            tr_lo = LOAD16(b + 1); tr_hi = LOAD16(b + 5);                                 \
-            bl_lo = LOAD16(b + ws); bl_hi = LOAD16(b + ws + 4);                           \
-            br_lo = LOAD16(b + ws + 1); br_hi = LOAD16(b + ws + 5);                       \
+        int8 d = base - lane;                                                             \
+        int8 first = d == (int8)(d.s0);                                                   \
+        size_t b = (size_t)d.s0;                                                          \
+        if (zero8(~first)) {                                                              \
+            CONTIG(0)                                                                     \
+            if (CG > 1) CONTIG(1)                                                         \
+            if (CG > 2) CONTIG(2)                                                         \
+            if (CG > 3) CONTIG(3)                                                         \
+        } else if (zero8(~(first | (d == (int8)(d.s7)))) && d.s7 >= 0 && d.s0 <= last7) { \
+            /* both loads stay inside the plane: d.s7 >= 0, d.s0 + 7 <= the last pixel */ \
+            size_t b7 = (size_t)d.s7;                                                     \
+            TWO(0)                                                                        \
+            if (CG > 1) TWO(1)                                                            \
+            if (CG > 2) TWO(2)                                                            \
+            if (CG > 3) TWO(3)                                                            \
         } else {                                                                          \
-            float8 t0 = LOAD8(base.s0), t1 = LOAD8(base.s1), t2 = LOAD8(base.s2);         \
-            float8 t3 = LOAD8(base.s3), t4 = LOAD8(base.s4), t5 = LOAD8(base.s5);         \
-            float8 t6 = LOAD8(base.s6), t7 = LOAD8(base.s7);                              \
-            tl_lo = (float16)(t0.lo, t1.lo, t2.lo, t3.lo);                                \
-            tl_hi = (float16)(t4.lo, t5.lo, t6.lo, t7.lo);                                \
-            tr_lo = (float16)(t0.hi, t1.hi, t2.hi, t3.hi);                                \
-            tr_hi = (float16)(t4.hi, t5.hi, t6.hi, t7.hi);                                \
-            t0 = LOAD8(base.s0 + ws); t1 = LOAD8(base.s1 + ws);                           \
-            t2 = LOAD8(base.s2 + ws); t3 = LOAD8(base.s3 + ws);                           \
-            t4 = LOAD8(base.s4 + ws); t5 = LOAD8(base.s5 + ws);                           \
-            t6 = LOAD8(base.s6 + ws); t7 = LOAD8(base.s7 + ws);                           \
-            bl_lo = (float16)(t0.lo, t1.lo, t2.lo, t3.lo);                                \
-            bl_hi = (float16)(t4.lo, t5.lo, t6.lo, t7.lo);                                \
-            br_lo = (float16)(t0.hi, t1.hi, t2.hi, t3.hi);                                \
-            br_hi = (float16)(t4.hi, t5.hi, t6.hi, t7.hi);                                \
+            GATHER(0)                                                                     \
+            if (CG > 1) GATHER(1)                                                         \
+            if (CG > 2) GATHER(2)                                                         \
+            if (CG > 3) GATHER(3)                                                         \
         }                                                                                 \
-        left_lo = fma(tl_lo, SPREAD_LO(w_tl), left_lo);                                   \
-        left_lo = fma(bl_lo, SPREAD_LO(w_bl), left_lo);                                   \
-        left_hi = fma(tl_hi, SPREAD_HI(w_tl), left_hi);                                   \
-        left_hi = fma(bl_hi, SPREAD_HI(w_bl), left_hi);                                   \
-        right_lo = fma(tr_lo, SPREAD_LO(w_tr), right_lo);                                 \
-        right_lo = fma(br_lo, SPREAD_LO(w_br), right_lo);                                 \
-        right_hi = fma(tr_hi, SPREAD_HI(w_tr), right_hi);                                 \
-        right_hi = fma(br_hi, SPREAD_HI(w_br), right_hi);                                 \
+    }
+
+/* The tap loops of the CPU field kernel for CG channels: the taps every lane takes inside
+ * the window (j < j0), then the general ones. */
+#define FIELD_LOOPS(CG)                                                                   \
+    {                                                                                     \
+        for (int j = 0; j < j0; ++j) {                                                    \
+            float8 t = (float8)((float)j) - a_n1;                                         \
+            float8 ox = -(sx * t), oy = -(sy * t);                                        \
+            int8 ix = floor_int8(ox), iy = floor_int8(oy);                                \
+            float8 fx = ox - convert_float8(ix), fy = oy - convert_float8(iy);            \
+            int8 base = ((int8)(row) + iy) * ws + px + ix;                                \
+            float8 upper = 1.0f - fy, lower = fy;  /* (1 - fy) * 1 and fy * 1, exactly */ \
+            FIELD_TAP(CG)                                                                 \
+        }                                                                                 \
+        for (int j = j0; j < nmax; ++j) {                                                 \
+            float8 t = (float8)((float)j) - a_n1;                                         \
+            float8 ox = -(sx * t), oy = -(sy * t);                                        \
+            int8 ix = floor_int8(ox), iy = floor_int8(oy);                                \
+            float8 fx = ox - convert_float8(ix), fy = oy - convert_float8(iy);            \
+            int8 xi = px + ix, yi = (int8)(row) + iy;                                     \
+            /* Before the first pixel the sample is the first pixel; past the last, the   \
+             * padding repeats the last, so the fraction does not matter there. */        \
+            fx = select(fx, (float8)(0.0f), xi < 0);                                      \
+            fy = select(fy, (float8)(0.0f), yi < 0);                                      \
+            int8 base = clamp(yi, 0, h - 1) * ws + clamp(xi, 0, w - 1);                   \
+            float8 wj = select((float8)(0.0f), (float8)(weighted ? time_w[j] : 1.0f),     \
+                               (int8)(j) < n);                                            \
+            float8 upper = (1.0f - fy) * wj, lower = fy * wj;                             \
+            FIELD_TAP(CG)                                                                 \
+        }                                                                                 \
     }
 
 /* CPU variant: LANES consecutive pixels of a row per work-item, as vector lanes; the tap loop
  * runs to the largest N among them (a lane whose taps are done gets weight 0, and
- * fma(0, v, acc) leaves acc unchanged bit for bit: v is finite, acc never -0).  When the 8
- * lanes' samples are 8 consecutive pixels (most taps of a smooth flow) the neighbours come
- * from four contiguous loads per row; otherwise each lane loads its own pair. */
+ * fma(0, v, acc) leaves acc unchanged bit for bit: v is finite, acc never -0). */
 __kernel void integrate_field(__global const STORE_T *lin, FIELD_PARAMS, int w, int h,
                               STORE_PARAMS)
 {
@@ -268,6 +373,7 @@ __kernel void integrate_field(__global const STORE_T *lin, FIELD_PARAMS, int w, 
     int col0 = get_global_id(0) * LANES;
     if (row >= h || col0 >= w) return;
     int ws = w + 1;
+    size_t plane_size = (size_t)ws * (size_t)(h + 1);
     float8 vx, vy;
     int8 n = (int8)(fixed_n);
     size_t i0 = (size_t)row * w + col0;
@@ -306,52 +412,44 @@ __kernel void integrate_field(__global const STORE_T *lin, FIELD_PARAMS, int w, 
     float8 a_n1 = anchor * n1;
     const int8 lane = (int8)(0, 1, 2, 3, 4, 5, 6, 7);
     int8 px = (int8)(col0) + lane;
-    float16 left_lo = 0.0f, left_hi = 0.0f, right_lo = 0.0f, right_hi = 0.0f;
+    float8 left0 = 0.0f, left1 = 0.0f, left2 = 0.0f, left3 = 0.0f;
+    float8 right0 = 0.0f, right1 = 0.0f, right2 = 0.0f, right3 = 0.0f;
     /* Samples move monotonically with j, so the first and the last tap bound every lane's
      * positions.  When all of them (and their right/lower neighbours, which the padding
-     * holds) lie inside the window and the lanes share N without time weights, the clamps,
-     * the edge selects and the per-lane weight vanish from the loop: the same values. */
+     * holds) lie inside the window and there are no time weights, the taps that every lane
+     * takes (j < the smallest N) need no clamps, edge selects or per-lane weight: the same
+     * values.  The remaining taps (and every tap elsewhere) take the general loop. */
     int nmin = min(min(min(n.s0, n.s1), min(n.s2, n.s3)), min(min(n.s4, n.s5), min(n.s6, n.s7)));
     float8 t_end = (float8)((float)(nmax - 1)) - a_n1;
     int8 x_a = px + floor_int8(-(sx * -a_n1)), x_b = px + floor_int8(-(sx * t_end));
     int8 y_a = (int8)(row) + floor_int8(-(sy * -a_n1));
     int8 y_b = (int8)(row) + floor_int8(-(sy * t_end));
-    bool inside = all(min(x_a, x_b) >= 0) && all(max(x_a, x_b) <= w - 1) &&
-                  all(min(y_a, y_b) >= 0) && all(max(y_a, y_b) <= h - 1);
-    if (inside && nmin == nmax && !weighted) {
-        for (int j = 0; j < nmax; ++j) {
-            float8 t = (float8)((float)j) - a_n1;
-            float8 ox = -(sx * t), oy = -(sy * t);
-            int8 ix = floor_int8(ox), iy = floor_int8(oy);
-            float8 fx = ox - convert_float8(ix), fy = oy - convert_float8(iy);
-            int8 base = ((int8)(row) + iy) * ws + px + ix;
-            float8 upper = 1.0f - fy, lower = fy;  /* (1 - fy) * 1 and fy * 1, exactly */
-            FIELD_TAP
-        }
-    } else {
-        for (int j = 0; j < nmax; ++j) {
-            float8 t = (float8)((float)j) - a_n1;
-            float8 ox = -(sx * t), oy = -(sy * t);
-            int8 ix = floor_int8(ox), iy = floor_int8(oy);
-            float8 fx = ox - convert_float8(ix), fy = oy - convert_float8(iy);
-            int8 xi = px + ix, yi = (int8)(row) + iy;
-            /* Before the first pixel the sample is the first pixel; past the last, the
-             * padding repeats the last, so the fraction does not matter there. */
-            fx = select(fx, (float8)(0.0f), xi < 0);
-            fy = select(fy, (float8)(0.0f), yi < 0);
-            int8 base = clamp(yi, 0, h - 1) * ws + clamp(xi, 0, w - 1);
-            float8 wj = select((float8)(0.0f), (float8)(weighted ? time_w[j] : 1.0f),
-                               (int8)(j) < n);
-            float8 upper = (1.0f - fy) * wj, lower = fy * wj;
-            FIELD_TAP
-        }
-    }
-    float16 sum_lo = left_lo + right_lo, sum_hi = left_hi + right_hi;
+    int8 out_x = (min(x_a, x_b) < 0) | (max(x_a, x_b) > w - 1);
+    int8 out_y = (min(y_a, y_b) < 0) | (max(y_a, y_b) > h - 1);
+    bool inside = zero8(out_x | out_y);
+    int last7 = (h - 1) * ws + w - 1 - 7;  /* the last pixel's index, less 7 */
+    int j0 = inside && !weighted ? nmin : 0;
+    if (cg == 3)  /* the loops specialised per group size: no channel tests per tap */
+        FIELD_LOOPS(3)
+    else if (cg == 4)
+        FIELD_LOOPS(4)
+    else if (cg == 2)
+        FIELD_LOOPS(2)
+    else
+        FIELD_LOOPS(1)
+    float8 s0 = left0 + right0, s1 = left1 + right1, s2 = left2 + right2, s3 = left3 + right3;
     if (!weighted) {
         float8 nf = convert_float8(n);
-        sum_lo = sum_lo / SPREAD_LO(nf);
-        sum_hi = sum_hi / SPREAD_HI(nf);
+        s0 = s0 / nf;
+        s1 = s1 / nf;
+        s2 = s2 / nf;
+        s3 = s3 / nf;
     }
+    /* back to 4 pixels x 4 channels per vector for the store */
+    float16 sum_lo = (float16)(s0.s0, s1.s0, s2.s0, s3.s0, s0.s1, s1.s1, s2.s1, s3.s1,
+                               s0.s2, s1.s2, s2.s2, s3.s2, s0.s3, s1.s3, s2.s3, s3.s3);
+    float16 sum_hi = (float16)(s0.s4, s1.s4, s2.s4, s3.s4, s0.s5, s1.s5, s2.s5, s3.s5,
+                               s0.s6, s1.s6, s2.s6, s3.s6, s0.s7, s1.s7, s2.s7, s3.s7);
     store_row8(sum_lo, sum_hi, (size_t)row * w + col0, w - col0, STORE_ARGS);
 }
 
