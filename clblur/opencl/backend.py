@@ -31,7 +31,7 @@ import numpy as np
 
 from clblur.motion import Field, flow_error, sample_counts
 from clblur.opencl import half_float, quantisation, response_pack, taps
-from clblur.opencl.constants import IN_F32, IN_KINDS, LANES, OUT_F32, OUT_KINDS
+from clblur.opencl.constants import FIELD_LANES, IN_F32, IN_KINDS, LANES, OUT_F32, OUT_KINDS
 from clblur.opencl.device import Runtime, pyopencl_module, runtime
 from clblur.opencl.linearisation import linearisation_tables, linearise_float_image
 from clblur.opencl.program import Program
@@ -48,9 +48,10 @@ __all__ = ["DeviceInput", "FieldInput", "blur", "finish_args", "integrate_box",
 GROUP_SIZE = 64
 BOX_GROUP_SIZE = 8
 GPU_GROUP = (16, 8)  # GPU variants: one pixel per work-item, compact 2-D patches
-# CPU field kernel: 8 x 8 work-items = 64 x 8 pixels per group; measured on PoCL (2 cores,
-# 4K): 1.03x over (64, 1) for |v| 10..40, 1.13x for |v| ~ 80, where rows leave the cache.
-FIELD_GROUP = (8, 8)
+# CPU field kernel: 4 x 8 work-items = 64 x 8 pixels per group (FIELD_LANES = 16); measured
+# on PoCL (2 cores, 4K, 8 lanes): 1.03x over (64, 1) for |v| 10..40, 1.13x for |v| ~ 80,
+# where rows leave the cache.
+FIELD_GROUP = (4, 8)
 
 
 def blur(plan: BlurPlan, device: str | None = None) -> np.ndarray:
@@ -164,11 +165,11 @@ def _item_grid(gpu: bool, w: int, rows: int, field: bool = False):
     if gpu:
         gx, gy = GPU_GROUP
         return (_round_up(w, gx), _round_up(rows, gy)), GPU_GROUP
-    items = (w + LANES - 1) // LANES
     if field:
+        items = (w + FIELD_LANES - 1) // FIELD_LANES
         gx, gy = FIELD_GROUP
         return (_round_up(items, gx), _round_up(rows, gy)), FIELD_GROUP
-    return _grid(items, rows), (GROUP_SIZE, 1)
+    return _grid((w + LANES - 1) // LANES, rows), (GROUP_SIZE, 1)
 
 
 def _per_band(rt: Runtime, plan: BlurPlan, gpu: bool, src: DeviceInput, launch,

@@ -186,13 +186,7 @@ static int pixel_count(float2 v, size_t i, __global const int *counts, int host_
 }
 
 /* floor() of offsets without the library call (slow on some CPU drivers): truncate, then
- * step down where truncation went up (negative non-integers; true vector compares are -1). */
-static int8 floor_int8(float8 v)
-{
-    int8 t = convert_int8(v);
-    return t + (convert_float8(t) > v);
-}
-
+ * step down where truncation went up (negative non-integers). */
 static int floor_int(float v)
 {
     int t = convert_int(v);
@@ -232,40 +226,56 @@ static void store_row8(float16 lo, float16 hi, size_t pixel, int valid, STORE_PA
  * both variants below do exactly this, so they agree bit for bit. */
 #ifndef GPU_VARIANT
 
-/* The CPU variant reads the intermediate as channel planes (linearise_planes): plane c of
- * (h + 1) x (w + 1) values starts at c * plane_size.  Eight neighbouring pixels of one
- * channel are one float8, so a tap's four bilinear weights apply lane for lane: no
- * channel-spreading shuffles, and no fourth lane computed for three-channel groups. */
+/* The CPU variant: FIELD_LANES (16) consecutive pixels of a row per work-item, as vector
+ * lanes, reading the intermediate as channel planes (linearise_planes): plane c of
+ * (h + 1) x (w + 1) values starts at c * plane_size.  Sixteen neighbouring pixels of one
+ * channel are one float16, so a tap's four bilinear weights apply lane for lane: no
+ * channel-spreading shuffles, no idle fourth channel for three-channel groups, and the
+ * positions and weights of 16 pixels cost what those of one vector cost. */
 #ifdef STORE_HALF
-/* Element by element: PoCL compiles vload_half8 at an arbitrary half offset into an aligned
- * 16-byte load (a crash where it is not aligned).  Half planes are not this kernel's default
- * (float storage is faster here, run_plan), so they only have to be right. */
+/* Element by element: PoCL compiles vload_halfn at an arbitrary half offset into an aligned
+ * load (a crash where it is not aligned).  Half planes are not this kernel's default (float
+ * storage is faster here, run_plan), so they only have to be right. */
 #define PLOAD1(p, i) vload_half((size_t)(i), (p))
-#define PLOAD8(p, i)                                                                      \
+#define PLOAD8_(p, i)                                                                     \
     (float8)(PLOAD1(p, (i)), PLOAD1(p, (i) + 1), PLOAD1(p, (i) + 2), PLOAD1(p, (i) + 3),      \
              PLOAD1(p, (i) + 4), PLOAD1(p, (i) + 5), PLOAD1(p, (i) + 6), PLOAD1(p, (i) + 7))
+#define PLOAD16(p, i) (float16)(PLOAD8_(p, (i)), PLOAD8_(p, (i) + 8))
 #else
-#define PLOAD8(p, i) vload8(0, (p) + (size_t)(i))
+#define PLOAD16(p, i) vload16(0, (p) + (size_t)(i))
 #define PLOAD1(p, i) ((p)[(size_t)(i)])
 #endif
 
 /* Whether every lane of v is 0: an OR tree (all() and any() scalarise into chains of
  * branches on PoCL). */
-static bool zero8(int8 v)
+static bool zero16(int16 v)
 {
-    int4 o4 = v.lo | v.hi;
+    int8 o8 = v.lo | v.hi;
+    int4 o4 = o8.lo | o8.hi;
     int2 o2 = o4.lo | o4.hi;
     return (o2.x | o2.y) == 0;
 }
 
-/* Eight lanes' values of plane p at the indices in `at` (one load each). */
-#define PGATHER8(p, at)                                                                   \
-    (float8)(PLOAD1(p, (at).s0), PLOAD1(p, (at).s1), PLOAD1(p, (at).s2), PLOAD1(p, (at).s3), \
-             PLOAD1(p, (at).s4), PLOAD1(p, (at).s5), PLOAD1(p, (at).s6), PLOAD1(p, (at).s7))
+/* floor() of offsets without the library call (slow on some CPU drivers), 16 lanes:
+ * truncate, then step down where truncation went up (true vector compares are -1). */
+static int16 floor_int16(float16 v)
+{
+    int16 t = convert_int16(v);
+    return t + (convert_float16(t) > v);
+}
 
-/* One tap of channel C from contiguous loads (CONTIG) or one load per lane (GATHER):
- * left += tl w_tl, left += bl w_bl, right += tr w_tr, right += br w_br (the per-pixel order
- * of every variant). */
+/* Sixteen lanes' values of plane p at the indices in `at` (one load each). */
+#define PGATHER16(p, at)                                                                  \
+    (float16)(PLOAD1(p, (at).s0), PLOAD1(p, (at).s1), PLOAD1(p, (at).s2),                   \
+              PLOAD1(p, (at).s3), PLOAD1(p, (at).s4), PLOAD1(p, (at).s5),                   \
+              PLOAD1(p, (at).s6), PLOAD1(p, (at).s7), PLOAD1(p, (at).s8),                   \
+              PLOAD1(p, (at).s9), PLOAD1(p, (at).sa), PLOAD1(p, (at).sb),                   \
+              PLOAD1(p, (at).sc), PLOAD1(p, (at).sd), PLOAD1(p, (at).se),                   \
+              PLOAD1(p, (at).sf))
+
+/* One tap of channel C: left += tl w_tl, left += bl w_bl, right += tr w_tr, right += br w_br
+ * (the per-pixel order of every variant), from contiguous loads (CONTIG), two contiguous
+ * loads and a select (TWO) or one load per lane (GATHER). */
 #define PLANE_ACC(C)                                                                      \
     left##C = fma(tl, w_tl, left##C);                                                     \
     left##C = fma(bl, w_bl, left##C);                                                     \
@@ -275,51 +285,49 @@ static bool zero8(int8 v)
 #define CONTIG(C)                                                                         \
     {                                                                                     \
         __global const STORE_T *p = lin + (size_t)(C) * plane_size;                       \
-        float8 tl = PLOAD8(p, b), tr = PLOAD8(p, b + 1);                                  \
-        float8 bl = PLOAD8(p, b + ws), br = PLOAD8(p, b + ws + 1);                        \
+        float16 tl = PLOAD16(p, b), tr = PLOAD16(p, b + 1);                               \
+        float16 bl = PLOAD16(p, b + ws), br = PLOAD16(p, b + ws + 1);                     \
         PLANE_ACC(C)                                                                      \
     }
 
-/* Lanes at two offsets (d = base - lane is d.s0 in the lanes `first`, d.s7 in the others:
- * a smooth flow whose integer offset steps once across the 8 pixels): two contiguous loads
- * per corner and a select. */
+/* Lanes at two offsets (d = base - lane is d.s0 in the lanes `first`, d.sf in the others: a
+ * smooth flow whose integer offset steps once across the 16 pixels). */
 #define TWO(C)                                                                            \
     {                                                                                     \
         __global const STORE_T *p = lin + (size_t)(C) * plane_size;                       \
-        float8 tl = select(PLOAD8(p, b7), PLOAD8(p, b), first);                           \
-        float8 tr = select(PLOAD8(p, b7 + 1), PLOAD8(p, b + 1), first);                   \
-        float8 bl = select(PLOAD8(p, b7 + ws), PLOAD8(p, b + ws), first);                 \
-        float8 br = select(PLOAD8(p, b7 + ws + 1), PLOAD8(p, b + ws + 1), first);         \
+        float16 tl = select(PLOAD16(p, bf), PLOAD16(p, b), first);                        \
+        float16 tr = select(PLOAD16(p, bf + 1), PLOAD16(p, b + 1), first);                \
+        float16 bl = select(PLOAD16(p, bf + ws), PLOAD16(p, b + ws), first);              \
+        float16 br = select(PLOAD16(p, bf + ws + 1), PLOAD16(p, b + ws + 1), first);      \
         PLANE_ACC(C)                                                                      \
     }
 
 #define GATHER(C)                                                                         \
     {                                                                                     \
         __global const STORE_T *p = lin + (size_t)(C) * plane_size;                       \
-        float8 tl = PGATHER8(p, base), tr = PGATHER8(p, base + 1);                        \
-        float8 bl = PGATHER8(p, base + ws), br = PGATHER8(p, base + ws + 1);              \
+        float16 tl = PGATHER16(p, base), tr = PGATHER16(p, base + 1);                     \
+        float16 bl = PGATHER16(p, base + ws), br = PGATHER16(p, base + ws + 1);           \
         PLANE_ACC(C)                                                                      \
     }
 
-/* One tap of the CPU field kernel for its 8 lanes and CG channels (a constant), given base,
- * fx, upper and lower.  When the 8 lanes' samples are 8 consecutive pixels (most taps of a
- * smooth flow) each corner of each channel is one contiguous load; otherwise each lane
- * loads its own. */
+/* One tap of the CPU field kernel for its lanes and CG channels (a constant), given base,
+ * fx, upper and lower. */
 #define FIELD_TAP(CG)                                                                     \
     {                                                                                     \
-        float8 w_tl = (1.0f - fx) * upper, w_tr = fx * upper;                             \
-        float8 w_bl = (1.0f - fx) * lower, w_br = fx * lower;                             \
-        int8 d = base - lane;                                                             \
-        int8 first = d == (int8)(d.s0);                                                   \
+        float16 w_tl = (1.0f - fx) * upper, w_tr = fx * upper;                            \
+        float16 w_bl = (1.0f - fx) * lower, w_br = fx * lower;                            \
+        int16 d = base - lane;                                                            \
+        int16 first = d == (int16)(d.s0);                                                 \
         size_t b = (size_t)d.s0;                                                          \
-        if (zero8(~first)) {                                                              \
+        if (zero16(~first)) {                                                             \
             CONTIG(0)                                                                     \
             if (CG > 1) CONTIG(1)                                                         \
             if (CG > 2) CONTIG(2)                                                         \
             if (CG > 3) CONTIG(3)                                                         \
-        } else if (zero8(~(first | (d == (int8)(d.s7)))) && d.s7 >= 0 && d.s0 <= last7) { \
-            /* both loads stay inside the plane: d.s7 >= 0, d.s0 + 7 <= the last pixel */ \
-            size_t b7 = (size_t)d.s7;                                                     \
+        } else if (zero16(~(first | (d == (int16)(d.sf)))) && d.sf >= 0 &&               \
+                   d.s0 <= last15) {                                                      \
+            /* both loads stay inside the plane: d.sf >= 0, d.s0 + 15 <= the last pixel */ \
+            size_t bf = (size_t)d.sf;                                                     \
             TWO(0)                                                                        \
             if (CG > 1) TWO(1)                                                            \
             if (CG > 2) TWO(2)                                                            \
@@ -337,97 +345,111 @@ static bool zero8(int8 v)
 #define FIELD_LOOPS(CG)                                                                   \
     {                                                                                     \
         for (int j = 0; j < j0; ++j) {                                                    \
-            float8 t = (float8)((float)j) - a_n1;                                         \
-            float8 ox = -(sx * t), oy = -(sy * t);                                        \
-            int8 ix = floor_int8(ox), iy = floor_int8(oy);                                \
-            float8 fx = ox - convert_float8(ix), fy = oy - convert_float8(iy);            \
-            int8 base = ((int8)(row) + iy) * ws + px + ix;                                \
-            float8 upper = 1.0f - fy, lower = fy;  /* (1 - fy) * 1 and fy * 1, exactly */ \
+            float16 t = (float16)((float)j) - a_n1;                                       \
+            float16 ox = -(sx * t), oy = -(sy * t);                                       \
+            int16 ix = floor_int16(ox), iy = floor_int16(oy);                             \
+            float16 fx = ox - convert_float16(ix), fy = oy - convert_float16(iy);         \
+            int16 base = ((int16)(row) + iy) * ws + px + ix;                              \
+            float16 upper = 1.0f - fy, lower = fy;  /* (1 - fy) * 1 and fy * 1, exactly */\
             FIELD_TAP(CG)                                                                 \
         }                                                                                 \
         for (int j = j0; j < nmax; ++j) {                                                 \
-            float8 t = (float8)((float)j) - a_n1;                                         \
-            float8 ox = -(sx * t), oy = -(sy * t);                                        \
-            int8 ix = floor_int8(ox), iy = floor_int8(oy);                                \
-            float8 fx = ox - convert_float8(ix), fy = oy - convert_float8(iy);            \
-            int8 xi = px + ix, yi = (int8)(row) + iy;                                     \
+            float16 t = (float16)((float)j) - a_n1;                                       \
+            float16 ox = -(sx * t), oy = -(sy * t);                                       \
+            int16 ix = floor_int16(ox), iy = floor_int16(oy);                             \
+            float16 fx = ox - convert_float16(ix), fy = oy - convert_float16(iy);         \
+            int16 xi = px + ix, yi = (int16)(row) + iy;                                   \
             /* Before the first pixel the sample is the first pixel; past the last, the   \
              * padding repeats the last, so the fraction does not matter there. */        \
-            fx = select(fx, (float8)(0.0f), xi < 0);                                      \
-            fy = select(fy, (float8)(0.0f), yi < 0);                                      \
-            int8 base = clamp(yi, 0, h - 1) * ws + clamp(xi, 0, w - 1);                   \
-            float8 wj = select((float8)(0.0f), (float8)(weighted ? time_w[j] : 1.0f),     \
-                               (int8)(j) < n);                                            \
-            float8 upper = (1.0f - fy) * wj, lower = fy * wj;                             \
+            fx = select(fx, (float16)(0.0f), xi < 0);                                     \
+            fy = select(fy, (float16)(0.0f), yi < 0);                                     \
+            int16 base = clamp(yi, 0, h - 1) * ws + clamp(xi, 0, w - 1);                  \
+            float16 wj = select((float16)(0.0f), (float16)(weighted ? time_w[j] : 1.0f),  \
+                                (int16)(j) < n);                                          \
+            float16 upper = (1.0f - fy) * wj, lower = fy * wj;                            \
             FIELD_TAP(CG)                                                                 \
         }                                                                                 \
     }
 
-/* CPU variant: LANES consecutive pixels of a row per work-item, as vector lanes; the tap loop
- * runs to the largest N among them (a lane whose taps are done gets weight 0, and
- * fma(0, v, acc) leaves acc unchanged bit for bit: v is finite, acc never -0). */
+/* 4 pixels x 4 channels (pixels K .. K + 3 of the channel sums s0 .. s3) for store_row8. */
+#define PIXELS4(K0, K1, K2, K3)                                                           \
+    (float16)(s0.K0, s1.K0, s2.K0, s3.K0, s0.K1, s1.K1, s2.K1, s3.K1,                     \
+              s0.K2, s1.K2, s2.K2, s3.K2, s0.K3, s1.K3, s2.K3, s3.K3)
+
+/* The tap loop runs to the largest N among the lanes (a lane whose taps are done gets
+ * weight 0, and fma(0, v, acc) leaves acc unchanged bit for bit: v is finite, acc never
+ * -0).  Lanes past the window's last column repeat its last pixel and are not stored. */
 __kernel void integrate_field(__global const STORE_T *lin, FIELD_PARAMS, int w, int h,
                               STORE_PARAMS)
 {
     int row = get_global_id(1);
-    int col0 = get_global_id(0) * LANES;
+    int col0 = get_global_id(0) * FIELD_LANES;
     if (row >= h || col0 >= w) return;
     int ws = w + 1;
     size_t plane_size = (size_t)ws * (size_t)(h + 1);
-    float8 vx, vy;
-    int8 n = (int8)(fixed_n);
+    float16 vx, vy;
+    int16 n = (int16)(fixed_n);
     size_t i0 = (size_t)row * w + col0;
-    bool whole = col0 + LANES <= w;
-    if (whole) {  /* one vector load; bad values take the per-lane path below */
-        float16 f = flow_half ? vload_half16(0, (__global const half *)flow + 2 * i0)
-                              : vload16(0, (__global const float *)flow + 2 * i0);
-        vx = f.even;
-        vy = f.odd;
-        whole = all(isfinite(vx) && isfinite(vy) && fabs(vx) <= FLOW_LIMIT &&
-                    fabs(vy) <= FLOW_LIMIT);
-        if (host_counts) n = vload8(0, counts + i0);
+    bool whole = col0 + FIELD_LANES <= w;
+    if (whole) {  /* vector loads; bad values take the per-lane path below */
+        float16 f0 = flow_half ? vload_half16(0, (__global const half *)flow + 2 * i0)
+                               : vload16(0, (__global const float *)flow + 2 * i0);
+        float16 f1 = flow_half ? vload_half16(0, (__global const half *)flow + 2 * i0 + 16)
+                               : vload16(0, (__global const float *)flow + 2 * i0 + 16);
+        vx = (float16)(f0.even, f1.even);
+        vy = (float16)(f0.odd, f1.odd);
+        int16 bad = !isfinite(vx) | !isfinite(vy) | (fabs(vx) > FLOW_LIMIT) |
+                    (fabs(vy) > FLOW_LIMIT);
+        whole = zero16(bad);
+        if (host_counts) n = vload16(0, counts + i0);
     }
     if (!whole) {
-        float vxs[LANES], vys[LANES];
-        int ns[LANES];
-        for (int l = 0; l < LANES; ++l) {
+        float vxs[FIELD_LANES], vys[FIELD_LANES];
+        int ns[FIELD_LANES];
+        for (int l = 0; l < FIELD_LANES; ++l) {
             size_t i = (size_t)row * w + min(col0 + l, w - 1);
             float2 v = read_flow(flow, flow_half, i, bad_flow, col0 + l < w);
             vxs[l] = v.x;
             vys[l] = v.y;
             ns[l] = host_counts ? counts[i] : fixed_n;
         }
-        vx = vload8(0, vxs);
-        vy = vload8(0, vys);
-        n = vload8(0, ns);
+        vx = vload16(0, vxs);
+        vy = vload16(0, vys);
+        n = vload16(0, ns);
     }
 #ifdef HAVE_FP64
     if (!host_counts && fixed_n <= 0)
-        n = sample_counts8(vx, vy);
+        n = (int16)(sample_counts8(vx.lo, vy.lo), sample_counts8(vx.hi, vy.hi));
 #endif
-    int nmax = max(max(max(n.s0, n.s1), max(n.s2, n.s3)), max(max(n.s4, n.s5), max(n.s6, n.s7)));
-    float8 n1 = convert_float8(n - 1);
-    float8 den = fmax(n1, 1.0f);
-    float8 sx = vx / den, sy = vy / den;
-    float8 a_n1 = anchor * n1;
-    const int8 lane = (int8)(0, 1, 2, 3, 4, 5, 6, 7);
-    int8 px = (int8)(col0) + lane;
-    float8 left0 = 0.0f, left1 = 0.0f, left2 = 0.0f, left3 = 0.0f;
-    float8 right0 = 0.0f, right1 = 0.0f, right2 = 0.0f, right3 = 0.0f;
+    int8 n8 = max(n.lo, n.hi);
+    int4 n4 = max(n8.lo, n8.hi);
+    int2 n2 = max(n4.lo, n4.hi);
+    int nmax = max(n2.x, n2.y);
+    n8 = min(n.lo, n.hi);
+    n4 = min(n8.lo, n8.hi);
+    n2 = min(n4.lo, n4.hi);
+    int nmin = min(n2.x, n2.y);
+    float16 n1 = convert_float16(n - 1);
+    float16 den = fmax(n1, 1.0f);
+    float16 sx = vx / den, sy = vy / den;
+    float16 a_n1 = anchor * n1;
+    const int16 lane = (int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    int16 px = (int16)(col0) + lane;
+    float16 left0 = 0.0f, left1 = 0.0f, left2 = 0.0f, left3 = 0.0f;
+    float16 right0 = 0.0f, right1 = 0.0f, right2 = 0.0f, right3 = 0.0f;
     /* Samples move monotonically with j, so the first and the last tap bound every lane's
      * positions.  When all of them (and their right/lower neighbours, which the padding
      * holds) lie inside the window and there are no time weights, the taps that every lane
      * takes (j < the smallest N) need no clamps, edge selects or per-lane weight: the same
      * values.  The remaining taps (and every tap elsewhere) take the general loop. */
-    int nmin = min(min(min(n.s0, n.s1), min(n.s2, n.s3)), min(min(n.s4, n.s5), min(n.s6, n.s7)));
-    float8 t_end = (float8)((float)(nmax - 1)) - a_n1;
-    int8 x_a = px + floor_int8(-(sx * -a_n1)), x_b = px + floor_int8(-(sx * t_end));
-    int8 y_a = (int8)(row) + floor_int8(-(sy * -a_n1));
-    int8 y_b = (int8)(row) + floor_int8(-(sy * t_end));
-    int8 out_x = (min(x_a, x_b) < 0) | (max(x_a, x_b) > w - 1);
-    int8 out_y = (min(y_a, y_b) < 0) | (max(y_a, y_b) > h - 1);
-    bool inside = zero8(out_x | out_y);
-    int last7 = (h - 1) * ws + w - 1 - 7;  /* the last pixel's index, less 7 */
+    float16 t_end = (float16)((float)(nmax - 1)) - a_n1;
+    int16 x_a = px + floor_int16(-(sx * -a_n1)), x_b = px + floor_int16(-(sx * t_end));
+    int16 y_a = (int16)(row) + floor_int16(-(sy * -a_n1));
+    int16 y_b = (int16)(row) + floor_int16(-(sy * t_end));
+    int16 out_x = (min(x_a, x_b) < 0) | (max(x_a, x_b) > w - 1);
+    int16 out_y = (min(y_a, y_b) < 0) | (max(y_a, y_b) > h - 1);
+    bool inside = zero16(out_x | out_y);
+    int last15 = (h - 1) * ws + w - 1 - 15;  /* the last pixel's index, less 15 */
     int j0 = inside && !weighted ? nmin : 0;
     if (cg == 3)  /* the loops specialised per group size: no channel tests per tap */
         FIELD_LOOPS(3)
@@ -437,20 +459,20 @@ __kernel void integrate_field(__global const STORE_T *lin, FIELD_PARAMS, int w, 
         FIELD_LOOPS(2)
     else
         FIELD_LOOPS(1)
-    float8 s0 = left0 + right0, s1 = left1 + right1, s2 = left2 + right2, s3 = left3 + right3;
+    float16 s0 = left0 + right0, s1 = left1 + right1, s2 = left2 + right2, s3 = left3 + right3;
     if (!weighted) {
-        float8 nf = convert_float8(n);
+        float16 nf = convert_float16(n);
         s0 = s0 / nf;
         s1 = s1 / nf;
         s2 = s2 / nf;
         s3 = s3 / nf;
     }
-    /* back to 4 pixels x 4 channels per vector for the store */
-    float16 sum_lo = (float16)(s0.s0, s1.s0, s2.s0, s3.s0, s0.s1, s1.s1, s2.s1, s3.s1,
-                               s0.s2, s1.s2, s2.s2, s3.s2, s0.s3, s1.s3, s2.s3, s3.s3);
-    float16 sum_hi = (float16)(s0.s4, s1.s4, s2.s4, s3.s4, s0.s5, s1.s5, s2.s5, s3.s5,
-                               s0.s6, s1.s6, s2.s6, s3.s6, s0.s7, s1.s7, s2.s7, s3.s7);
-    store_row8(sum_lo, sum_hi, (size_t)row * w + col0, w - col0, STORE_ARGS);
+    /* back to 4 pixels x 4 channels per vector for the stores */
+    size_t pixel = (size_t)row * w + col0;
+    store_row8(PIXELS4(s0, s1, s2, s3), PIXELS4(s4, s5, s6, s7), pixel, w - col0, STORE_ARGS);
+    if (col0 + LANES < w)
+        store_row8(PIXELS4(s8, s9, sa, sb), PIXELS4(sc, sd, se, sf), pixel + LANES,
+                   w - col0 - LANES, STORE_ARGS);
 }
 
 #else
