@@ -302,8 +302,16 @@ def run_plan(rt: Runtime, plan: BlurPlan, gpu: bool | None = None, *, half: bool
     src = upload_input(rt, plan, resident_image)
     out_kind = OUT_KINDS[img.dtype]
     out_dtype = np.float32 if out_kind == OUT_F32 else img.dtype
-    out_buf = (resident_out if resident_out is not None
-               else rt.buffer("output", h * w * channels * np.dtype(out_dtype).itemsize))
+    # Devices that share host memory (CPUs) write straight into the returned array: no
+    # download copy (4K RGB uint8: 25 MB, ~5 % of a box blur).
+    out = None
+    if resident_out is not None:
+        out_buf = resident_out
+    elif rt.unified:
+        out = _aligned_empty((h, w, channels), out_dtype)
+        out_buf = rt.wrap(out)
+    else:
+        out_buf = rt.buffer("output", h * w * channels * np.dtype(out_dtype).itemsize)
     tap_set = taps.space_invariant_taps(plan)
     box = tap_set.box() if tap_set is not None else None
     # Half storage halves the memory traffic.  The CPU field kernel is bound by instructions,
@@ -338,11 +346,38 @@ def run_plan(rt: Runtime, plan: BlurPlan, gpu: bool | None = None, *, half: bool
         _check_flow(rt, field)
     if resident_out is not None:
         return None
-    out = np.empty((h, w, channels), dtype=out_dtype)
-    download(rt, out, out_buf, src.bands, done)
+    if out is not None:
+        _sync_host(rt, out_buf, out, done)
+    else:
+        out = np.empty((h, w, channels), dtype=out_dtype)
+        download(rt, out, out_buf, src.bands, done)
     if img.dtype == np.float64:
         out = out.astype(np.float64)
     return plan.finish(out)
+
+
+# Alignment of arrays the device uses in place (USE_HOST_PTR): the device's base address
+# alignment (PoCL: 128 bytes) or a copy is made behind the scenes.
+_HOST_ALIGN = 4096
+
+
+def _aligned_empty(shape: tuple[int, ...], dtype) -> np.ndarray:
+    """An uninitialised C-contiguous array whose data starts on a page boundary."""
+    dtype = np.dtype(dtype)
+    nbytes = max(int(np.prod(shape)) * dtype.itemsize, 1)
+    raw = np.empty(nbytes + _HOST_ALIGN, np.uint8)
+    start = -raw.ctypes.data % _HOST_ALIGN
+    return raw[start:start + nbytes].view(dtype)[:int(np.prod(shape))].reshape(shape)
+
+
+def _sync_host(rt: Runtime, buf, out: np.ndarray, done: list) -> None:
+    """Make the kernels' writes to ``buf`` (a USE_HOST_PTR buffer over ``out``) visible in
+    ``out``: map it after ``done`` (for PoCL the same memory: no copy), then unmap."""
+    cl = pyopencl_module()
+    mapped, _ = cl.enqueue_map_buffer(rt.queue, buf, cl.map_flags.READ, 0, (out.nbytes,),
+                                      np.uint8, wait_for=done, is_blocking=True)
+    mapped.base.release(queue=rt.queue)
+    rt.queue.finish()
 
 
 def _check_flow(rt: Runtime, field: FieldInput) -> None:

@@ -173,6 +173,13 @@ class Runtime:
             self.pinned[role] = old
         return old[1]
 
+    def wrap(self, array: np.ndarray):
+        """A writable buffer over ``array`` itself (devices that share host memory): kernels
+        write into it in place; map it before reading ``array`` (``backend._sync_host``)."""
+        cl = pyopencl_module()
+        return cl.Buffer(self.context, cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR,
+                         hostbuf=array)
+
     def share(self, role: str, array: np.ndarray):
         """A read-only view of a large input: the host array itself on devices that share
         host memory (CPUs; no copy), else an upload into the reused ``role`` buffer."""
