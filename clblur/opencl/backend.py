@@ -115,9 +115,10 @@ def finish_args(rt: Runtime, plan: BlurPlan, cbase: int, cg: int, out_buf) -> di
         buckets = quantisation.quantisation_buckets(thresholds)
     else:
         thresholds, buckets = np.zeros(1, np.float32), np.zeros(8, np.int32)
-    return {"resp": rt.upload("resp", params), "tables": rt.upload("tables", tables),
-            "thresholds": rt.upload("thresholds", thresholds),
-            "buckets": rt.upload("buckets", buckets), "out": out_buf,
+    return {"resp": rt.upload("resp", params, table=True),
+            "tables": rt.upload("tables", tables, table=True),
+            "thresholds": rt.upload("thresholds", thresholds, table=True),
+            "buckets": rt.upload("buckets", buckets, table=True), "out": out_buf,
             "out_kind": OUT_KINDS[plan.dtype], "channels": plan.image.shape[2], "cbase": cbase,
             "cg": cg}
 
@@ -127,7 +128,7 @@ def _grid_args(rt: Runtime, plan: BlurPlan, cbase: int, cg: int) -> dict:
     where there is none."""
     grid = quantisation.box_code_grid(plan.responses[cbase:cbase + cg], plan.dtype)
     table, cells, scale, stride = grid or (np.zeros(1, np.int32), 0, 0.0, 0)
-    return {"grid": rt.upload("grid", table), "cells": cells, "gstride": stride,
+    return {"grid": rt.upload("grid", table, table=True), "cells": cells, "gstride": stride,
             "gscale": float(scale)}
 
 
@@ -143,7 +144,7 @@ def linearise(rt: Runtime, prog: Program, src: DeviceInput, plan: BlurPlan, cbas
     by band after each band's upload.  Returns the events of every band."""
     h, w = plan.image.shape[:2]
     table = _lut(src, cbase, cg)
-    lut = rt.upload("lut", table)
+    lut = rt.upload("lut", table, table=True)
     events = []
     for k, (r0, r1) in enumerate(src.bands):
         r1 = h + 1 if r1 == h else r1  # the last band also writes the padding row
@@ -189,9 +190,10 @@ def integrate_taps(rt: Runtime, prog: Program, gpu: bool, plan: BlurPlan, src: D
                    lin_buf, tap_set: taps.IntegerTaps, finish: dict, after: list) -> list:
     """Stage 2 + finish for space-invariant integer taps (uniform motion, PSFs)."""
     h, w = plan.image.shape[:2]
-    args = dict(lin=lin_buf, tap_dx=rt.upload("tap_dx", tap_set.dx),
-                tap_dy=rt.upload("tap_dy", tap_set.dy),
-                tap_w=rt.upload("tap_w", tap_set.w.astype(np.float32)), ntaps=tap_set.w.size,
+    args = dict(lin=lin_buf, tap_dx=rt.upload("tap_dx", tap_set.dx, table=True),
+                tap_dy=rt.upload("tap_dy", tap_set.dy, table=True),
+                tap_w=rt.upload("tap_w", tap_set.w.astype(np.float32), table=True),
+                ntaps=tap_set.w.size,
                 dx_min=tap_set.dx.min(), dx_max=tap_set.dx.max(), dy_min=tap_set.dy.min(),
                 dy_max=tap_set.dy.max(), w=w, h=h, **finish)
 
@@ -240,7 +242,7 @@ def integrate_field(rt: Runtime, prog: Program, gpu: bool, plan: BlurPlan, src: 
               else np.zeros(1, np.float32))
     args = dict(lin=lin_buf, flow=field.flow, flow_half=int(field.half), bad_flow=field.bad,
                 counts=field.counts, host_counts=int(field.host_counts),
-                fixed_n=plan.samples or 0, time_w=rt.upload("time_weights", time_w),
+                fixed_n=plan.samples or 0, time_w=rt.upload("time_weights", time_w, table=True),
                 weighted=int(plan.weights is not None), anchor=plan.anchor, w=w, h=h, **finish)
 
     def launch(queue, glob, local, offset, wait_for):
@@ -270,7 +272,8 @@ def integrate_box(rt: Runtime, prog: Program, plan: BlurPlan, src: DeviceInput,
         lutq = np.rint(table.astype(np.float64) * scale).astype(np.int64)
         return [prog.run("integrate_box_codes", rt.queue, grid, (BOX_GROUP_SIZE,),
                          wait_for=ready, image=src.buffer, in_kind=src.kind,
-                         lutq=rt.upload("lutq", lutq), lut_len=table.shape[1], across=across,
+                         lutq=rt.upload("lutq", lutq, table=True), lut_len=table.shape[1],
+                         across=across,
                          len=length, transposed=int(transposed), lo=lo, hi=hi, scale=scale,
                          w=w, **finish)]
     stride = _round_up(across, LANES)  # whole 8-pixel vectors stay in bounds
@@ -278,7 +281,8 @@ def integrate_box(rt: Runtime, prog: Program, plan: BlurPlan, src: DeviceInput,
     shape = dict(ps=stride, across=across, len=length, transposed=int(transposed), w=w)
     ev = prog.run("linearise_plane", rt.queue, _grid(stride, length), (GROUP_SIZE, 1),
                   wait_for=ready, image=src.buffer, in_kind=src.kind, channels=channels,
-                  cbase=cbase, cg=cg, lut=rt.upload("lut", table), lut_len=table.shape[1],
+                  cbase=cbase, cg=cg, lut=rt.upload("lut", table, table=True),
+                  lut_len=table.shape[1],
                   plane=plane, **shape)
     return [prog.run("integrate_box", rt.queue, grid, (BOX_GROUP_SIZE,), wait_for=[ev],
                      plane=plane, lo=lo, hi=hi, scale=scale, **shape, **finish)]
