@@ -816,15 +816,16 @@ static long4 fixed_codes(__global const uchar *image, int in_kind, __global cons
 #define BOX_RING 1024
 #endif
 
-/* integrate_box for integer images, read from the codes (same sums, same results). */
-__kernel void integrate_box_codes(__global const uchar *image, int in_kind,
-                                  __global const long *lutq, int lut_len, int across, int len,
-                                  int transposed, int lo, int hi, float scale, int w,
-                                  __global const int *grid, int cells, int gstride,
-                                  float gscale, STORE_PARAMS)
+/* The body of integrate_box_codes for one work-item (x0: its first line), always inlined,
+ * so that the common case below gets in_kind, cg, channels and transposed as constants and
+ * the per-pixel tests of fixed_codes and the stores fold away (same code, same results). */
+__attribute__((always_inline))
+static void box_codes_body(__global const uchar *image, int in_kind,
+                           __global const long *lutq, int lut_len, int across, int len,
+                           int transposed, int lo, int hi, float scale, int w,
+                           __global const int *grid, int cells, int gstride, float gscale,
+                           STORE_PARAMS, int x0, long16 *ring_lo, long16 *ring_hi)
 {
-    int x0 = get_global_id(0) * LANES;
-    if (x0 >= across) return;
     float norm = 1.0f / ((float)(hi - lo + 1) * scale);
     bool codes = out_kind != OUT_F32;
     BOX_PACKED_STATE
@@ -833,7 +834,6 @@ __kernel void integrate_box_codes(__global const uchar *image, int in_kind,
      * each step reads one pixel per line instead of two (same integers, same sums). */
     int n = hi - lo + 1, j = 0;
     bool ring = n <= BOX_RING;
-    long16 ring_lo[BOX_RING], ring_hi[BOX_RING];
     for (int d = lo; d <= hi; ++d) {
         int at = clamp(d, 0, len - 1);
         long16 v_lo = CODES4(0, at), v_hi = CODES4(4, at);
@@ -858,5 +858,30 @@ __kernel void integrate_box_codes(__global const uchar *image, int in_kind,
             sum_lo += CODES4(0, enter) - CODES4(0, leave);
             sum_hi += CODES4(4, enter) - CODES4(4, leave);
         }
+    }
+}
+
+/* integrate_box for integer images, read from the codes (same sums, same results). */
+__kernel void integrate_box_codes(__global const uchar *image, int in_kind,
+                                  __global const long *lutq, int lut_len, int across, int len,
+                                  int transposed, int lo, int hi, float scale, int w,
+                                  __global const int *grid, int cells, int gstride,
+                                  float gscale, STORE_PARAMS)
+{
+    int x0 = get_global_id(0) * LANES;
+    if (x0 >= across) return;
+    long16 ring_lo[BOX_RING], ring_hi[BOX_RING];
+    if (in_kind == IN_U8 && channels == 3 && cg == 3) {  /* uint8 RGB: constants */
+        if (transposed)
+            box_codes_body(image, IN_U8, lutq, lut_len, across, len, 1, lo, hi, scale, w, grid,
+                           cells, gstride, gscale, resp, tables, thresholds, buckets, out,
+                           out_kind, 3, 0, 3, x0, ring_lo, ring_hi);
+        else
+            box_codes_body(image, IN_U8, lutq, lut_len, across, len, 0, lo, hi, scale, w, grid,
+                           cells, gstride, gscale, resp, tables, thresholds, buckets, out,
+                           out_kind, 3, 0, 3, x0, ring_lo, ring_hi);
+    } else {
+        box_codes_body(image, in_kind, lutq, lut_len, across, len, transposed, lo, hi, scale, w,
+                       grid, cells, gstride, gscale, STORE_ARGS, x0, ring_lo, ring_hi);
     }
 }
