@@ -48,10 +48,12 @@ __all__ = ["DeviceInput", "FieldInput", "blur", "finish_args", "integrate_box",
 GROUP_SIZE = 64
 BOX_GROUP_SIZE = 8
 GPU_GROUP = (16, 8)  # GPU variants: one pixel per work-item, compact 2-D patches
-# CPU field kernel: 4 x 8 work-items = 64 x 8 pixels per group (FIELD_LANES = 16); measured
-# on PoCL (2 cores, 4K, 8 lanes): 1.03x over (64, 1) for |v| 10..40, 1.13x for |v| ~ 80,
-# where rows leave the cache.
-FIELD_GROUP = (4, 8)
+# CPU field kernel: 16 x 8 work-items = 256 x 8 pixels per group (FIELD_LANES = 16).
+# Measured on PoCL (4K, |v| 10..40, one thread, kernel ms): (16, 8) 229-237, (32, 8) 234-237,
+# (8, 8) 236-247, (4, 8) 259-285, (16, 4) 245-256, (8, 16) 241; at |v| 25..100 (1080p)
+# (16, 8) 241, (8, 16) 247, (4, 16) 248.  (With 8 lanes, 2-D groups were 1.13x over rows
+# of work-items at |v| ~ 80, where rows leave the cache.)
+FIELD_GROUP = (16, 8)
 
 
 def blur(plan: BlurPlan, device: str | None = None) -> np.ndarray:
