@@ -4,8 +4,9 @@ Conventions
 -----------
 * Stages, per group of up to four channels (``response_pack.channel_groups``):
   ``upload_input`` (the image, once) -> ``linearise`` (codes through per-channel tables, or
-  float input linearised on the host in float64, into an RGBA intermediate: half floats for
-  uint8 outputs when ``half_float.half_storage_ok`` allows, except in the CPU field kernel) ->
+  float input linearised on the host in float64, into an RGBA intermediate, or channel planes
+  for the CPU field kernel: half floats for uint8 outputs when ``half_float.half_storage_ok``
+  allows, except in the CPU field kernel) ->
   ``integrate_field``
   / ``integrate_taps`` / ``integrate_box``, each with the *finish* stage (forward response and
   quantisation, ``finish_args``) fused into its store.  Integer outputs are quantised by
@@ -13,7 +14,8 @@ Conventions
 * Strategies: per-pixel field (bilinear), space-invariant integer taps (uniform motion and
   PSFs, ``taps``), running sums for boxes (exact 64-bit fixed point, cost independent of the
   length).  Every kernel argument is passed by name (``program.Program.run``).
-* CPU devices (host-unified memory) read the caller's arrays in place.  Other devices (GPUs)
+* CPU devices (host-unified memory) read the caller's arrays in place and write the returned
+  array in place.  Other devices (GPUs)
   get the image in row bands (``transfers``): upload (through reused pinned staging, unless
   the caller's array is already pinned, ``pinned_empty``), linearise, integrate and download
   of different bands overlap on two queues.
