@@ -316,7 +316,7 @@ def run_plan(rt: Runtime, plan: BlurPlan, gpu: bool | None = None, *, half: bool
     if resident_out is not None:
         out_buf = resident_out
     elif rt.unified:
-        out = _aligned_empty((h, w, channels), out_dtype)
+        out = np.empty((h, w, channels), dtype=out_dtype)
         out_buf = rt.wrap(out)
     else:
         out_buf = rt.buffer("output", h * w * channels * np.dtype(out_dtype).itemsize)
@@ -364,23 +364,10 @@ def run_plan(rt: Runtime, plan: BlurPlan, gpu: bool | None = None, *, half: bool
     return plan.finish(out)
 
 
-# Alignment of arrays the device uses in place (USE_HOST_PTR): the device's base address
-# alignment (PoCL: 128 bytes) or a copy is made behind the scenes.
-_HOST_ALIGN = 4096
-
-
-def _aligned_empty(shape: tuple[int, ...], dtype) -> np.ndarray:
-    """An uninitialised C-contiguous array whose data starts on a page boundary."""
-    dtype = np.dtype(dtype)
-    nbytes = max(int(np.prod(shape)) * dtype.itemsize, 1)
-    raw = np.empty(nbytes + _HOST_ALIGN, np.uint8)
-    start = -raw.ctypes.data % _HOST_ALIGN
-    return raw[start:start + nbytes].view(dtype)[:int(np.prod(shape))].reshape(shape)
-
-
 def _sync_host(rt: Runtime, buf, out: np.ndarray, done: list) -> None:
     """Make the kernels' writes to ``buf`` (a USE_HOST_PTR buffer over ``out``) visible in
-    ``out``: map it after ``done`` (for PoCL the same memory: no copy), then unmap."""
+    ``out``: map it after ``done`` (PoCL uses ``out`` itself, aligned or not: no copy; the
+    map is what the OpenCL specification asks for), then unmap."""
     cl = pyopencl_module()
     mapped, _ = cl.enqueue_map_buffer(rt.queue, buf, cl.map_flags.READ, 0, (out.nbytes,),
                                       np.uint8, wait_for=done, is_blocking=True)
