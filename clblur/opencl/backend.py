@@ -4,8 +4,9 @@ Conventions
 -----------
 * Stages, per group of up to four channels (``response_pack.channel_groups``):
   ``upload_input`` (the image, once) -> ``linearise`` (codes through per-channel tables, or
-  float input linearised on the host in float64, into an RGBA intermediate: half floats for
-  uint8 outputs when ``half_float.half_storage_ok`` allows, except in the CPU field kernel) ->
+  float input linearised on the host in float64, into an RGBA intermediate, or channel planes
+  for the CPU field kernel: half floats for uint8 outputs when ``half_float.half_storage_ok``
+  allows, except in the CPU field kernel) ->
   ``integrate_field``
   / ``integrate_taps`` / ``integrate_box``, each with the *finish* stage (forward response and
   quantisation, ``finish_args``) fused into its store.  Integer outputs are quantised by
@@ -13,7 +14,8 @@ Conventions
 * Strategies: per-pixel field (bilinear), space-invariant integer taps (uniform motion and
   PSFs, ``taps``), running sums for boxes (exact 64-bit fixed point, cost independent of the
   length).  Every kernel argument is passed by name (``program.Program.run``).
-* CPU devices (host-unified memory) read the caller's arrays in place.  Other devices (GPUs)
+* CPU devices (host-unified memory) read the caller's arrays in place and write the returned
+  array in place.  Other devices (GPUs)
   get the image in row bands (``transfers``): upload (through reused pinned staging, unless
   the caller's array is already pinned, ``pinned_empty``), linearise, integrate and download
   of different bands overlap on two queues.
@@ -31,7 +33,7 @@ import numpy as np
 
 from clblur.motion import Field, flow_error, sample_counts
 from clblur.opencl import half_float, quantisation, response_pack, taps
-from clblur.opencl.constants import IN_F32, IN_KINDS, LANES, OUT_F32, OUT_KINDS
+from clblur.opencl.constants import FIELD_LANES, IN_F32, IN_KINDS, LANES, OUT_F32, OUT_KINDS
 from clblur.opencl.device import Runtime, pyopencl_module, runtime
 from clblur.opencl.linearisation import linearisation_tables, linearise_float_image
 from clblur.opencl.program import Program
@@ -48,9 +50,12 @@ __all__ = ["DeviceInput", "FieldInput", "blur", "finish_args", "integrate_box",
 GROUP_SIZE = 64
 BOX_GROUP_SIZE = 8
 GPU_GROUP = (16, 8)  # GPU variants: one pixel per work-item, compact 2-D patches
-# CPU field kernel: 8 x 8 work-items = 64 x 8 pixels per group; measured on PoCL (2 cores,
-# 4K): 1.03x over (64, 1) for |v| 10..40, 1.13x for |v| ~ 80, where rows leave the cache.
-FIELD_GROUP = (8, 8)
+# CPU field kernel: 16 x 8 work-items = 256 x 8 pixels per group (FIELD_LANES = 16).
+# Measured on PoCL (4K, |v| 10..40, one thread, kernel ms): (16, 8) 229-237, (32, 8) 234-237,
+# (8, 8) 236-247, (4, 8) 259-285, (16, 4) 245-256, (8, 16) 241; at |v| 25..100 (1080p)
+# (16, 8) 241, (8, 16) 247, (4, 16) 248.  (With 8 lanes, 2-D groups were 1.13x over rows
+# of work-items at |v| ~ 80, where rows leave the cache.)
+FIELD_GROUP = (16, 8)
 
 
 def blur(plan: BlurPlan, device: str | None = None) -> np.ndarray:
@@ -114,9 +119,10 @@ def finish_args(rt: Runtime, plan: BlurPlan, cbase: int, cg: int, out_buf) -> di
         buckets = quantisation.quantisation_buckets(thresholds)
     else:
         thresholds, buckets = np.zeros(1, np.float32), np.zeros(8, np.int32)
-    return {"resp": rt.upload("resp", params), "tables": rt.upload("tables", tables),
-            "thresholds": rt.upload("thresholds", thresholds),
-            "buckets": rt.upload("buckets", buckets), "out": out_buf,
+    return {"resp": rt.upload("resp", params, table=True),
+            "tables": rt.upload("tables", tables, table=True),
+            "thresholds": rt.upload("thresholds", thresholds, table=True),
+            "buckets": rt.upload("buckets", buckets, table=True), "out": out_buf,
             "out_kind": OUT_KINDS[plan.dtype], "channels": plan.image.shape[2], "cbase": cbase,
             "cg": cg}
 
@@ -126,7 +132,7 @@ def _grid_args(rt: Runtime, plan: BlurPlan, cbase: int, cg: int) -> dict:
     where there is none."""
     grid = quantisation.box_code_grid(plan.responses[cbase:cbase + cg], plan.dtype)
     table, cells, scale, stride = grid or (np.zeros(1, np.int32), 0, 0.0, 0)
-    return {"grid": rt.upload("grid", table), "cells": cells, "gstride": stride,
+    return {"grid": rt.upload("grid", table, table=True), "cells": cells, "gstride": stride,
             "gscale": float(scale)}
 
 
@@ -136,18 +142,20 @@ def _lut(src: DeviceInput, cbase: int, cg: int) -> np.ndarray:
 
 
 def linearise(rt: Runtime, prog: Program, src: DeviceInput, plan: BlurPlan, cbase: int,
-              cg: int, lin_buf) -> list:
-    """Stage 1: one channel group into the padded (h + 1) x (w + 1) RGBA intermediate, band by
-    band after each band's upload.  Returns the events of every band."""
+              cg: int, lin_buf, planes: bool = False) -> list:
+    """Stage 1: one channel group into the padded (h + 1) x (w + 1) RGBA intermediate, or
+    into ``cg`` channel planes of that size (``planes``: the CPU field kernel's layout), band
+    by band after each band's upload.  Returns the events of every band."""
     h, w = plan.image.shape[:2]
     table = _lut(src, cbase, cg)
-    lut = rt.upload("lut", table)
+    lut = rt.upload("lut", table, table=True)
     events = []
     for k, (r0, r1) in enumerate(src.bands):
         r1 = h + 1 if r1 == h else r1  # the last band also writes the padding row
         queue = rt.all_queues()[k % len(rt.all_queues())]
         events.append(prog.run(
-            "linearise", queue, _grid(w + 1, r1 - r0), (GROUP_SIZE, 1), global_offset=(0, r0),
+            "linearise_planes" if planes else "linearise", queue, _grid(w + 1, r1 - r0),
+            (GROUP_SIZE, 1), global_offset=(0, r0),
             wait_for=src.ready[k], image=src.buffer, in_kind=src.kind,
             channels=plan.image.shape[2], cbase=cbase, cg=cg, lut=lut,
             lut_len=table.shape[1], lin=lin_buf, w=w, h=h))
@@ -162,11 +170,11 @@ def _item_grid(gpu: bool, w: int, rows: int, field: bool = False):
     if gpu:
         gx, gy = GPU_GROUP
         return (_round_up(w, gx), _round_up(rows, gy)), GPU_GROUP
-    items = (w + LANES - 1) // LANES
     if field:
+        items = (w + FIELD_LANES - 1) // FIELD_LANES
         gx, gy = FIELD_GROUP
         return (_round_up(items, gx), _round_up(rows, gy)), FIELD_GROUP
-    return _grid(items, rows), (GROUP_SIZE, 1)
+    return _grid((w + LANES - 1) // LANES, rows), (GROUP_SIZE, 1)
 
 
 def _per_band(rt: Runtime, plan: BlurPlan, gpu: bool, src: DeviceInput, launch,
@@ -186,9 +194,10 @@ def integrate_taps(rt: Runtime, prog: Program, gpu: bool, plan: BlurPlan, src: D
                    lin_buf, tap_set: taps.IntegerTaps, finish: dict, after: list) -> list:
     """Stage 2 + finish for space-invariant integer taps (uniform motion, PSFs)."""
     h, w = plan.image.shape[:2]
-    args = dict(lin=lin_buf, tap_dx=rt.upload("tap_dx", tap_set.dx),
-                tap_dy=rt.upload("tap_dy", tap_set.dy),
-                tap_w=rt.upload("tap_w", tap_set.w.astype(np.float32)), ntaps=tap_set.w.size,
+    args = dict(lin=lin_buf, tap_dx=rt.upload("tap_dx", tap_set.dx, table=True),
+                tap_dy=rt.upload("tap_dy", tap_set.dy, table=True),
+                tap_w=rt.upload("tap_w", tap_set.w.astype(np.float32), table=True),
+                ntaps=tap_set.w.size,
                 dx_min=tap_set.dx.min(), dx_max=tap_set.dx.max(), dy_min=tap_set.dy.min(),
                 dy_max=tap_set.dy.max(), w=w, h=h, **finish)
 
@@ -237,7 +246,7 @@ def integrate_field(rt: Runtime, prog: Program, gpu: bool, plan: BlurPlan, src: 
               else np.zeros(1, np.float32))
     args = dict(lin=lin_buf, flow=field.flow, flow_half=int(field.half), bad_flow=field.bad,
                 counts=field.counts, host_counts=int(field.host_counts),
-                fixed_n=plan.samples or 0, time_w=rt.upload("time_weights", time_w),
+                fixed_n=plan.samples or 0, time_w=rt.upload("time_weights", time_w, table=True),
                 weighted=int(plan.weights is not None), anchor=plan.anchor, w=w, h=h, **finish)
 
     def launch(queue, glob, local, offset, wait_for):
@@ -267,7 +276,8 @@ def integrate_box(rt: Runtime, prog: Program, plan: BlurPlan, src: DeviceInput,
         lutq = np.rint(table.astype(np.float64) * scale).astype(np.int64)
         return [prog.run("integrate_box_codes", rt.queue, grid, (BOX_GROUP_SIZE,),
                          wait_for=ready, image=src.buffer, in_kind=src.kind,
-                         lutq=rt.upload("lutq", lutq), lut_len=table.shape[1], across=across,
+                         lutq=rt.upload("lutq", lutq, table=True), lut_len=table.shape[1],
+                         across=across,
                          len=length, transposed=int(transposed), lo=lo, hi=hi, scale=scale,
                          w=w, **finish)]
     stride = _round_up(across, LANES)  # whole 8-pixel vectors stay in bounds
@@ -275,7 +285,8 @@ def integrate_box(rt: Runtime, prog: Program, plan: BlurPlan, src: DeviceInput,
     shape = dict(ps=stride, across=across, len=length, transposed=int(transposed), w=w)
     ev = prog.run("linearise_plane", rt.queue, _grid(stride, length), (GROUP_SIZE, 1),
                   wait_for=ready, image=src.buffer, in_kind=src.kind, channels=channels,
-                  cbase=cbase, cg=cg, lut=rt.upload("lut", table), lut_len=table.shape[1],
+                  cbase=cbase, cg=cg, lut=rt.upload("lut", table, table=True),
+                  lut_len=table.shape[1],
                   plane=plane, **shape)
     return [prog.run("integrate_box", rt.queue, grid, (BOX_GROUP_SIZE,), wait_for=[ev],
                      plane=plane, lo=lo, hi=hi, scale=scale, **shape, **finish)]
@@ -299,8 +310,16 @@ def run_plan(rt: Runtime, plan: BlurPlan, gpu: bool | None = None, *, half: bool
     src = upload_input(rt, plan, resident_image)
     out_kind = OUT_KINDS[img.dtype]
     out_dtype = np.float32 if out_kind == OUT_F32 else img.dtype
-    out_buf = (resident_out if resident_out is not None
-               else rt.buffer("output", h * w * channels * np.dtype(out_dtype).itemsize))
+    # Devices that share host memory (CPUs) write straight into the returned array: no
+    # download copy (4K RGB uint8: 25 MB, ~5 % of a box blur).
+    out = None
+    if resident_out is not None:
+        out_buf = resident_out
+    elif rt.unified:
+        out = np.empty((h, w, channels), dtype=out_dtype)
+        out_buf = rt.wrap(out)
+    else:
+        out_buf = rt.buffer("output", h * w * channels * np.dtype(out_dtype).itemsize)
     tap_set = taps.space_invariant_taps(plan)
     box = tap_set.box() if tap_set is not None else None
     # Half storage halves the memory traffic.  The CPU field kernel is bound by instructions,
@@ -310,6 +329,9 @@ def run_plan(rt: Runtime, plan: BlurPlan, gpu: bool | None = None, *, half: bool
         half = gpu or tap_set is not None
     half = half and box is None and half_float.half_storage_ok(plan, src.luts)
     prog = rt.program(half, gpu)
+    # The CPU field kernel reads channel planes: a tap's weights then apply lane for lane
+    # (no shuffles, no idle fourth channel).  Same values, same size as the RGBA layout.
+    planes = tap_set is None and not gpu
     field = None
     lin_buf = None if box is not None else rt.buffer("linear",
                                                      (h + 1) * (w + 1) * 4 * (2 if half else 4))
@@ -319,7 +341,7 @@ def run_plan(rt: Runtime, plan: BlurPlan, gpu: bool | None = None, *, half: bool
         if box is not None:
             done = integrate_box(rt, prog, plan, src, box, finish, cbase, cg, done)
             continue
-        linear = linearise(rt, prog, src, plan, cbase, cg, lin_buf)
+        linear = linearise(rt, prog, src, plan, cbase, cg, lin_buf, planes)
         after = linear + done  # the next group reuses the intermediate
         if tap_set is None and field is None:  # queued behind the image: linearise first
             field = upload_flow(rt, plan, src, resident_flow)
@@ -332,11 +354,25 @@ def run_plan(rt: Runtime, plan: BlurPlan, gpu: bool | None = None, *, half: bool
         _check_flow(rt, field)
     if resident_out is not None:
         return None
-    out = np.empty((h, w, channels), dtype=out_dtype)
-    download(rt, out, out_buf, src.bands, done)
+    if out is not None:
+        _sync_host(rt, out_buf, out, done)
+    else:
+        out = np.empty((h, w, channels), dtype=out_dtype)
+        download(rt, out, out_buf, src.bands, done)
     if img.dtype == np.float64:
         out = out.astype(np.float64)
     return plan.finish(out)
+
+
+def _sync_host(rt: Runtime, buf, out: np.ndarray, done: list) -> None:
+    """Make the kernels' writes to ``buf`` (a USE_HOST_PTR buffer over ``out``) visible in
+    ``out``: map it after ``done`` (PoCL uses ``out`` itself, aligned or not: no copy; the
+    map is what the OpenCL specification asks for), then unmap."""
+    cl = pyopencl_module()
+    mapped, _ = cl.enqueue_map_buffer(rt.queue, buf, cl.map_flags.READ, 0, (out.nbytes,),
+                                      np.uint8, wait_for=done, is_blocking=True)
+    mapped.base.release(queue=rt.queue)
+    rt.queue.finish()
 
 
 def _check_flow(rt: Runtime, field: FieldInput) -> None:

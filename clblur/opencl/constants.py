@@ -5,7 +5,8 @@ them into ``-D`` build options, so a change here reaches both sides.
 
 Conventions
 -----------
-* ``LANES``: consecutive pixels of a row per work-item of the CPU kernels (vector lanes).
+* ``LANES``: consecutive pixels of a row per work-item of the CPU kernels (vector lanes);
+  ``FIELD_LANES`` those of the CPU field kernel (one float16 per channel plane).
 * ``GROUP``: channels per kernel pass (the RGBA-interleaved intermediate).
 * ``RESP_STRIDE``: floats per channel in the packed forward-response array
   (``[kind, parameter, table offset, table length]``); kind codes are
@@ -25,10 +26,12 @@ import numpy as np
 from clblur.motion import FLOW_LIMIT
 from clblur.responses import KIND_CODES
 
-__all__ = ["GROUP", "IN_F32", "IN_KINDS", "IN_U8", "IN_U16", "LANES", "LAYERED_MAXK", "OUT_F32",
-           "OUT_KINDS", "OUT_U8", "OUT_U16", "QHEAD", "RESP_STRIDE", "GRID_SEARCH", "build_defines"]
+__all__ = ["FIELD_LANES", "GROUP", "IN_F32", "IN_KINDS", "IN_U8", "IN_U16", "LANES",
+           "LAYERED_MAXK", "OUT_F32", "OUT_KINDS", "OUT_U8", "OUT_U16", "QHEAD", "RESP_STRIDE",
+           "GRID_SEARCH", "build_defines"]
 
 LANES = 8
+FIELD_LANES = 16
 # layers one work-item of the layered compositor (layered.cl) holds in registers
 LAYERED_MAXK = 8
 GROUP = 4
@@ -47,7 +50,8 @@ OUT_KINDS = {np.dtype(np.uint8): OUT_U8, np.dtype(np.uint16): OUT_U16,
 
 def build_defines() -> tuple[str, ...]:
     """``-DNAME=value`` options for every shared constant (sorted: a stable cache key)."""
-    values = {"LANES": LANES, "GROUP": GROUP, "RESP_STRIDE": RESP_STRIDE, "QHEAD": QHEAD,
+    values = {"LANES": LANES, "FIELD_LANES": FIELD_LANES, "GROUP": GROUP,
+              "RESP_STRIDE": RESP_STRIDE, "QHEAD": QHEAD,
               "MAXK": LAYERED_MAXK, "GRID_SEARCH": GRID_SEARCH,
               "IN_U8": IN_U8, "IN_U16": IN_U16, "IN_F32": IN_F32,
               "OUT_U8": OUT_U8, "OUT_U16": OUT_U16, "OUT_F32": OUT_F32}

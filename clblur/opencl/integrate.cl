@@ -70,6 +70,30 @@ __kernel void linearise(__global const uchar *image, int in_kind, int channels, 
     STORE4(e, (size_t)row * (w + 1) + col);
 }
 
+/* linearise() into channel planes for the CPU field kernel: plane c (c < cg) of the padded
+ * (h + 1) x (w + 1) intermediate starts at c * (h + 1) * (w + 1); the same values. */
+__kernel void linearise_planes(__global const uchar *image, int in_kind, int channels,
+                               int cbase, int cg, __global const float *lut, int lut_len,
+                               __global STORE_T *lin, int w, int h)
+{
+    int col = get_global_id(0), row = get_global_id(1);
+    if (col > w || row > h) return;
+    size_t base = ((size_t)min(row, h - 1) * w + min(col, w - 1)) * channels + cbase;
+    size_t at = (size_t)row * (w + 1) + col, plane_size = (size_t)(w + 1) * (size_t)(h + 1);
+#ifdef STORE_HALF
+#define PSTORE(c) vstore_half_rte(linear_channel(image, in_kind, base + (c), (c), lut, lut_len), \
+                                  at + (c) * plane_size, lin)
+#else
+#define PSTORE(c) lin[at + (c) * plane_size] = linear_channel(image, in_kind, base + (c), (c), \
+                                                              lut, lut_len)
+#endif
+    PSTORE(0);
+    if (cg > 1) PSTORE(1);
+    if (cg > 2) PSTORE(2);
+    if (cg > 3) PSTORE(3);
+#undef PSTORE
+}
+
 /* Flow vector of pixel i (float32 or half pairs).  A component that is not finite or lies
  * beyond +-FLOW_LIMIT px is counted (bad[0], bad[1]; only when `count`: a lane that repeats
  * the last pixel does not count twice) and read as 0, so a bad flow can never make the tap
@@ -166,13 +190,7 @@ static int pixel_count(float2 v, size_t i, __global const int *counts, int host_
 }
 
 /* floor() of offsets without the library call (slow on some CPU drivers): truncate, then
- * step down where truncation went up (negative non-integers; true vector compares are -1). */
-static int8 floor_int8(float8 v)
-{
-    int8 t = convert_int8(v);
-    return t + (convert_float8(t) > v);
-}
-
+ * step down where truncation went up (negative non-integers). */
 static int floor_int(float v)
 {
     int t = convert_int(v);
@@ -212,147 +230,271 @@ static void store_row8(float16 lo, float16 hi, size_t pixel, int valid, STORE_PA
  * both variants below do exactly this, so they agree bit for bit. */
 #ifndef GPU_VARIANT
 
-/* Spread one weight per pixel (float8) to its four channels, pixels 0-3 or 4-7. */
-#define SPREAD_LO(v) shuffle((v), (uint16)(0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3))
-#define SPREAD_HI(v) shuffle((v), (uint16)(4, 4, 4, 4, 5, 5, 5, 5, 6, 6, 6, 6, 7, 7, 7, 7))
+/* The CPU variant: FIELD_LANES (16) consecutive pixels of a row per work-item, as vector
+ * lanes, reading the intermediate as channel planes (linearise_planes): plane c of
+ * (h + 1) x (w + 1) values starts at c * plane_size.  Sixteen neighbouring pixels of one
+ * channel are one float16, so a tap's four bilinear weights apply lane for lane: no
+ * channel-spreading shuffles, no idle fourth channel for three-channel groups, and the
+ * positions and weights of 16 pixels cost what those of one vector cost. */
+#ifdef STORE_HALF
+/* Element by element: PoCL compiles vload_halfn at an arbitrary half offset into an aligned
+ * load (a crash where it is not aligned).  Half planes are not this kernel's default (float
+ * storage is faster here, run_plan), so they only have to be right. */
+#define PLOAD1(p, i) vload_half((size_t)(i), (p))
+#define PLOAD8_(p, i)                                                                     \
+    (float8)(PLOAD1(p, (i)), PLOAD1(p, (i) + 1), PLOAD1(p, (i) + 2), PLOAD1(p, (i) + 3),      \
+             PLOAD1(p, (i) + 4), PLOAD1(p, (i) + 5), PLOAD1(p, (i) + 6), PLOAD1(p, (i) + 7))
+#define PLOAD16(p, i) (float16)(PLOAD8_(p, (i)), PLOAD8_(p, (i) + 8))
+#else
+#define PLOAD16(p, i) vload16(0, (p) + (size_t)(i))
+#define PLOAD1(p, i) ((p)[(size_t)(i)])
+#endif
 
-/* One tap of the CPU field kernel for its 8 lanes, given base, fx, upper and lower. */
-#define FIELD_TAP                                                                         \
+/* Whether every lane of v is 0: an OR tree (all() and any() scalarise into chains of
+ * branches on PoCL). */
+static bool zero16(int16 v)
+{
+    int8 o8 = v.lo | v.hi;
+    int4 o4 = o8.lo | o8.hi;
+    int2 o2 = o4.lo | o4.hi;
+    return (o2.x | o2.y) == 0;
+}
+
+/* floor() of offsets without the library call (slow on some CPU drivers), 16 lanes:
+ * truncate, then step down where truncation went up (true vector compares are -1). */
+static int16 floor_int16(float16 v)
+{
+    int16 t = convert_int16(v);
+    return t + (convert_float16(t) > v);
+}
+
+/* Sixteen lanes' values of plane p at the indices in `at` (one load each). */
+#define PGATHER16(p, at)                                                                  \
+    (float16)(PLOAD1(p, (at).s0), PLOAD1(p, (at).s1), PLOAD1(p, (at).s2),                   \
+              PLOAD1(p, (at).s3), PLOAD1(p, (at).s4), PLOAD1(p, (at).s5),                   \
+              PLOAD1(p, (at).s6), PLOAD1(p, (at).s7), PLOAD1(p, (at).s8),                   \
+              PLOAD1(p, (at).s9), PLOAD1(p, (at).sa), PLOAD1(p, (at).sb),                   \
+              PLOAD1(p, (at).sc), PLOAD1(p, (at).sd), PLOAD1(p, (at).se),                   \
+              PLOAD1(p, (at).sf))
+
+/* One tap of channel C: left += tl w_tl, left += bl w_bl, right += tr w_tr, right += br w_br
+ * (the per-pixel order of every variant), from contiguous loads (CONTIG), two contiguous
+ * loads and a select (TWO) or one load per lane (GATHER). */
+#define PLANE_ACC(C)                                                                      \
+    left##C = fma(tl, w_tl, left##C);                                                     \
+    left##C = fma(bl, w_bl, left##C);                                                     \
+    right##C = fma(tr, w_tr, right##C);                                                   \
+    right##C = fma(br, w_br, right##C);
+
+#define CONTIG(C)                                                                         \
     {                                                                                     \
-        float8 w_tl = (1.0f - fx) * upper, w_tr = fx * upper;                             \
-        float8 w_bl = (1.0f - fx) * lower, w_br = fx * lower;                             \
-        float16 tl_lo, tl_hi, tr_lo, tr_hi, bl_lo, bl_hi, br_lo, br_hi;                   \
-        if (all(base == (int8)(base.s0) + lane)) {                                        \
-            /* base.s0 .. base.s0 + 8 lie in one padded row (w + 1 > w columns) */        \
-            size_t b = base.s0;                                                           \
-            tl_lo = LOAD16(b); tl_hi = LOAD16(b + 4);                                     \
-            tr_lo = LOAD16(b + 1); tr_hi = LOAD16(b + 5);                                 \
-            bl_lo = LOAD16(b + ws); bl_hi = LOAD16(b + ws + 4);                           \
-            br_lo = LOAD16(b + ws + 1); br_hi = LOAD16(b + ws + 5);                       \
-        } else {                                                                          \
-            float8 t0 = LOAD8(base.s0), t1 = LOAD8(base.s1), t2 = LOAD8(base.s2);         \
-            float8 t3 = LOAD8(base.s3), t4 = LOAD8(base.s4), t5 = LOAD8(base.s5);         \
-            float8 t6 = LOAD8(base.s6), t7 = LOAD8(base.s7);                              \
-            tl_lo = (float16)(t0.lo, t1.lo, t2.lo, t3.lo);                                \
-            tl_hi = (float16)(t4.lo, t5.lo, t6.lo, t7.lo);                                \
-            tr_lo = (float16)(t0.hi, t1.hi, t2.hi, t3.hi);                                \
-            tr_hi = (float16)(t4.hi, t5.hi, t6.hi, t7.hi);                                \
-            t0 = LOAD8(base.s0 + ws); t1 = LOAD8(base.s1 + ws);                           \
-            t2 = LOAD8(base.s2 + ws); t3 = LOAD8(base.s3 + ws);                           \
-            t4 = LOAD8(base.s4 + ws); t5 = LOAD8(base.s5 + ws);                           \
-            t6 = LOAD8(base.s6 + ws); t7 = LOAD8(base.s7 + ws);                           \
-            bl_lo = (float16)(t0.lo, t1.lo, t2.lo, t3.lo);                                \
-            bl_hi = (float16)(t4.lo, t5.lo, t6.lo, t7.lo);                                \
-            br_lo = (float16)(t0.hi, t1.hi, t2.hi, t3.hi);                                \
-            br_hi = (float16)(t4.hi, t5.hi, t6.hi, t7.hi);                                \
-        }                                                                                 \
-        left_lo = fma(tl_lo, SPREAD_LO(w_tl), left_lo);                                   \
-        left_lo = fma(bl_lo, SPREAD_LO(w_bl), left_lo);                                   \
-        left_hi = fma(tl_hi, SPREAD_HI(w_tl), left_hi);                                   \
-        left_hi = fma(bl_hi, SPREAD_HI(w_bl), left_hi);                                   \
-        right_lo = fma(tr_lo, SPREAD_LO(w_tr), right_lo);                                 \
-        right_lo = fma(br_lo, SPREAD_LO(w_br), right_lo);                                 \
-        right_hi = fma(tr_hi, SPREAD_HI(w_tr), right_hi);                                 \
-        right_hi = fma(br_hi, SPREAD_HI(w_br), right_hi);                                 \
+        __global const STORE_T *p = lin + (size_t)(C) * plane_size;                       \
+        float16 tl = PLOAD16(p, b), tr = PLOAD16(p, b + 1);                               \
+        float16 bl = PLOAD16(p, b + ws), br = PLOAD16(p, b + ws + 1);                     \
+        PLANE_ACC(C)                                                                      \
     }
 
-/* CPU variant: LANES consecutive pixels of a row per work-item, as vector lanes; the tap loop
- * runs to the largest N among them (a lane whose taps are done gets weight 0, and
- * fma(0, v, acc) leaves acc unchanged bit for bit: v is finite, acc never -0).  When the 8
- * lanes' samples are 8 consecutive pixels (most taps of a smooth flow) the neighbours come
- * from four contiguous loads per row; otherwise each lane loads its own pair. */
+/* Lanes at two offsets (d = base - lane is d.s0 in the lanes `first`, d.sf in the others: a
+ * smooth flow whose integer offset steps once across the 16 pixels). */
+#define TWO(C)                                                                            \
+    {                                                                                     \
+        __global const STORE_T *p = lin + (size_t)(C) * plane_size;                       \
+        float16 tl = select(PLOAD16(p, bf), PLOAD16(p, b), first);                        \
+        float16 tr = select(PLOAD16(p, bf + 1), PLOAD16(p, b + 1), first);                \
+        float16 bl = select(PLOAD16(p, bf + ws), PLOAD16(p, b + ws), first);              \
+        float16 br = select(PLOAD16(p, bf + ws + 1), PLOAD16(p, b + ws + 1), first);      \
+        PLANE_ACC(C)                                                                      \
+    }
+
+#define GATHER(C)                                                                         \
+    {                                                                                     \
+        __global const STORE_T *p = lin + (size_t)(C) * plane_size;                       \
+        float16 tl = PGATHER16(p, base), tr = PGATHER16(p, base + 1);                     \
+        float16 bl = PGATHER16(p, base + ws), br = PGATHER16(p, base + ws + 1);           \
+        PLANE_ACC(C)                                                                      \
+    }
+
+/* One tap of the CPU field kernel for its lanes and CG channels (a constant), given base,
+ * fx, upper and lower. */
+#define FIELD_TAP(CG)                                                                     \
+    {                                                                                     \
+        float16 w_tl = (1.0f - fx) * upper, w_tr = fx * upper;                            \
+        float16 w_bl = (1.0f - fx) * lower, w_br = fx * lower;                            \
+        int16 d = base - lane;                                                            \
+        int16 first = d == (int16)(d.s0);                                                 \
+        size_t b = (size_t)d.s0;                                                          \
+        if (zero16(~first)) {                                                             \
+            CONTIG(0)                                                                     \
+            if (CG > 1) CONTIG(1)                                                         \
+            if (CG > 2) CONTIG(2)                                                         \
+            if (CG > 3) CONTIG(3)                                                         \
+        } else if (zero16(~(first | (d == (int16)(d.sf)))) && d.sf >= 0 &&               \
+                   d.s0 <= last15) {                                                      \
+            /* both loads stay inside the plane: d.sf >= 0, d.s0 + 15 <= the last pixel */ \
+            size_t bf = (size_t)d.sf;                                                     \
+            TWO(0)                                                                        \
+            if (CG > 1) TWO(1)                                                            \
+            if (CG > 2) TWO(2)                                                            \
+            if (CG > 3) TWO(3)                                                            \
+        } else {                                                                          \
+            GATHER(0)                                                                     \
+            if (CG > 1) GATHER(1)                                                         \
+            if (CG > 2) GATHER(2)                                                         \
+            if (CG > 3) GATHER(3)                                                         \
+        }                                                                                 \
+    }
+
+/* The tap loops of the CPU field kernel for CG channels: the taps every lane takes inside
+ * the window (j < j0), then the general ones. */
+#define FIELD_LOOPS(CG)                                                                   \
+    {                                                                                     \
+        for (int j = 0; j < j0; ++j) {                                                    \
+            float16 t = (float16)((float)j) - a_n1;                                       \
+            float16 ox = -(sx * t), oy = -(sy * t);                                       \
+            int16 ix = floor_int16(ox), iy = floor_int16(oy);                             \
+            float16 fx = ox - convert_float16(ix), fy = oy - convert_float16(iy);         \
+            int16 base = ((int16)(row) + iy) * ws + px + ix;                              \
+            float16 upper = 1.0f - fy, lower = fy;  /* (1 - fy) * 1 and fy * 1, exactly */\
+            FIELD_TAP(CG)                                                                 \
+        }                                                                                 \
+        for (int j = j0; j < nmax; ++j) {                                                 \
+            float16 t = (float16)((float)j) - a_n1;                                       \
+            float16 ox = -(sx * t), oy = -(sy * t);                                       \
+            int16 ix = floor_int16(ox), iy = floor_int16(oy);                             \
+            float16 fx = ox - convert_float16(ix), fy = oy - convert_float16(iy);         \
+            int16 xi = px + ix, yi = (int16)(row) + iy;                                   \
+            /* Before the first pixel the sample is the first pixel; past the last, the   \
+             * padding repeats the last, so the fraction does not matter there. */        \
+            fx = select(fx, (float16)(0.0f), xi < 0);                                     \
+            fy = select(fy, (float16)(0.0f), yi < 0);                                     \
+            int16 base = clamp(yi, 0, h - 1) * ws + clamp(xi, 0, w - 1);                  \
+            float16 wj = select((float16)(0.0f), (float16)(weighted ? time_w[j] : 1.0f),  \
+                                (int16)(j) < n);                                          \
+            float16 upper = (1.0f - fy) * wj, lower = fy * wj;                            \
+            FIELD_TAP(CG)                                                                 \
+        }                                                                                 \
+    }
+
+/* store_row8 for the CPU field kernel: whole rows of 8 RGB pixels of uint8 codes (24
+ * bytes) go out as two vector stores instead of 24 byte stores.  Same codes, same places.
+ * (The box kernels' code grid measured no faster here: the field's exposures are not
+ * coherent enough for its 512 KiB table.) */
+static void store_row8_field(float16 lo, float16 hi, size_t pixel, int valid, STORE_PARAMS)
+{
+    if (out_kind != OUT_U8 || valid < LANES || channels != 3 || cg != 3) {
+        store_row8(lo, hi, pixel, valid, STORE_ARGS);
+        return;
+    }
+    int16 q_lo = quantise16(lo, thresholds, buckets), q_hi = quantise16(hi, thresholds, buckets);
+    uchar16 a = convert_uchar16(q_lo), b = convert_uchar16(q_hi);
+    __global uchar *o = out + pixel * 3;
+    vstore16((uchar16)(a.s012, a.s456, a.s89a, a.scde, b.s012, b.s4), 0, o);
+    vstore8((uchar8)(b.s56, b.s89a, b.scde), 0, o + 16);
+}
+
+/* 4 pixels x 4 channels (pixels K .. K + 3 of the channel sums s0 .. s3) for store_row8. */
+#define PIXELS4(K0, K1, K2, K3)                                                           \
+    (float16)(s0.K0, s1.K0, s2.K0, s3.K0, s0.K1, s1.K1, s2.K1, s3.K1,                     \
+              s0.K2, s1.K2, s2.K2, s3.K2, s0.K3, s1.K3, s2.K3, s3.K3)
+
+/* The tap loop runs to the largest N among the lanes (a lane whose taps are done gets
+ * weight 0, and fma(0, v, acc) leaves acc unchanged bit for bit: v is finite, acc never
+ * -0).  Lanes past the window's last column repeat its last pixel and are not stored. */
 __kernel void integrate_field(__global const STORE_T *lin, FIELD_PARAMS, int w, int h,
                               STORE_PARAMS)
 {
     int row = get_global_id(1);
-    int col0 = get_global_id(0) * LANES;
+    int col0 = get_global_id(0) * FIELD_LANES;
     if (row >= h || col0 >= w) return;
     int ws = w + 1;
-    float8 vx, vy;
-    int8 n = (int8)(fixed_n);
+    size_t plane_size = (size_t)ws * (size_t)(h + 1);
+    float16 vx, vy;
+    int16 n = (int16)(fixed_n);
     size_t i0 = (size_t)row * w + col0;
-    bool whole = col0 + LANES <= w;
-    if (whole) {  /* one vector load; bad values take the per-lane path below */
-        float16 f = flow_half ? vload_half16(0, (__global const half *)flow + 2 * i0)
-                              : vload16(0, (__global const float *)flow + 2 * i0);
-        vx = f.even;
-        vy = f.odd;
-        whole = all(isfinite(vx) && isfinite(vy) && fabs(vx) <= FLOW_LIMIT &&
-                    fabs(vy) <= FLOW_LIMIT);
-        if (host_counts) n = vload8(0, counts + i0);
+    bool whole = col0 + FIELD_LANES <= w;
+    if (whole) {  /* vector loads; bad values take the per-lane path below */
+        float16 f0 = flow_half ? vload_half16(0, (__global const half *)flow + 2 * i0)
+                               : vload16(0, (__global const float *)flow + 2 * i0);
+        float16 f1 = flow_half ? vload_half16(0, (__global const half *)flow + 2 * i0 + 16)
+                               : vload16(0, (__global const float *)flow + 2 * i0 + 16);
+        vx = (float16)(f0.even, f1.even);
+        vy = (float16)(f0.odd, f1.odd);
+        int16 bad = !isfinite(vx) | !isfinite(vy) | (fabs(vx) > FLOW_LIMIT) |
+                    (fabs(vy) > FLOW_LIMIT);
+        whole = zero16(bad);
+        if (host_counts) n = vload16(0, counts + i0);
     }
     if (!whole) {
-        float vxs[LANES], vys[LANES];
-        int ns[LANES];
-        for (int l = 0; l < LANES; ++l) {
+        float vxs[FIELD_LANES], vys[FIELD_LANES];
+        int ns[FIELD_LANES];
+        for (int l = 0; l < FIELD_LANES; ++l) {
             size_t i = (size_t)row * w + min(col0 + l, w - 1);
             float2 v = read_flow(flow, flow_half, i, bad_flow, col0 + l < w);
             vxs[l] = v.x;
             vys[l] = v.y;
             ns[l] = host_counts ? counts[i] : fixed_n;
         }
-        vx = vload8(0, vxs);
-        vy = vload8(0, vys);
-        n = vload8(0, ns);
+        vx = vload16(0, vxs);
+        vy = vload16(0, vys);
+        n = vload16(0, ns);
     }
 #ifdef HAVE_FP64
     if (!host_counts && fixed_n <= 0)
-        n = sample_counts8(vx, vy);
+        n = (int16)(sample_counts8(vx.lo, vy.lo), sample_counts8(vx.hi, vy.hi));
 #endif
-    int nmax = max(max(max(n.s0, n.s1), max(n.s2, n.s3)), max(max(n.s4, n.s5), max(n.s6, n.s7)));
-    float8 n1 = convert_float8(n - 1);
-    float8 den = fmax(n1, 1.0f);
-    float8 sx = vx / den, sy = vy / den;
-    float8 a_n1 = anchor * n1;
-    const int8 lane = (int8)(0, 1, 2, 3, 4, 5, 6, 7);
-    int8 px = (int8)(col0) + lane;
-    float16 left_lo = 0.0f, left_hi = 0.0f, right_lo = 0.0f, right_hi = 0.0f;
+    int8 n8 = max(n.lo, n.hi);
+    int4 n4 = max(n8.lo, n8.hi);
+    int2 n2 = max(n4.lo, n4.hi);
+    int nmax = max(n2.x, n2.y);
+    n8 = min(n.lo, n.hi);
+    n4 = min(n8.lo, n8.hi);
+    n2 = min(n4.lo, n4.hi);
+    int nmin = min(n2.x, n2.y);
+    float16 n1 = convert_float16(n - 1);
+    float16 den = fmax(n1, 1.0f);
+    float16 sx = vx / den, sy = vy / den;
+    float16 a_n1 = anchor * n1;
+    const int16 lane = (int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    int16 px = (int16)(col0) + lane;
+    float16 left0 = 0.0f, left1 = 0.0f, left2 = 0.0f, left3 = 0.0f;
+    float16 right0 = 0.0f, right1 = 0.0f, right2 = 0.0f, right3 = 0.0f;
     /* Samples move monotonically with j, so the first and the last tap bound every lane's
      * positions.  When all of them (and their right/lower neighbours, which the padding
-     * holds) lie inside the window and the lanes share N without time weights, the clamps,
-     * the edge selects and the per-lane weight vanish from the loop: the same values. */
-    int nmin = min(min(min(n.s0, n.s1), min(n.s2, n.s3)), min(min(n.s4, n.s5), min(n.s6, n.s7)));
-    float8 t_end = (float8)((float)(nmax - 1)) - a_n1;
-    int8 x_a = px + floor_int8(-(sx * -a_n1)), x_b = px + floor_int8(-(sx * t_end));
-    int8 y_a = (int8)(row) + floor_int8(-(sy * -a_n1));
-    int8 y_b = (int8)(row) + floor_int8(-(sy * t_end));
-    bool inside = all(min(x_a, x_b) >= 0) && all(max(x_a, x_b) <= w - 1) &&
-                  all(min(y_a, y_b) >= 0) && all(max(y_a, y_b) <= h - 1);
-    if (inside && nmin == nmax && !weighted) {
-        for (int j = 0; j < nmax; ++j) {
-            float8 t = (float8)((float)j) - a_n1;
-            float8 ox = -(sx * t), oy = -(sy * t);
-            int8 ix = floor_int8(ox), iy = floor_int8(oy);
-            float8 fx = ox - convert_float8(ix), fy = oy - convert_float8(iy);
-            int8 base = ((int8)(row) + iy) * ws + px + ix;
-            float8 upper = 1.0f - fy, lower = fy;  /* (1 - fy) * 1 and fy * 1, exactly */
-            FIELD_TAP
-        }
-    } else {
-        for (int j = 0; j < nmax; ++j) {
-            float8 t = (float8)((float)j) - a_n1;
-            float8 ox = -(sx * t), oy = -(sy * t);
-            int8 ix = floor_int8(ox), iy = floor_int8(oy);
-            float8 fx = ox - convert_float8(ix), fy = oy - convert_float8(iy);
-            int8 xi = px + ix, yi = (int8)(row) + iy;
-            /* Before the first pixel the sample is the first pixel; past the last, the
-             * padding repeats the last, so the fraction does not matter there. */
-            fx = select(fx, (float8)(0.0f), xi < 0);
-            fy = select(fy, (float8)(0.0f), yi < 0);
-            int8 base = clamp(yi, 0, h - 1) * ws + clamp(xi, 0, w - 1);
-            float8 wj = select((float8)(0.0f), (float8)(weighted ? time_w[j] : 1.0f),
-                               (int8)(j) < n);
-            float8 upper = (1.0f - fy) * wj, lower = fy * wj;
-            FIELD_TAP
-        }
-    }
-    float16 sum_lo = left_lo + right_lo, sum_hi = left_hi + right_hi;
+     * holds) lie inside the window and there are no time weights, the taps that every lane
+     * takes (j < the smallest N) need no clamps, edge selects or per-lane weight: the same
+     * values.  The remaining taps (and every tap elsewhere) take the general loop. */
+    float16 t_end = (float16)((float)(nmax - 1)) - a_n1;
+    int16 x_a = px + floor_int16(-(sx * -a_n1)), x_b = px + floor_int16(-(sx * t_end));
+    int16 y_a = (int16)(row) + floor_int16(-(sy * -a_n1));
+    int16 y_b = (int16)(row) + floor_int16(-(sy * t_end));
+    int16 out_x = (min(x_a, x_b) < 0) | (max(x_a, x_b) > w - 1);
+    int16 out_y = (min(y_a, y_b) < 0) | (max(y_a, y_b) > h - 1);
+    bool inside = zero16(out_x | out_y);
+    int last15 = (h - 1) * ws + w - 1 - 15;  /* the last pixel's index, less 15 */
+    int j0 = inside && !weighted ? nmin : 0;
+    if (cg == 3)  /* the loops specialised per group size: no channel tests per tap */
+        FIELD_LOOPS(3)
+    else if (cg == 4)
+        FIELD_LOOPS(4)
+    else if (cg == 2)
+        FIELD_LOOPS(2)
+    else
+        FIELD_LOOPS(1)
+    float16 s0 = left0 + right0, s1 = left1 + right1, s2 = left2 + right2, s3 = left3 + right3;
     if (!weighted) {
-        float8 nf = convert_float8(n);
-        sum_lo = sum_lo / SPREAD_LO(nf);
-        sum_hi = sum_hi / SPREAD_HI(nf);
+        float16 nf = convert_float16(n);
+        s0 = s0 / nf;
+        s1 = s1 / nf;
+        s2 = s2 / nf;
+        s3 = s3 / nf;
     }
-    store_row8(sum_lo, sum_hi, (size_t)row * w + col0, w - col0, STORE_ARGS);
+    /* back to 4 pixels x 4 channels per vector for the stores */
+    size_t pixel = (size_t)row * w + col0;
+    store_row8_field(PIXELS4(s0, s1, s2, s3), PIXELS4(s4, s5, s6, s7), pixel, w - col0,
+                     STORE_ARGS);
+    if (col0 + LANES < w)
+        store_row8_field(PIXELS4(s8, s9, sa, sb), PIXELS4(sc, sd, se, sf), pixel + LANES,
+                         w - col0 - LANES, STORE_ARGS);
 }
 
 #else
@@ -674,15 +816,16 @@ static long4 fixed_codes(__global const uchar *image, int in_kind, __global cons
 #define BOX_RING 1024
 #endif
 
-/* integrate_box for integer images, read from the codes (same sums, same results). */
-__kernel void integrate_box_codes(__global const uchar *image, int in_kind,
-                                  __global const long *lutq, int lut_len, int across, int len,
-                                  int transposed, int lo, int hi, float scale, int w,
-                                  __global const int *grid, int cells, int gstride,
-                                  float gscale, STORE_PARAMS)
+/* The body of integrate_box_codes for one work-item (x0: its first line), always inlined,
+ * so that the common case below gets in_kind, cg, channels and transposed as constants and
+ * the per-pixel tests of fixed_codes and the stores fold away (same code, same results). */
+__attribute__((always_inline))
+static void box_codes_body(__global const uchar *image, int in_kind,
+                           __global const long *lutq, int lut_len, int across, int len,
+                           int transposed, int lo, int hi, float scale, int w,
+                           __global const int *grid, int cells, int gstride, float gscale,
+                           STORE_PARAMS, int x0, long16 *ring_lo, long16 *ring_hi)
 {
-    int x0 = get_global_id(0) * LANES;
-    if (x0 >= across) return;
     float norm = 1.0f / ((float)(hi - lo + 1) * scale);
     bool codes = out_kind != OUT_F32;
     BOX_PACKED_STATE
@@ -691,7 +834,6 @@ __kernel void integrate_box_codes(__global const uchar *image, int in_kind,
      * each step reads one pixel per line instead of two (same integers, same sums). */
     int n = hi - lo + 1, j = 0;
     bool ring = n <= BOX_RING;
-    long16 ring_lo[BOX_RING], ring_hi[BOX_RING];
     for (int d = lo; d <= hi; ++d) {
         int at = clamp(d, 0, len - 1);
         long16 v_lo = CODES4(0, at), v_hi = CODES4(4, at);
@@ -716,5 +858,30 @@ __kernel void integrate_box_codes(__global const uchar *image, int in_kind,
             sum_lo += CODES4(0, enter) - CODES4(0, leave);
             sum_hi += CODES4(4, enter) - CODES4(4, leave);
         }
+    }
+}
+
+/* integrate_box for integer images, read from the codes (same sums, same results). */
+__kernel void integrate_box_codes(__global const uchar *image, int in_kind,
+                                  __global const long *lutq, int lut_len, int across, int len,
+                                  int transposed, int lo, int hi, float scale, int w,
+                                  __global const int *grid, int cells, int gstride,
+                                  float gscale, STORE_PARAMS)
+{
+    int x0 = get_global_id(0) * LANES;
+    if (x0 >= across) return;
+    long16 ring_lo[BOX_RING], ring_hi[BOX_RING];
+    if (in_kind == IN_U8 && channels == 3 && cg == 3) {  /* uint8 RGB: constants */
+        if (transposed)
+            box_codes_body(image, IN_U8, lutq, lut_len, across, len, 1, lo, hi, scale, w, grid,
+                           cells, gstride, gscale, resp, tables, thresholds, buckets, out,
+                           out_kind, 3, 0, 3, x0, ring_lo, ring_hi);
+        else
+            box_codes_body(image, IN_U8, lutq, lut_len, across, len, 0, lo, hi, scale, w, grid,
+                           cells, gstride, gscale, resp, tables, thresholds, buckets, out,
+                           out_kind, 3, 0, 3, x0, ring_lo, ring_hi);
+    } else {
+        box_codes_body(image, in_kind, lutq, lut_len, across, len, transposed, lo, hi, scale, w,
+                       grid, cells, gstride, gscale, STORE_ARGS, x0, ring_lo, ring_hi);
     }
 }
