@@ -276,12 +276,14 @@ def test_gopro_stack_gamma_truncated(shared_data, tmp_path):
 @pytest.mark.data
 @pytest.mark.slow
 def test_gopro_stack_code_mean_is_linear(shared_data, tmp_path):
-    # averaged in code values: the response found is the straight line (gamma 1), no
-    # display-gamma shape; rounding leaves no quantisation bias
+    # averaged in code values: the response found is the straight line (effective gamma 1;
+    # Eq. 3 is 1.41, a display gamma 2.2), no display-gamma shape; rounding leaves no
+    # quantisation bias.  With the free warp the curve bends slightly in the darkest codes
+    # (local exponent 0.86 at v = 0.1): 0.1 of tolerance, not 0.05
     r = _gopro_window(shared_data, tmp_path, "code", "round", start=3)
     shape = next(f for f in r["findings"] if f["effect"] == "response_shape")
     if shape["significant"]:
-        assert shape["estimate"]["gamma"] == pytest.approx(1.0, abs=0.05)
+        assert shape["estimate"]["gamma"] == pytest.approx(1.0, abs=0.1)
     assert "quantisation" not in r["extended"]["effects"]
 
 
@@ -300,3 +302,43 @@ def test_levin_kernel_orientation(shared_data):
     assert "psf_orientation" in r["extended"]["effects"]
     f = next(f for f in r["findings"] if f["effect"] == "psf_orientation")
     assert f["estimate"]["flipped_groups"] == [0]
+
+
+def _film_series(rng, exposures: int = 6, channels: int = 3):
+    """An exposure bracket (1-stop steps) of flat tiles through an S-shaped film-like curve
+    that is not in the study's family (``v = 1 / (1 + (0.08 / x) ** 0.75)``), 8-bit, noisy."""
+    tiles = 2.0 ** rng.permutation(np.linspace(-6.0, 6.0, 11 * 15)).reshape(11, 15)
+    radiance = np.kron(tiles, np.ones((6, 6)))
+    times = 2.0 ** -np.arange(exposures)
+    images = []
+    for t in times:
+        x = np.stack([radiance * t * (1.0 + 0.3 * c) for c in range(channels)], -1)
+        v = 1.0 / (1.0 + (0.08 / np.maximum(x, 1e-12)) ** 0.75)
+        images.append(np.clip(np.rint(255 * v + rng.normal(0, 0.5, v.shape)), 0, 255
+                              ).astype(np.uint8))
+    return images, times
+
+
+def test_study_and_calibrate_give_the_same_curve_shape():
+    # issue 9: one response model; on one exposure series the study's response_shape and
+    # `clblur calibrate`'s best curve agree (log exposure up to a common unit, in stops)
+    from clblur.calibration import ExposureSeries, calibrate
+    from clblur.responses import ExpShape
+    from clblur.study.series import series_groups
+
+    images, times = _film_series(np.random.default_rng(0))
+    cal = calibrate(ExposureSeries.create(images, times))
+    r = study_groups("exposure-series", series_groups(images, list(times))).report
+    assert r["findings"][0]["effect"] == "response_shape"
+    p = r["extended"]["params"]
+    shape = ExpShape(p["black"], p["gamma"], p["rho"], tuple(p[f"w{m}"] for m in (1, 2, 3, 4)))
+    v = np.linspace(0.15, 0.85, 15)
+
+    def stops(curve):
+        s = np.log2(curve.inverse(v))
+        return s - s.mean()
+
+    truth = np.log2((v / (1 - v)) ** (1 / 0.75))
+    assert np.abs(stops(shape) - (truth - truth.mean())).max() < 0.2
+    for curve in cal.responses:
+        assert np.abs(stops(shape) - stops(curve)).max() < 0.2

@@ -181,14 +181,14 @@ class ExpShape(_Sampled):
 
     def forward(self, x):
         if self.warp:
-            return super().forward(x)
+            return self.forward_slope(x)[0]
         x = np.maximum(np.asarray(x, dtype=np.float64), 0.0)
         w = -np.expm1(-self.rho * np.power(x, 1.0 / self.gamma)) / self.rho
         return self.black + (1.0 - self.black) * np.minimum(w, 1.0)
 
     def forward_slope(self, x) -> tuple[np.ndarray, np.ndarray]:
-        """Value and its slope ``dv/dx`` at exposures ``x`` (analytic without warp, else the
-        slope of the sampled segment)."""
+        """Value and its slope ``dv/dx`` at exposures ``x`` (analytic without warp; with it, a
+        sampled guess refined by Newton steps, ``_warped_forward_slope``)."""
         x = np.maximum(np.asarray(x, dtype=np.float64), 1e-12)
         scale = 1.0 - self.black
         if not self.warp:
@@ -198,11 +198,82 @@ class ExpShape(_Sampled):
             over = w > 1.0
             return (self.black + scale * np.where(over, 1.0, w),
                     scale * np.where(over, 0.0, slope))
-        gx = self._grid_exposure()
-        seg = np.clip(np.searchsorted(gx, x, side="right") - 1, 0, gx.size - 2)
-        slope = np.where(x < gx[-1], (_GRID[seg + 1] - _GRID[seg]) / (gx[seg + 1] - gx[seg]),
-                         0.0)
-        return self.forward(x), slope
+        v, slope = self._warped_forward_slope(x.ravel())
+        return v.reshape(x.shape), slope.reshape(x.shape)
+
+    def _warped_forward_slope(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The warped forward: a guess read from a table uniform in ``ln x`` (an index, no
+        search), refined by Newton steps on the log inverse, so value and slope are smooth in
+        ``x`` and in the parameters (a fit's finite differences and line searches stall on a
+        piecewise-linear forward).
+
+        Where the warp turns the curve back (the log inverse is not increasing), at the ends
+        of the range or where Newton does not settle, the sampled forward and its segment
+        slope are kept.
+        """
+        lo, step, table, gx = self._log_table()
+        scale = 1.0 - self.black
+        lx = np.log(x)
+        u = np.clip((lx - lo) / step, 0.0, table.size - 1.000001)
+        k = u.astype(np.intp)
+        v = table[k] + (u - k) * (table[k + 1] - table[k])
+        w = (v - self.black) / scale
+        ok = (x < gx[-2]) & (w > 1e-6) & (w < 1.0 - 1e-6)
+        slope_w = np.zeros_like(w)
+        good = ok.copy()
+        if ok.any():
+            wk, lxk = w[ok], lx[ok]
+            fine = np.ones(wk.size, bool)
+            for _ in range(2):  # quadratic convergence: two steps reach rounding error
+                log_inv, d_log = self._log_inverse_and_slope(wk)
+                fine &= d_log > 0
+                wk = np.clip(wk - np.where(fine, (log_inv - lxk) / np.where(fine, d_log, 1.0),
+                                           0.0), 1e-9, 1.0 - 1e-9)
+            log_inv, d_log = self._log_inverse_and_slope(wk)
+            fine &= (d_log > 0) & (np.abs(log_inv - lxk) < 1e-9)
+            idx = np.flatnonzero(ok)[fine]
+            w[idx] = wk[fine]
+            slope_w[idx] = 1.0 / (x[idx] * d_log[fine])  # dw/dx = 1 / (x d ln x / dw)
+            good[np.flatnonzero(ok)[~fine]] = False
+        rest = np.flatnonzero(~good)
+        if rest.size:  # the sampled forward and its segment slope
+            xr = x[rest]
+            seg = np.clip(np.searchsorted(gx, xr, side="right") - 1, 0, gx.size - 2)
+            inside = xr < gx[-1]
+            w[rest] = (np.interp(xr, gx, _GRID) - self.black) / scale
+            slope_w[rest] = np.where(inside, (_GRID[seg + 1] - _GRID[seg])
+                                     / (gx[seg + 1] - gx[seg]), 0.0) / scale
+        over = x >= gx[-1]
+        return (self.black + scale * np.where(over, 1.0, w),
+                scale * np.where(over, 0.0, slope_w))
+
+    def _log_table(self) -> tuple[float, float, np.ndarray, np.ndarray]:
+        """Start, step and values of the sampled forward on 2048 exposures uniform in
+        ``ln x`` (cached), and the sampled grid's exposures."""
+        cache = self.__dict__.get("_log_tab")
+        if cache is None:
+            gx = self._grid_exposure()
+            lo, hi = np.log(gx[1]), np.log(gx[-2])
+            grid = np.linspace(lo, hi, 2048)
+            cache = (float(lo), float(grid[1] - grid[0]), np.interp(np.exp(grid), gx, _GRID), gx)
+            object.__setattr__(self, "_log_tab", cache)
+        return cache
+
+    def _log_inverse_and_slope(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``ln x(w)`` and ``d ln x / d w`` of the shape above the black level."""
+        rho, gamma = self.rho, self.gamma
+        inner = -np.log1p(-rho * w)
+        log_inv = gamma * np.log(inner / rho)
+        d_log = gamma * rho / ((1.0 - rho * w) * inner)
+        c = np.asarray(self.warp)
+        t = 2.0 * w - 1.0
+        # warp_basis(w)_m = P_m(t) - 1: the warp is sum_m c_m P_m(t) - sum c, its w-slope
+        # 2 sum_m c_m P_m'(t) (one Legendre series each, not one per term)
+        series = np.concatenate([[0.0], c])
+        log_inv = log_inv + np.polynomial.legendre.legval(t, series) - c.sum()
+        d_log = d_log + 2.0 * np.polynomial.legendre.legval(
+            t, np.polynomial.legendre.legder(series))
+        return log_inv, d_log
 
     def _grid_exposure(self) -> np.ndarray:
         cache = self.__dict__.get("_grid_x")

@@ -7,8 +7,10 @@ Eq. 9 blur); at their *null* values the model is the paper's again, so each exte
 nested model and can be tested against the simpler one.  Parameters (``PARAMS``):
 
 * ``black``: black level ``beta`` (normalised): ``v = beta + (1 - beta) I(x)``.
-* ``gamma``, ``rho``: response shape.  Inverse response ``x = (-ln(1 - rho v) / rho)^gamma``;
-  ``rho = gamma = 1`` is the paper's Eq. 3, ``rho -> 0`` gives the power law ``v^gamma``.
+* ``gamma``, ``rho``, ``w1``..``w4``: response shape (``clblur.responses.ExpShape``).  Inverse
+  response ``x = (-ln(1 - rho v) / rho)^gamma exp(sum_m w_m B_m(v))``; ``rho = gamma = 1``,
+  ``w = 0`` is the paper's Eq. 3, ``rho -> 0`` gives the power law ``v^gamma``, the smooth
+  warp ``w`` (Legendre terms) takes free curves: the S-shaped tone curves of JPEG cameras.
 * ``sat``: saturation factor ``s >= 1``: a clipped source pixel holds ``s`` times the least
   exposure that clips (``clblur.pixels`` convention; the paper's model uses 1).
 * ``gain``: log of an exposure gain between source and target capture.
@@ -17,8 +19,10 @@ nested model and can be tested against the simpler one.  Parameters (``PARAMS``)
 * ``vig``: ``c`` of the cos^4 vignetting ``V = (1 + c (r/R)^2)^-2`` (``clblur.camera``).
 * ``t1``, ``t2``: time weights ``w(s) = 1 + t1 (2s - 1) + t2 (6s^2 - 6s + 1)`` along the
   motion (``s`` = 0 start, 1 end), i.e. a non-uniform velocity.
-* ``na``, ``nb``: Poisson-Gaussian noise, variance ``na x + nb`` in the linear domain
-  (in the model's exposure units).
+* ``na``, ``nb``, ``nc``: noise: Poisson-Gaussian, variance ``na x + nb`` in the linear
+  domain (the model's exposure units), and ``nc`` in code values squared added after the
+  response (a JPEG's compression and processing act on coded values; without this term a
+  wrong mean is bought to make code-domain noise look linear, biasing the response shape).
 * ``qoff``: constant offset of the stored target codes (code values; -0.5 = truncation).
 * ``sx``, ``sy``: shift of the source relative to the target (pixels).
 * ``pscale``: factor on every motion displacement (PSF resampled).
@@ -30,8 +34,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["EFFECTS", "EFFECT_NAMES", "PARAMS", "Effect", "channel_gains", "explain",
-           "readable_estimate"]
+__all__ = ["EFFECTS", "EFFECT_NAMES", "PARAMS", "Effect", "channel_gains", "effective_gamma",
+           "explain", "readable_estimate"]
 
 # name: (null value, lower bound, upper bound)
 PARAMS: dict[str, tuple[float, float, float]] = {
@@ -45,11 +49,14 @@ PARAMS: dict[str, tuple[float, float, float]] = {
     "t2": (0.0, -1.0, 1.0),
     "na": (0.0, 0.0, 0.1),
     "nb": (0.0, 0.0, 0.01),
+    "nc": (0.0, 0.0, 25.0),
     "qoff": (0.0, -1.0, 1.0),
     "sx": (0.0, -1.0, 1.0),
     "sy": (0.0, -1.0, 1.0),
     "pscale": (1.0, 0.8, 1.25),
 }
+for _m in (1, 2, 3, 4):
+    PARAMS[f"w{_m}"] = (0.0, -2.0, 2.0)
 for _c in (1, 2, 3):
     PARAMS[f"cg{_c}"] = (0.0, -0.5, 0.5)
 
@@ -67,9 +74,9 @@ class Effect:
 
 _EFFECT_PARAMS = {
     "black_level": ("black",),
-    "response_shape": ("gamma", "rho"),
+    "response_shape": ("gamma", "rho", "w1", "w2", "w3", "w4"),
     "saturation": ("sat",),
-    "noise": ("na", "nb"),
+    "noise": ("na", "nb", "nc"),
     "vignetting": ("vig",),
     "nonuniform_motion": ("t1", "t2"),
     "exposure_gain": ("gain",),
@@ -85,8 +92,8 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
     Effect("response_shape", "the camera response is not the paper's exponential Eq. 3"),
     Effect("saturation", "clipped highlights in the source image hide irradiance that shows "
            "in the target"),
-    Effect("noise", "Poisson-Gaussian sensor noise (variance a x + b in the linear domain) "
-           "beyond quantisation"),
+    Effect("noise", "sensor noise beyond quantisation: Poisson-Gaussian (variance a x + b) in "
+           "the linear domain, plus noise added to the coded values (compression)"),
     Effect("vignetting", "cos^4 falloff fixed to the sensor while the scene moves across it "
            "(Eq. 1)"),
     Effect("nonuniform_motion", "the velocity changes during the exposure, so the path is not "
@@ -112,11 +119,12 @@ def readable_estimate(effect: str, p: dict[str, float], channels: int) -> dict:
     if effect == "black_level":
         return {"black_level_codes": 255.0 * p["black"]}
     if effect == "response_shape":
-        return {"gamma": p["gamma"], "rho": p["rho"]}
+        return {"gamma": effective_gamma(p), "exponent": p["gamma"], "rho": p["rho"],
+                "warp": [p.get(f"w{m}", 0.0) for m in (1, 2, 3, 4)]}
     if effect == "saturation":
         return {"factor": p["sat"]}
     if effect == "noise":
-        return {"a": p["na"], "b": p["nb"]}
+        return {"a": p["na"], "b": p["nb"], "code_variance": p.get("nc", 0.0)}
     if effect == "vignetting":
         return {"c": p["vig"], "corner_falloff": 1.0 - 1.0 / (1.0 + p["vig"]) ** 2}
     if effect == "nonuniform_motion":
@@ -139,6 +147,22 @@ def readable_estimate(effect: str, p: dict[str, float], channels: int) -> dict:
                 "flipped_fraction": (sum(p[k] >= 0.5 for k in flips) / len(flips)
                                      if flips else 0.0)}
     raise ValueError(f"unknown effect {effect!r}")
+
+
+def effective_gamma(p: dict[str, float], low: float = 0.2, high: float = 0.8) -> float:
+    """The power-law exponent that best matches the fitted response over values
+    ``low..high`` above the black level: the least-squares slope of ``ln I^-1(v)`` on
+    ``ln v``.  What a user calls the camera's gamma (2.2 for a display gamma, 1 for a linear
+    response, 1.44 for the paper's Eq. 3); with the free warp the family's own ``gamma``
+    exponent trades with the warp and means little alone."""
+    import numpy as np
+
+    from clblur.responses import ExpShape
+
+    warp = tuple(float(p.get(f"w{m}", 0.0)) for m in (1, 2, 3, 4))
+    curve = ExpShape(0.0, p["gamma"], p["rho"], warp if any(warp) else ())
+    v = np.linspace(low, high, 61)
+    return float(np.polyfit(np.log(v), np.log(curve.inverse(v)), 1)[0])
 
 
 def channel_gains(p: dict[str, float], channels: int) -> list[float]:

@@ -17,10 +17,11 @@ c^2 r^4``), so every model evaluation is a handful of sparse ``n x 256`` product
 the motion path.
 
 Noise model of the residual ``y - pred`` (code values), Gaussian with variance
-``1/12 + s^2 (na x_t + nb) + (s m)^2 sum_q M^2 (T'^2/12 + na T + nb)``:
-target quantisation, target noise and source quantisation plus noise
-propagated through the average (``s`` the response slope at the prediction, ``T'`` the table's
-code step).  Target pixels at code 0 or 255 are censored and left out.
+``1/12 + nc + s^2 (na x_t + nb) + (s m)^2 sum_q M^2 (T'^2/12 + na T + nb)``:
+target quantisation, noise added to the coded values, target noise and source
+quantisation plus noise propagated through the average (``s`` the response slope at the
+prediction, ``T'`` the table's code step).  Target pixels at code 0 or 255 are censored and
+left out.
 """
 
 from __future__ import annotations
@@ -54,7 +55,7 @@ class Group:
     rows: np.ndarray  # (n,) target pixel row
     cols: np.ndarray  # (n,) target pixel column
     shape: tuple[int, int]  # target image H, W
-    ratio: float  # nominal exposure ratio target / source
+    ratio: float | np.ndarray  # nominal exposure ratio target / source (per row when packed)
     hist: dict[tuple[int, int], list[sp.csr_matrix]]  # (time term, vignette power) -> per channel
     hist_sq: list[sp.csr_matrix]  # squared weights (uniform time, no vignetting)
     r2: np.ndarray  # (n,) normalised radius^2 of the target pixels
@@ -75,8 +76,9 @@ class Group:
 
     def subset(self, keep: np.ndarray) -> Group:
         idx = np.flatnonzero(keep)
+        ratio = self.ratio[idx] if np.ndim(self.ratio) else self.ratio
         return Group(self.name, self.target[idx], self.valid[idx], self.rows[idx],
-                     self.cols[idx], self.shape, self.ratio,
+                     self.cols[idx], self.shape, ratio,
                      {k: [h[idx] for h in v] for k, v in self.hist.items()},
                      [h[idx] for h in self.hist_sq], self.r2[idx], self.block[idx],
                      self.fold[idx], self.source_clipped)
@@ -89,7 +91,7 @@ def shape(p: dict[str, float]) -> ExpShape:
     return ExpShape(0.0, p["gamma"], p["rho"], warp if any(warp) else ())
 
 
-def inverse_table(p: dict[str, float]) -> np.ndarray:
+def inverse_table(p: dict[str, float], curve: ExpShape | None = None) -> np.ndarray:
     """``T[code]``: exposure of each source code under black level, shape and saturation."""
     v = np.arange(CODES, dtype=np.float64) / 255.0
     beta = p["black"]
@@ -98,7 +100,7 @@ def inverse_table(p: dict[str, float]) -> np.ndarray:
     # *shape* a hair away from Eq. 3 act as a saturation factor of 2.
     top = 1.0 - p["rho"] * (1.0 - TOP)
     w = np.clip((v - beta) / (1.0 - beta), 0.0, top)
-    curve = shape(p)
+    curve = shape(p) if curve is None else curve
     t = curve.inverse(w)
     t[-1] = p["sat"] * curve.inverse(np.array([top]))[0]
     return t
@@ -125,38 +127,40 @@ def predict(g: Group, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
     time_c = (1.0, p["t1"], p["t2"])
     vig_c = (1.0, 2.0 * p["vig"], p["vig"] ** 2)
     vig_out = 1.0 / (1.0 + p["vig"] * g.r2) ** 2
-    pred = np.empty((n, nc))
-    var = np.empty((n, nc))
-    t = inverse_table(p)
-    curve_fs = shape(p).forward_slope
+    curve = shape(p)  # one instance: a warped curve caches its sampled forward
+    t = inverse_table(p, curve)
     step = np.gradient(t)
     step[-1] = step[-2]  # a clipped code's error is the saturation factor's business
     dq = step * step / 12.0
     na2, nb2 = p["na"], p["nb"]  # variance coefficients: zero is not a stationary point
+    # the sparse products per channel; everything elementwise once on (n, C) arrays
+    e = np.empty((n, nc))
+    source = np.empty((n, nc))
+    src_table = dq + na2 * t + nb2
+    norm = np.zeros(n)
+    for (i, k) in g.hist:
+        if k == 0 and time_c[i] != 0.0:
+            norm += time_c[i] * g.time_norm(i)
     for c in range(nc):
         num = np.zeros(n)
-        norm = np.zeros(n)
         for (i, k), hs in g.hist.items():
             coef = time_c[i] * vig_c[k]
-            if coef == 0.0:
-                continue
-            num += coef * (hs[c] @ t)
-            if k == 0:
-                norm += time_c[i] * g.time_norm(i)
-        e = num / np.maximum(norm, 1e-12)
-        m = g.ratio * np.exp(p["gain"]) * gains[c] * vig_out
-        x = m * e
-        v, dv = curve_fs(x)
-        scale = 255.0 * (1.0 - p["black"])
-        pred[:, c] = 255.0 * p["black"] + scale * v
-        s = scale * dv
-        hq = g.hist_sq[c]
-        source = hq @ (dq + na2 * t + nb2)
-        # never below the stored code's own rounding variance (1/12 code^2): the optimiser
-        # explores negative noise coefficients, where the sum would go to zero or below and
-        # the likelihood to NaN; with physical (non-negative) coefficients this changes nothing
-        var[:, c] = np.maximum(1.0 / 12.0 + s * s * (na2 * x + nb2) + (s * m) ** 2 * source,
-                               1.0 / 12.0)
+            if coef != 0.0:
+                num += coef * (hs[c] @ t)
+        e[:, c] = num
+        source[:, c] = g.hist_sq[c] @ src_table
+    e /= np.maximum(norm, 1e-12)[:, None]
+    m = (g.ratio * np.exp(p["gain"]) * vig_out)[:, None] * np.asarray(gains)[None, :]
+    x = m * e
+    v, dv = curve.forward_slope(x)
+    scale = 255.0 * (1.0 - p["black"])
+    pred = 255.0 * p["black"] + scale * v
+    s = scale * dv
+    # never below the stored code's own rounding variance (1/12 code^2): the optimiser
+    # explores negative noise coefficients, where the sum would go to zero or below and
+    # the likelihood to NaN; with physical (non-negative) coefficients this changes nothing
+    var = np.maximum(1.0 / 12.0 + p.get("nc", 0.0) + s * s * (na2 * x + nb2)
+                     + (s * m) ** 2 * source, 1.0 / 12.0)
     return pred, var
 
 
@@ -167,6 +171,12 @@ def _rowsum(h: sp.csr_matrix) -> np.ndarray:
 def gaussian_nll(g: Group, pred: np.ndarray, var: np.ndarray) -> np.ndarray:
     """Gaussian negative log-likelihood of ``g``'s targets under ``(pred, var)`` (n, C), per
     target pixel, summed over its valid channels."""
+    stats = g.__dict__.get("stats")
+    if stats is not None:  # pooled rows (``clblur.study.compact``): count, sum, sum of squares
+        count, s1, s2 = stats
+        nll = 0.5 * (count * (_LOG2PI + np.log(var)) + (s2 - 2.0 * pred * s1
+                                                         + count * pred * pred) / var)
+        return np.where(g.valid, nll, 0.0).sum(axis=1)
     r = g.target - pred
     nll = 0.5 * (_LOG2PI + np.log(var) + r * r / var)
     return np.where(g.valid, nll, 0.0).sum(axis=1)

@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from clblur.study.crossfit import (
+    CONDITIONAL,
     Folds,
     applicable,
     assign_blocks,
@@ -49,7 +50,7 @@ from clblur.study.crossfit import (
 from clblur.study.effects import EFFECTS, PARAMS, explain, readable_estimate
 from clblur.study.model import Group, null_params, time_ok
 from clblur.study.significance import t_test, weighted_test
-from clblur.study.variants import pixel_nll
+from clblur.study.variants import pack, pixel_nll
 
 __all__ = ["Finding", "Selection", "select", "intervals", "MIN_GAIN", "assign_blocks",
            "applicable", "physical_bounds", "fit", "t_test", "weighted_test"]
@@ -116,7 +117,8 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
         if progress is not None:
             progress.set_postfix_str(f"round {rnd}: {effect}")
         p_base = folds.fit(model, start, channels)
-        p_e = folds.fit(model | {effect}, p_base, channels)
+        only = (frozenset({effect}) | (model & {"noise"})) if effect in CONDITIONAL else None
+        p_e = folds.fit(model | {effect}, p_base, channels, only)
         if effect == "noise":
             d = folds.block_nll(p_base) - folds.block_nll(p_e)
             d = d[used]
@@ -166,7 +168,7 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
     ranked = [findings[e] for e in order] + sorted(
         (f for e, f in findings.items() if e not in order), key=lambda f: -f.statistic)
     base_p = folds.fit(frozenset(), [null, null], channels)
-    full = fit(groups, [n for e in sorted(current) for n in EFFECTS[e].params(channels)],
+    full = fit(pack(groups), [n for e in sorted(current) for n in EFFECTS[e].params(channels)],
                average_params(cur_params), sum(int(g.valid.sum()) for g in groups), folds.bounds)
     for f in ranked:
         if f.significant:
@@ -182,7 +184,8 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
 _READABLE = {"black": ("black_level_codes", lambda v: 255.0 * v), "gamma": ("gamma", None),
              "rho": ("rho", None), "sat": ("factor", None), "gain": ("gain", math.exp),
              "vig": ("c", None), "t1": ("t1", None), "t2": ("t2", None), "na": ("a", None),
-             "nb": ("b", None), "qoff": ("offset_codes", None), "sx": ("shift_x", None),
+             "nb": ("b", None), "nc": ("code_variance", None),
+             "qoff": ("offset_codes", None), "sx": ("shift_x", None),
              "sy": ("shift_y", None), "pscale": ("scale", None)}
 
 
@@ -203,16 +206,19 @@ def intervals(groups: list[Group], p: dict, effect: str, channels: int,
     bounds = bounds or {}
     lo = np.array([bounds.get(n, PARAMS[n][1:])[0] for n in names])
     hi = np.array([bounds.get(n, PARAMS[n][1:])[1] for n in names])
-    x0 = np.array([p[n] for n in names])
     h = 1e-4 * (hi - lo)
+    # finite differences around a point at least one step inside the bounds (an estimate on
+    # a bound, such as rho = 1, would otherwise step out of the family's range)
+    x0 = np.clip(np.array([p[n] for n in names]), lo + h, hi - h)
     nblocks = int(max(int(g.block.max()) for g in groups)) + 1
+    packed = pack(groups)
 
     def nll_blocks(x):
         q = {**p, **dict(zip(names, x, strict=True))}
         if not time_ok(q):
             return None
         out = np.zeros(nblocks)
-        for g in groups:
+        for g in packed:
             out += np.bincount(g.block, pixel_nll(g, q), minlength=nblocks)
         return out
 

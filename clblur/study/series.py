@@ -1,8 +1,14 @@
-"""Exposure series -> study groups: each image predicts the next shorter one.
+"""Exposure series -> study groups: each image predicts the next shorter one and the one after.
 
 With the paper's response the prediction is ``I(r I^-1(v))`` with ``r`` the nominal exposure
 ratio (``exposure / f_number^2``); the longer image is the source, so its clipped highlights
 are what the shorter image reveals (the ``saturation`` effect).
+
+Why two gaps: a bracket in whole stops has one ratio ``r`` between neighbours, and with one
+ratio a response is known only up to a power (``I^-1`` and ``(I^-1)^a`` predict alike once
+the ratio is ``r^a``: the exponential ambiguity of Grossberg & Nayar 2003), which the
+``exposure_gain`` effect would absorb, leaving ``response_shape`` unidentified.  Pairs two
+steps apart (``r^2``) under the same gain break it.
 """
 
 from __future__ import annotations
@@ -26,10 +32,11 @@ def series_groups(images: list[np.ndarray], exposures: list[float],
     order = np.argsort(h)[::-1]  # longest first
     imgs = [as_hwc(images[i], f"image {i}") for i in order]
     h = [h[i] for i in order]
-    per = max(1000, max_pixels // (len(imgs) - 1))
+    steps = [(k, k + gap) for gap in (1, 2) for k in range(len(imgs) - gap)]
+    per = max(1000, max_pixels // len(steps))
     groups = []
-    for k in range(len(imgs) - 1):
-        src, tgt = imgs[k], imgs[k + 1]
+    for k, j in steps:
+        src, tgt = imgs[k], imgs[j]
         if src.shape != tgt.shape:
             raise ValueError(f"series images differ in shape: {src.shape} vs {tgt.shape}")
         rows, cols = sample_grid(tgt.shape[:2], per)
@@ -37,8 +44,8 @@ def series_groups(images: list[np.ndarray], exposures: list[float],
         def taps(yy, xx):
             yield Taps(0, 0.0, 0.0, 1.0, None)
 
-        groups.append(build_group(f"step{k:02d}", [src], tgt, rows, cols, taps,
-                                  h[k + 1] / h[k], vignetting=False, timed=False,
+        groups.append(build_group(f"step{k:02d}-{j:02d}", [src], tgt, rows, cols, taps,
+                                  h[j] / h[k], vignetting=False, timed=False,
                                   variants={"misregistration": {sh: shifted(taps, *sh)
                                                                 for sh in SHIFTS}}))
     return groups
