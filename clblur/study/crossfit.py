@@ -23,7 +23,15 @@ from clblur.study.compact import compact
 from clblur.study.effects import EFFECTS, PARAMS
 from clblur.study.model import WARP_KEYS, Group, time_ok
 from clblur.study.shape_start import shape_starts
-from clblur.study.variants import darkest_code, has_variant, pack, pixel_nll, predict, subset
+from clblur.study.variants import (
+    darkest_code,
+    geometric,
+    has_variant,
+    pack,
+    pixel_nll,
+    predict,
+    subset,
+)
 
 __all__ = ["CONDITIONAL", "assign_blocks", "applicable", "physical_bounds", "fit", "Folds",
            "average_params", "heldout_scores"]
@@ -218,10 +226,7 @@ def _fit_continuous(groups: list[Group], free: list[str], start: dict, nvalid: i
     # pixels that predict alike, pooled: the same likelihood, far fewer rows (series); with
     # a geometric variant in play its rows must be identical too, which rarely pays
     position = "vig" in names or start.get("vig", 0.0) != 0.0
-    geometric = any(n in ("sx", "sy", "pscale") for n in names) or any(
-        start.get(k, 0.0) for k in ("sx", "sy")) or start.get("pscale", 1.0) != 1.0 or any(
-        k.startswith("flip:") and v for k, v in start.items())
-    groups = [compact(g, position, geometric) for g in groups]
+    groups = [compact(g, position, geometric(names, start)) for g in groups]
     best, best_val = None, math.inf
     for s0 in starts:
         def objective(z, s0=s0):

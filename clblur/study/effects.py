@@ -157,10 +157,9 @@ def effective_gamma(p: dict[str, float], low: float = 0.2, high: float = 0.8) ->
     exponent trades with the warp and means little alone."""
     import numpy as np
 
-    from clblur.responses import ExpShape
+    from clblur.study.model import shape  # model imports this module: import at call time
 
-    warp = tuple(float(p.get(f"w{m}", 0.0)) for m in (1, 2, 3, 4))
-    curve = ExpShape(0.0, p["gamma"], p["rho"], warp if any(warp) else ())
+    curve = shape(p)
     v = np.linspace(low, high, 61)
     return float(np.polyfit(np.log(v), np.log(curve.inverse(v)), 1)[0])
 

@@ -34,7 +34,8 @@ import scipy.sparse as sp
 from clblur.study.model import Group, gaussian_nll
 from clblur.study.model import predict as _model_predict
 
-__all__ = ["attach", "darkest_code", "has_variant", "pack", "pixel_nll", "predict", "subset"]
+__all__ = ["attach", "darkest_code", "geometric", "has_variant", "pack", "pixel_nll", "predict",
+           "subset"]
 
 SCALES = (0.8, 1.25)  # psf_scale histograms besides 1
 SHIFTS = ((1, 0), (-1, 0), (0, 1), (0, -1))  # misregistration histograms besides (0, 0)
@@ -119,6 +120,14 @@ def _concat(gs: list[Group]) -> Group:
                 for key in hist} for k, hist in d.items()} for e, d in var.items()}
     g.__dict__["darkest"] = min(darkest_code(m) for m in gs)
     return g
+
+
+def geometric(names: list[str], p: dict) -> bool:
+    """Whether a geometric variant is free (in ``names``) or active in ``p``: then the
+    prediction reads the variant histograms, not only ``Group.hist``."""
+    return any(n in ("sx", "sy", "pscale") for n in names) or bool(
+        p.get("sx", 0.0) or p.get("sy", 0.0) or p.get("pscale", 1.0) != 1.0
+        or any(k.startswith("flip:") and v for k, v in p.items()))
 
 
 def _terms(g: Group, p: dict) -> list[tuple[float, tuple]]:
