@@ -34,6 +34,7 @@ from clblur.study.variants import (
 )
 
 __all__ = ["CONDITIONAL", "assign_blocks", "applicable", "physical_bounds", "fit", "Folds",
+           "free_params",
            "average_params", "heldout_scores"]
 
 
@@ -127,8 +128,7 @@ class Folds:
         """
         key = (effects, only)
         if key not in self.cache:
-            free = [n for e in sorted(only if only is not None else effects)
-                    for n in EFFECTS[e].params(channels)]
+            free = free_params(only if only is not None else effects, channels)
             self.cache[key] = [fit(self.part[f], free, start[f], self.nvalid[f],
                                    self.bounds) for f in (0, 1)]
         return self.cache[key]
@@ -192,6 +192,11 @@ def fit(groups: list[Group], free: list[str], start: dict, nvalid: int,
     return p
 
 
+def free_params(effects, channels: int) -> list[str]:
+    """The parameters ``effects`` free, each once (effects may share one: ``rho``)."""
+    return list(dict.fromkeys(n for e in sorted(effects) for n in EFFECTS[e].params(channels)))
+
+
 def _choose_flips(groups: list[Group], p: dict) -> dict:
     out = {}
     for g in groups:
@@ -216,7 +221,7 @@ def _fit_continuous(groups: list[Group], free: list[str], start: dict, nvalid: i
     if "na" in free and (start["na"] > 1e-6 or start["nb"] > 1e-8 or start.get("nc", 0) > 1e-6):
         # a noise model inflated by a wrong mean flattens the likelihood; restart without it
         starts.append({**start, "na": 0.0, "nb": 0.0, "nc": 0.0})
-    if "gamma" in free and start["gamma"] == 1.0 and start["rho"] == 1.0:
+    if "gamma" in free and start["gamma"] == 1.0 and not any(start.get(k) for k in WARP_KEYS):
         # the shape's likelihood has local minima: also start from the curve a quick
         # cross-exposure calibration on the same pixels gives (``shape_start``), or, where
         # the data have no such pixels, from the power-law corners (linear, display gamma)

@@ -7,10 +7,17 @@ Eq. 9 blur); at their *null* values the model is the paper's again, so each exte
 nested model and can be tested against the simpler one.  Parameters (``PARAMS``):
 
 * ``black``: black level ``beta`` (normalised): ``v = beta + (1 - beta) I(x)``.
+* ``rho``: Eq. 3's own scale, ``I = Imax (1 - exp(-k t))`` with ``Imax = full scale / rho``:
+  ``v = (1 - exp(-rho x)) / rho`` (``k`` cancels in the blur).  The paper calibrates ``Imax``
+  for its camera; ``rho = 1`` puts it at the largest code, ``rho -> 0`` is a linear camera.
+  Effect ``response_imax`` frees ``rho`` alone: the paper's curve, recalibrated.
 * ``gamma``, ``rho``, ``w1``..``w4``: response shape (``clblur.responses.ExpShape``).  Inverse
   response ``x = (-ln(1 - rho v) / rho)^gamma exp(sum_m w_m B_m(v))``; ``rho = gamma = 1``,
   ``w = 0`` is the paper's Eq. 3, ``rho -> 0`` gives the power law ``v^gamma``, the smooth
   warp ``w`` (Legendre terms) takes free curves: the S-shaped tone curves of JPEG cameras.
+  ``response_shape`` contains ``response_imax`` (``rho`` is one of its parameters), so it is
+  chosen over it only where it predicts held-out pixels significantly better
+  (``clblur.study.select``): a curve that *is* Eq. 3 with another ``Imax`` is named so.
 * ``sat``: saturation factor ``s >= 1``: a clipped source pixel holds ``s`` times the least
   exposure that clips (``clblur.pixels`` convention; the paper's model uses 1).
 * ``gain``: log of an exposure gain between source and target capture.
@@ -84,6 +91,7 @@ _EFFECT_PARAMS = {
     "misregistration": ("sx", "sy"),
     "psf_orientation": ("flip",),  # discrete, one per group (select.fit)
     "psf_scale": ("pscale",),
+    "response_imax": ("rho",),
 }
 
 EFFECTS: dict[str, Effect] = {e.name: e for e in (
@@ -108,6 +116,10 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
     Effect("psf_orientation", "the motion/PSF is stored turned by 180 degrees (correlation "
            "instead of convolution) for some pairs"),
     Effect("psf_scale", "the motion/PSF is longer or shorter than stated (resampled)"),
+    # last, so the hidden-effect tests keep their seeds (EFFECT_NAMES.index)
+    Effect("response_imax", "the response is the paper's Eq. 3 with its saturation level Imax "
+           "above the largest code (Imax -> infinity: a linear camera); the paper calibrates "
+           "Imax per camera"),
 )}
 EFFECT_NAMES = tuple(EFFECTS)
 
@@ -121,6 +133,8 @@ def readable_estimate(effect: str, p: dict[str, float], channels: int) -> dict:
     if effect == "response_shape":
         return {"gamma": effective_gamma(p), "exponent": p["gamma"], "rho": p["rho"],
                 "warp": [p.get(f"w{m}", 0.0) for m in (1, 2, 3, 4)]}
+    if effect == "response_imax":
+        return {"imax_full_scale": 1.0 / p["rho"], "rho": p["rho"], "gamma": effective_gamma(p)}
     if effect == "saturation":
         return {"factor": p["sat"]}
     if effect == "noise":

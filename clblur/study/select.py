@@ -44,6 +44,7 @@ from clblur.study.crossfit import (
     assign_blocks,
     average_params,
     fit,
+    free_params,
     heldout_scores,
     physical_bounds,
 )
@@ -155,6 +156,7 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
             if pv < level and gain < min_gain:
                 f = findings[e]
                 f.explanation = explain(e, f.estimate, False, gain, too_small=True)
+        winners = _sufficient(winners, folds, level, used)
         if not winners:
             break
         # strongest = largest held-out likelihood gain among the significant effects
@@ -165,11 +167,18 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
         current = current | {e}
         cur_params = folds.fit(current, cur_params, channels)
         candidates.remove(e)
+        # an effect whose parameters all joined with another (response_imax's rho, inside
+        # response_shape) has nothing left to add
+        have = set(free_params(current, channels))
+        for c in [c for c in candidates if set(EFFECTS[c].params(channels)) <= have]:
+            candidates.remove(c)
+            findings[c].explanation = (f"{c}: {EFFECTS[c].what}. Contained in {e}, which "
+                                       "joined the model with its parameters.")
     ranked = [findings[e] for e in order] + sorted(
         (f for e, f in findings.items() if e not in order), key=lambda f: -f.statistic)
     base_p = folds.fit(frozenset(), [null, null], channels)
-    full = fit(pack(groups), [n for e in sorted(current) for n in EFFECTS[e].params(channels)],
-               average_params(cur_params), sum(int(g.valid.sum()) for g in groups), folds.bounds)
+    full = fit(pack(groups), free_params(current, channels), average_params(cur_params),
+               sum(int(g.valid.sum()) for g in groups), folds.bounds)
     for f in ranked:
         if f.significant:
             f.estimate = readable_estimate(f.effect, full, channels)
@@ -178,6 +187,29 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
     b_rmse, b_nll, b_pred = heldout_scores(groups, base_p)
     x_rmse, x_nll, x_pred = heldout_scores(groups, cur_params)
     return Selection(order, ranked, full, b_rmse, x_rmse, b_nll, x_nll, b_pred, x_pred, skip)
+
+
+def _sufficient(winners: list[tuple], folds: Folds, level: float,
+                used: np.ndarray) -> list[tuple]:
+    """Drop a winner that contains a smaller winner (all of its parameters and more) but does
+    not predict the held-out blocks significantly better than it: nested model choice, so
+    a linear camera reads as Eq. 3 with a high ``Imax`` (``response_imax``), not as a free
+    ``response_shape``.  Winners are ``(effect, p, gain, fitted params)`` from one round,
+    whose fits share the current model, so both fits compared here are already cached."""
+    channels = folds.part[0][0].channels
+    own = {r[0]: set(EFFECTS[r[0]].params(channels)) for r in winners}
+    keep = []
+    for r in winners:
+        better = True
+        for s in winners:
+            if s is not r and own[s[0]] < own[r[0]]:
+                d, u, a = folds.block_score(s[3], r[3])
+                reach = used & (a > 1e-12)
+                better &= bool(reach.any()) and weighted_test(d[reach], u[reach],
+                                                              a[reach])[1] < level
+        if better:
+            keep.append(r)
+    return keep
 
 
 # readable name and transform of each continuous parameter, for the intervals

@@ -3,7 +3,8 @@
 Each effect is rendered in a data kind where it is observable, at a magnitude drawn from a
 realistic range (``RANGES``) unless given.  Scenes are small random radiance maps
 (``clblur.camera.random_scene``); the camera's response is the paper's ``Exp(3)`` unless the
-effect is ``response_shape``.
+effect is ``response_shape`` (a power law) or ``response_imax`` (Eq. 3 with ``Imax`` above
+the top code).
 
 Why these kinds: with the paper's exponential a black offset cancels in an equal-exposure pair
 (``1 - g = prod (1 - f)^w`` just scales by ``1 - beta``), so ``black_level`` is hidden in an
@@ -20,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from clblur.camera import Camera, accelerating_weights, random_scene
-from clblur.responses import Exp, Gamma
+from clblur.responses import Exp, ExpShape, Gamma
 from clblur.study.model import Group
 from clblur.study.pairs import pair_group
 from clblur.study.series import series_groups
@@ -42,6 +43,7 @@ RANGES = {
     "misregistration": (0.3, 0.8),  # length of the blurred image's shift, pixels
     "psf_orientation": (1.0, 1.0),  # the blurred image made with the PSF turned by 180 deg
     "psf_scale": (1.1, 1.25),  # true / stated motion length (or its inverse)
+    "response_imax": (0.2, 0.6),  # rho = full scale / Imax of the camera's Eq. 3
 }
 CLIP = 6.2 / 3.0  # exposure at which Exp(3) reaches code 255
 
@@ -70,6 +72,8 @@ def scenario(effects: dict[str, float | None], rng: np.random.Generator,
            for e, m in effects.items()}
     sign = float(rng.choice([-1.0, 1.0]))
     cam = {"response": Gamma(mag["response_shape"]) if "response_shape" in mag else Exp(3.0)}
+    if "response_imax" in mag:  # Eq. 3 saturating above the top code, exposures as Exp(3)'s
+        cam["response"] = ExpShape(0.0, 1.0, mag["response_imax"])
     if "black_level" in mag:
         cam["black_level"] = mag["black_level"]
     if "noise" in mag:
@@ -79,6 +83,8 @@ def scenario(effects: dict[str, float | None], rng: np.random.Generator,
     camera = Camera(**cam)
     high = 0.35 if "response_shape" not in mag else 0.8
     scene = random_scene(rng, shape, 3, low=0.03, high=high)
+    if "response_imax" in mag:
+        scene = 3.0 * scene
     if "saturation" in mag:
         _add_highlights(scene, rng, mag["saturation"] * CLIP)
     if "black_level" in mag:  # an exposure series: the effect cancels in an equal pair
