@@ -177,6 +177,28 @@ def test_exp_shape_nests_the_paper_curve():
     np.testing.assert_allclose(s, fd, rtol=0.05)
 
 
+@pytest.mark.parametrize("black", [0.0, 0.03])
+def test_exp_shape_warped_forward_inverts_the_inverse(black):
+    # the warped forward (Hermite nodes + one Newton step) round-trips the closed-form
+    # inverse to far below a code, value and slope, over the curves a fit explores
+    rng = np.random.default_rng(7)
+    v = np.linspace(black + 0.003, 0.995, 400)
+    fine = np.linspace(black + 1e-4, 1.0 - 1e-4, 20000)
+    tried = 0
+    while tried < 12:
+        r = ExpShape(black, rng.uniform(0.6, 2.8), rng.uniform(0.01, 1.0),
+                     tuple(rng.uniform(-0.4, 0.4, 4)))
+        if np.min(np.diff(np.log(r.inverse(fine))) / np.diff(fine)) < 0.3:
+            continue  # nearly turning back: the fit's monotone flattening, not a curve
+        tried += 1
+        x = r.inverse(v)
+        got, slope = r.forward_slope(x)
+        np.testing.assert_allclose(got, v, atol=1e-7)
+        dv = 1e-6
+        dx_dv = (r.inverse(v + dv) - r.inverse(v - dv)) / (2 * dv)
+        np.testing.assert_allclose(slope * dx_dv, 1.0, rtol=1e-4)
+
+
 def test_emor_family_round_trip(shared_data):
     if not (shared_data / "crf" / "emor.txt").is_file():
         pytest.skip("EMoR basis not in the shared data")

@@ -35,6 +35,7 @@ __all__ = ["ExpOffset", "GammaOffset", "ExpShape", "Polynomial", "MonotoneSpline
 
 # Value grid on which families without a closed-form forward are inverted numerically.
 _GRID = np.linspace(0.0, 1.0, 4097)
+_NODES = 2048  # ExpShape's warped forward: Hermite nodes uniform in ln x
 
 
 class _Sampled(Parametric):
@@ -156,7 +157,10 @@ class ExpShape(_Sampled):
         with np.errstate(divide="ignore"):
             base = np.power(-np.log1p(-rho * w) / rho, gamma)
         if len(warp):
-            base = base * np.exp(np.asarray(warp) @ warp_basis(w.ravel(), len(warp))
+            # an explicit sum, not a BLAS product: a product of this size wakes OpenBLAS's
+            # thread pool, whose spinning threads then slow the study's fold threads
+            basis = warp_basis(w.ravel(), len(warp))
+            base = base * np.exp(sum(c * b for c, b in zip(warp, basis, strict=True))
                                  ).reshape(w.shape)
         return base
 
@@ -202,61 +206,81 @@ class ExpShape(_Sampled):
         return v.reshape(x.shape), slope.reshape(x.shape)
 
     def _warped_forward_slope(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The warped forward: a guess read from a table uniform in ``ln x`` (an index, no
-        search), refined by Newton steps on the log inverse, so value and slope are smooth in
-        ``x`` and in the parameters (a fit's finite differences and line searches stall on a
-        piecewise-linear forward).
-
-        Where the warp turns the curve back (the log inverse is not increasing), at the ends
-        of the range or where Newton does not settle, the sampled forward and its segment
-        slope are kept.
+        """The warped forward: cubic Hermite interpolation in ``ln x`` between nodes where
+        value and slope are exact (``_log_nodes``), so value and slope are continuous in
+        ``x`` and smooth in the parameters (a fit's finite differences and line searches
+        stall on a piecewise-linear forward), at a few operations per pixel.  Below the
+        first node and above the last the sampled forward and its segment slope are kept.
         """
-        lo, step, table, gx = self._log_table()
+        lo, step, w_n, m_n, gx = self._log_nodes()
         scale = 1.0 - self.black
         lx = np.log(x)
-        u = np.clip((lx - lo) / step, 0.0, table.size - 1.000001)
-        k = u.astype(np.intp)
-        v = table[k] + (u - k) * (table[k + 1] - table[k])
-        w = (v - self.black) / scale
-        ok = (x < gx[-2]) & (w > 1e-6) & (w < 1.0 - 1e-6)
-        slope_w = np.zeros_like(w)
-        good = ok.copy()
-        if ok.any():
-            wk, lxk = w[ok], lx[ok]
-            fine = np.ones(wk.size, bool)
-            for _ in range(2):  # quadratic convergence: two steps reach rounding error
-                log_inv, d_log = self._log_inverse_and_slope(wk)
-                fine &= d_log > 0
-                wk = np.clip(wk - np.where(fine, (log_inv - lxk) / np.where(fine, d_log, 1.0),
-                                           0.0), 1e-9, 1.0 - 1e-9)
-            log_inv, d_log = self._log_inverse_and_slope(wk)
-            fine &= (d_log > 0) & (np.abs(log_inv - lxk) < 1e-9)
-            idx = np.flatnonzero(ok)[fine]
-            w[idx] = wk[fine]
-            slope_w[idx] = 1.0 / (x[idx] * d_log[fine])  # dw/dx = 1 / (x d ln x / dw)
-            good[np.flatnonzero(ok)[~fine]] = False
-        rest = np.flatnonzero(~good)
+        u = (lx - lo) / step
+        inside = (u >= 0.0) & (u <= w_n.size - 1)
+        k = np.clip(u.astype(np.intp), 0, w_n.size - 2)
+        t = np.clip(u - k, 0.0, 1.0)
+        t2 = t * t
+        t3 = t2 * t
+        w0, w1, m0, m1 = w_n[k], w_n[k + 1], step * m_n[k], step * m_n[k + 1]
+        w = ((2 * t3 - 3 * t2 + 1) * w0 + (t3 - 2 * t2 + t) * m0 + (3 * t2 - 2 * t3) * w1
+             + (t3 - t2) * m1)
+        dw_du = (6 * t2 - 6 * t) * (w0 - w1) + (3 * t2 - 4 * t + 1) * m0 + (3 * t2 - 2 * t) * m1
+        slope_w = dw_du / (step * x)  # dw/dx = dw/du du/dlnx dlnx/dx
+        # one Newton step on the log inverse: where the curve is nearly flat in ln x (a
+        # shoulder about to turn back) the interpolant's error is squared away
+        ins = np.flatnonzero(inside & (w > 1e-9) & (w < 1.0 - 1e-9))
+        log_inv, d_log = self._log_inverse_and_slope(w[ins])
+        ok = d_log > 0
+        ins = ins[ok]
+        w[ins] = np.clip(w[ins] - (log_inv[ok] - lx[ins]) / d_log[ok], 1e-12, 1.0 - 1e-12)
+        slope_w[ins] = 1.0 / (x[ins] * d_log[ok])
+        rest = np.flatnonzero(~inside)
         if rest.size:  # the sampled forward and its segment slope
             xr = x[rest]
             seg = np.clip(np.searchsorted(gx, xr, side="right") - 1, 0, gx.size - 2)
-            inside = xr < gx[-1]
             w[rest] = (np.interp(xr, gx, _GRID) - self.black) / scale
-            slope_w[rest] = np.where(inside, (_GRID[seg + 1] - _GRID[seg])
+            slope_w[rest] = np.where(xr < gx[-1], (_GRID[seg + 1] - _GRID[seg])
                                      / (gx[seg + 1] - gx[seg]), 0.0) / scale
         over = x >= gx[-1]
         return (self.black + scale * np.where(over, 1.0, w),
                 scale * np.where(over, 0.0, slope_w))
 
-    def _log_table(self) -> tuple[float, float, np.ndarray, np.ndarray]:
-        """Start, step and values of the sampled forward on 2048 exposures uniform in
-        ``ln x`` (cached), and the sampled grid's exposures."""
-        cache = self.__dict__.get("_log_tab")
+    def _log_nodes(self) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray]:
+        """Nodes uniform in ``ln x`` (cached): start, step, the value above the black level
+        and its slope ``dw / d ln x`` at each, and the sampled grid's exposures.
+
+        Node values are the sampled forward refined by Newton steps on the log inverse;
+        where the warp turns the curve back or Newton does not settle, the sampled value and
+        a difference slope are kept, so the interpolant stays continuous.
+        """
+        cache = self.__dict__.get("_nodes")
         if cache is None:
             gx = self._grid_exposure()
-            lo, hi = np.log(gx[1]), np.log(gx[-2])
-            grid = np.linspace(lo, hi, 2048)
-            cache = (float(lo), float(grid[1] - grid[0]), np.interp(np.exp(grid), gx, _GRID), gx)
-            object.__setattr__(self, "_log_tab", cache)
+            # from a hundredth of a code above the black level (the grid's first exposures
+            # are 0 there) to the last finite grid exposure
+            first = self.inverse(np.array([self.black + 4e-5 * (1.0 - self.black)]))[0]
+            lo, hi = np.log(max(first, gx[1])), np.log(gx[-2])
+            lx = np.linspace(lo, hi, _NODES)
+            step = float(lx[1] - lx[0])
+            scale = 1.0 - self.black
+            w = (np.interp(np.exp(lx), gx, _GRID) - self.black) / scale
+            sampled = w.copy()
+            # Newton in ln w, where ln x is nearly linear (a power law's toe is exactly so);
+            # a few steps on 2048 nodes cost nothing
+            z = np.log(np.clip(w, 1e-9, 1.0 - 1e-9))
+            for _ in range(6):
+                log_inv, d_log = self._log_inverse_and_slope(np.exp(z))
+                d_z = d_log * np.exp(z)
+                ok = d_z > 0
+                z = np.minimum(z - np.where(ok, (log_inv - lx) / np.where(ok, d_z, 1.0), 0.0),
+                               np.log(1.0 - 1e-12))
+            wk = np.exp(z)
+            log_inv, d_log = self._log_inverse_and_slope(wk)
+            fine = (d_log > 0) & (np.abs(log_inv - lx) < 1e-9) & (wk > 1e-9)
+            w = np.where(fine, wk, sampled)
+            slope = np.where(fine, 1.0 / np.where(fine, d_log, 1.0), np.gradient(w, step))
+            cache = (float(lo), step, w, slope, gx)
+            object.__setattr__(self, "_nodes", cache)
         return cache
 
     def _log_inverse_and_slope(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -26,6 +26,7 @@ left out.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -86,9 +87,17 @@ class Group:
 
 def shape(p: dict[str, float]) -> ExpShape:
     """The response curve above the black level (``black = 0``): Eq. 3 generalised by
-    ``gamma``, ``rho`` and the warp coefficients (``clblur.responses.ExpShape``)."""
+    ``gamma``, ``rho`` and the warp coefficients (``clblur.responses.ExpShape``).
+
+    The same parameters give the same instance (a small cache): a fit's finite differences
+    in the other parameters then reuse the curve's sampled and interpolation tables."""
     warp = tuple(float(p.get(k, 0.0)) for k in WARP_KEYS)
-    return ExpShape(0.0, p["gamma"], p["rho"], warp if any(warp) else ())
+    return _shape(float(p["gamma"]), float(p["rho"]), warp if any(warp) else ())
+
+
+@functools.lru_cache(maxsize=64)
+def _shape(gamma: float, rho: float, warp: tuple[float, ...]) -> ExpShape:
+    return ExpShape(0.0, gamma, rho, warp)
 
 
 def inverse_table(p: dict[str, float], curve: ExpShape | None = None) -> np.ndarray:

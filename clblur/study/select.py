@@ -114,12 +114,17 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
     nvalid = sum(folds.nvalid)
     rnd = 0
 
+    earlier: dict[str, list[dict]] = {}
+
     def test(model: frozenset, effect: str, start: list[dict]):
         if progress is not None:
             progress.set_postfix_str(f"round {rnd}: {effect}")
         p_base = folds.fit(model, start, channels)
         only = (frozenset({effect}) | (model & {"noise"})) if effect in CONDITIONAL else None
-        p_e = folds.fit(model | {effect}, p_base, channels, only)
+        # the effect's fit of the previous round is a second start: it already searched the
+        # effect's own parameters (the response shape's basins), which the new model moves little
+        p_e = folds.fit(model | {effect}, p_base, channels, only, earlier.get(effect))
+        earlier[effect] = p_e
         if effect == "noise":
             d = folds.block_nll(p_base) - folds.block_nll(p_e)
             d = d[used]
