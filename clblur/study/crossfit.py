@@ -284,8 +284,10 @@ def _fit_continuous(groups: list[Group], free: list[str], start: dict, nvalid: i
         # the shape's likelihood has local minima: also start from the curve a quick
         # cross-exposure calibration on the same pixels gives (``shape_start``), or, where
         # the data have no such pixels, from the power-law corners (linear, display gamma)
-        starts += shape_starts(groups, starts[-1]) or [
+        # (the corners start noise-free, so they stand in for the noise-free restart)
+        corners = shape_starts(groups, starts[-1]) or [
             {**starts[-1], "gamma": g, "rho": 0.05} for g in (1.0, 2.2)]
+        starts = [first, *corners]
     screen = len(starts) > 1
     results = [(run(_unit(s0, names, lo, hi), s0, SCREEN_ITERATIONS if screen else 300), s0)
                for s0 in starts]
