@@ -157,10 +157,7 @@ class ExpShape(_Sampled):
         with np.errstate(divide="ignore"):
             base = np.power(-np.log1p(-rho * w) / rho, gamma)
         if len(warp):
-            # an explicit sum, not a BLAS product: a product of this size wakes OpenBLAS's
-            # thread pool, whose spinning threads then slow the study's fold threads
-            basis = warp_basis(w.ravel(), len(warp))
-            base = base * np.exp(sum(c * b for c, b in zip(warp, basis, strict=True))
+            base = base * np.exp(np.asarray(warp) @ warp_basis(w.ravel(), len(warp))
                                  ).reshape(w.shape)
         return base
 

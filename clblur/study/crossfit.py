@@ -108,8 +108,7 @@ CONDITIONAL = frozenset({"misregistration", "psf_scale"})
 
 def both_folds(work):
     """``[work(0), work(1)]``, the two folds in two threads: the fits are independent, and
-    numpy and scipy's sparse products release the GIL for most of their time (about 1.4x on
-    two cores)."""
+    numpy's array operations and scipy's sparse products release the GIL while they run."""
     if (os.cpu_count() or 1) < 2:
         return [work(0), work(1)]
     with ThreadPoolExecutor(2) as pool:
@@ -274,12 +273,12 @@ def _fit_continuous(groups: list[Group], free: list[str], start: dict, nvalid: i
                                                                    first):
             first = warm
     starts = [first]
-    if first is warm:  # a converged fit of these parameters in a nearby model: one run
-        pass
-    elif "na" in free and (first["na"] > 1e-6 or first["nb"] > 1e-8 or first.get("nc", 0) > 1e-6):
+    search = first is not warm  # a converged fit of these parameters nearby: one run
+    if search and "na" in free and (first["na"] > 1e-6 or first["nb"] > 1e-8
+                                    or first.get("nc", 0) > 1e-6):
         # a noise model inflated by a wrong mean flattens the likelihood; restart without it
         starts.append({**first, "na": 0.0, "nb": 0.0, "nc": 0.0})
-    if (first is not warm and "gamma" in free and first["gamma"] == 1.0
+    if (search and "gamma" in free and first["gamma"] == 1.0
             and not any(first.get(k) for k in WARP_KEYS)):
         # the shape's likelihood has local minima: also start from the curve a quick
         # cross-exposure calibration on the same pixels gives (``shape_start``), or, where
