@@ -147,7 +147,7 @@ def figures(sel: Selection, groups: list[Group], out: Path, max_groups: int = 2)
         save(fig, f"profile_{gi}.png")
     fig, ax = plt.subplots(figsize=(5, 4))
     codes = np.arange(256)
-    for p, label, style in ((null_params(), "paper Eq. 3", "r-"),
+    for p, label, style in ((null_params(), "paper Eq. 3 (Imax at full scale)", "r-"),
                             ({**null_params(), **sel.params}, "extended", "b-")):
         t = inverse_table(p)
         ax.plot(t[:-1] / t[-2], codes[:-1], style, label=label)
