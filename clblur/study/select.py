@@ -131,10 +131,7 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
             d = d[np.abs(d) > 1e-9]  # blocks the effect cannot reach carry no evidence
             t, pv = t_test(d)
         else:
-            d, u, a = folds.block_score(p_base, p_e)
-            reach = used & (a > 1e-12)  # blocks the effect cannot reach carry no evidence
-            d = d[reach]
-            t, pv = weighted_test(d, u[reach], a[reach])
+            d, t, pv = _weighted_gain(folds, p_base, p_e, used)
         gain = float(d.sum()) / max(nvalid, 1)
         est = readable_estimate(effect, average_params(p_e), channels)
         findings[effect] = Finding(effect, False, t, pv, est, explain(effect, est, False, gain),
@@ -194,6 +191,15 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
     return Selection(order, ranked, full, b_rmse, x_rmse, b_nll, x_nll, b_pred, x_pred, skip)
 
 
+def _weighted_gain(folds: Folds, base: list[dict], ext: list[dict],
+                   used: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Held-out gain per block from ``base`` to ``ext`` (blocks either reaches), with the
+    block-robust test's statistic and p-value (``significance.weighted_test``)."""
+    d, u, a = folds.block_score(base, ext)
+    reach = used & (a > 1e-12)  # blocks the effect cannot reach carry no evidence
+    return (d[reach], *weighted_test(d[reach], u[reach], a[reach]))
+
+
 def _sufficient(winners: list[tuple], folds: Folds, level: float,
                 used: np.ndarray) -> list[tuple]:
     """Drop a winner that contains a smaller winner (all of its parameters and more) but does
@@ -208,10 +214,7 @@ def _sufficient(winners: list[tuple], folds: Folds, level: float,
         better = True
         for s in winners:
             if s is not r and own[s[0]] < own[r[0]]:
-                d, u, a = folds.block_score(s[3], r[3])
-                reach = used & (a > 1e-12)
-                better &= bool(reach.any()) and weighted_test(d[reach], u[reach],
-                                                              a[reach])[1] < level
+                better &= _weighted_gain(folds, s[3], r[3], used)[2] < level
         if better:
             keep.append(r)
     return keep
