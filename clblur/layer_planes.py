@@ -36,8 +36,11 @@ class Layers:
     crop of the image's own vectors and linear image (for uncovered light); ``region``: h x w
     bool, the pixels to composite; ``present``: K x h x w bool, whether layer ``k`` can cover
     the pixel at any sample (farther than its reach plus the bilinear footprint it reads only
-    zeros, so skipping it changes nothing but the sample count).  ``vectors`` and ``present``
-    hold values at the region's pixels only (0 and False elsewhere: nothing reads them).
+    zeros, so skipping it changes nothing but the sample count); ``warped``: K bool, whether
+    layer ``k``'s vectors vary (not a rigid translation).  ``present`` holds values at the
+    region's pixels only (False elsewhere: nothing reads it), and so do the ``vectors`` of a
+    rigid layer; a warped layer's ``vectors`` cover the whole crop, because the composite
+    reads them where its samples land (``clblur.layered_exposure``, inverse motion).
     """
 
     origin: tuple[int, int]
@@ -47,6 +50,7 @@ class Layers:
     linear: np.ndarray
     region: np.ndarray
     present: np.ndarray
+    warped: np.ndarray
 
 
 # cv2's exact transform returns float32 distances; squared, they round back to the exact
@@ -300,6 +304,7 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     planes = np.empty((last + 1,) + hw + (ch + 1,), lin_c.dtype)
     vectors = np.zeros((last + 1,) + hw + (2,), np.float32)
     present = np.zeros((last + 1,) + hw, bool)
+    warped = np.zeros(last + 1, bool)
     kept = 0
     for k in range(last + 1):
         if k == last and background is not None:
@@ -343,19 +348,23 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
         # D_k: the vector of the nearest pixel of the (extended) layer.  A layer nearer to a
         # region pixel than its reach plus 1.5 lies inside the window, so the transform of
         # the window finds it.  A layer in rigid translation (one vector) needs only the
-        # distance: every nearest pixel carries that vector.
+        # distance: every nearest pixel carries that vector, and the composite reads it at
+        # the region's pixels only.  A warped layer's field covers the window: the composite
+        # reads it where its samples land.
         first = vec_w[np.unravel_index(np.argmax(ext_w), hw)]
         if not (((vec_w[..., 0] != first[0]) | (vec_w[..., 1] != first[1])) & ext_w).any():
             dist_at = distance_to(ext_w, at)
             d_at = np.broadcast_to(first.astype(np.float32), (at[0].size, 2))
+            vectors[kept][at] = d_at
         else:
             dist, nearest = distance_transform_edt(~ext_w, return_indices=True)
             dist_at = dist[at]
-            d_at = vec_w[nearest[0][at], nearest[1][at]].astype(np.float32)
-        vectors[kept][at] = d_at
+            vectors[kept] = vec_w[nearest[0], nearest[1]]
+            d_at = vectors[kept][at]
+            warped[kept] = True
         farthest = np.hypot(d_at[:, 0], d_at[:, 1]) * max(anchor, 1.0 - anchor)
         present[kept][at] = dist_at <= farthest + 1.5  # a bilinear footprint reaches sqrt(2) px
         kept += 1
     return Layers(origin=(int(r0 + win[0].start), int(c0 + win[1].start)),
                   planes=planes[:kept], vectors=vectors[:kept], flow=own[win],
-                  linear=lin_w, region=reg, present=present[:kept])
+                  linear=lin_w, region=reg, present=present[:kept], warped=warped[:kept])

@@ -73,13 +73,18 @@ from clblur.layering import (
 from clblur.motion import PSF, Field, Uniform, sample_counts
 from clblur.request import BlurPlan
 
-__all__ = ["DEPTH_TAU", "GAP_FRACTION", "MAX_LAYERS", "SPLIT_PRIOR", "SPREAD_PX", "TILE", "Layers",
+__all__ = ["DEPTH_TAU", "GAP_FRACTION", "INVERSE_STEPS", "MAX_LAYERS", "SPLIT_PRIOR",
+           "SPREAD_PX", "TILE", "Layers",
            "boundary_mask", "depth_components", "order_components", "region_mask",
            "integrate", "integrator", "layer_labels", "layered_half", "prepare",
            "speed_order", "split_coverage", "composite"]
 
 SPREAD_PX = 1.0
 TILE = 16
+# fixed-point steps of a warped layer's inverse motion (module Conventions): each one
+# multiplies the position error by about |t| |grad D_k|, for a layer turning by theta over
+# the exposure about theta / 2 at the far ends of a centred shutter (0.23 for 26 degrees)
+INVERSE_STEPS = 2
 
 
 def _flagged_tiles(v: np.ndarray, r: float, tile: int, spread: float) -> np.ndarray:
@@ -119,8 +124,10 @@ def region_mask(v: np.ndarray, anchor: float, tile: int = TILE,
                 spread: float = SPREAD_PX) -> np.ndarray:
     """The pixels that take the layered path: the flagged tiles of :func:`boundary_mask`,
     narrowed to the pixels within ``R + 2`` of a motion edge (a pixel whose 3 x 3
-    neighbourhood's vectors differ by more than ``spread`` in x or y).  Farther away, every
-    surface that can reach a pixel moves as the pixel does, and the gather is kept."""
+    neighbourhood's vectors differ by more than ``spread`` in x or y) and the pixels whose
+    vectors turn or stretch enough that the inverse motion departs from their own vector (the
+    3 x 3 difference, over its 2 px, times ``R`` beyond ``spread``).  Elsewhere every surface
+    that can reach a pixel moves as the pixel does, and the gather is kept."""
     import cv2
     from scipy.ndimage import maximum_filter, minimum_filter
 
@@ -136,6 +143,7 @@ def region_mask(v: np.ndarray, anchor: float, tile: int = TILE,
     c0, c1 = max(cols[0] * tile - margin, 0), min((cols[-1] + 1) * tile + margin, w)
     crop = v[r0:r1, c0:c1]
     edge = np.zeros(crop.shape[:2], bool)
+    warped = np.zeros(crop.shape[:2], bool)
     square = np.ones((3, 3), np.uint8)
     for c in range(2):
         comp = np.ascontiguousarray(crop[..., c])
@@ -147,10 +155,11 @@ def region_mask(v: np.ndarray, anchor: float, tile: int = TILE,
             spread_c = (maximum_filter(comp, size=3, mode="nearest")
                         - minimum_filter(comp, size=3, mode="nearest"))
         edge |= spread_c > spread
-    if edge.any():
-        near = distance_to(edge) <= r + 2.0
+        warped |= spread_c * (0.5 * r) > spread
+    if edge.any() or warped.any():
+        near = distance_to(edge) <= r + 2.0 if edge.any() else warped
         tiles = flagged[(np.arange(r0, r1) // tile)[:, None], (np.arange(c0, c1) // tile)]
-        out[r0:r1, c0:c1] = near & tiles
+        out[r0:r1, c0:c1] = (near | warped) & tiles
     return out
 
 
@@ -181,7 +190,7 @@ def composite(layers: Layers, anchor: float, samples: int | None, weights: np.nd
 
     Returns the exposure of every crop pixel (h x w x C); only ``layers.region`` is used.
     """
-    from clblur.reference import bilinear_at
+    from clblur.reference import bilinear_at, lerp_at
 
     h, w = layers.region.shape
     r0, c0 = layers.origin
@@ -195,9 +204,17 @@ def composite(layers: Layers, anchor: float, samples: int | None, weights: np.nd
         num = j - anchor * (n - 1)
         left = np.ones((h, w, 1))
         e = np.zeros((h, w, channels))
-        for plane, d, there in zip(layers.planes, layers.vectors, layers.present, strict=True):
+        for plane, d, there, warped in zip(layers.planes, layers.vectors, layers.present,
+                                           layers.warped, strict=True):
             x = xx - (d[..., 0].astype(np.float64) * num) / den
             y = yy - (d[..., 1].astype(np.float64) * num) / den
+            if warped:
+                # inverse motion (module Conventions): the layer point at p at this sample
+                # is q = p - D_k(q) t; fixed-point steps from q = p - D_k(p) t
+                for _ in range(INVERSE_STEPS):
+                    dq = lerp_at(d.astype(np.float64), x, y, layers.origin, full_shape)
+                    x = xx - (dq[..., 0] * num) / den
+                    y = yy - (dq[..., 1] * num) / den
             s = bilinear_at(plane, x, y, layers.origin, full_shape) * there[..., None]
             e += left * s[..., :channels]
             left = left * (1.0 - s[..., channels:])

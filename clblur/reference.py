@@ -24,7 +24,7 @@ from clblur.pixels import normalise, quantise
 from clblur.request import BlurPlan
 from clblur.sampling import bilinear_corners
 
-__all__ = ["bilinear", "bilinear_at", "linearise", "integrate", "finish", "blur"]
+__all__ = ["bilinear", "bilinear_at", "lerp_at", "linearise", "integrate", "finish", "blur"]
 
 
 def bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray, plan: BlurPlan) -> np.ndarray:
@@ -36,20 +36,38 @@ def bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray, plan: BlurPlan) -> n
     return bilinear_at(img, x, y, plan.origin, plan.full_shape)
 
 
-def bilinear_at(img: np.ndarray, x: np.ndarray, y: np.ndarray, origin: tuple[int, int],
-                full_shape: tuple[int, int]) -> np.ndarray:
-    """:func:`bilinear` for a window ``img`` at ``origin`` (row, col) of a ``full_shape``
-    (H, W) image: the one bilinear sampler of the numpy backend."""
+def _window_corners(img: np.ndarray, x: np.ndarray, y: np.ndarray, origin: tuple[int, int],
+                    full_shape: tuple[int, int]):
+    """The four corner values of positions ``x``, ``y`` in a window ``img`` at ``origin`` of
+    a ``full_shape`` image (clamp to the image, then to the window) and the fractions."""
     fh, fw = full_shape
     r0, c0 = origin
     h, w = img.shape[:2]
     y0, y1, x0, x1, fx, fy = bilinear_corners(x, y, fh, fw)
-    fx, fy = fx[..., None], fy[..., None]
     x0, x1 = np.clip(x0 - c0, 0, w - 1), np.clip(x1 - c0, 0, w - 1)
     y0, y1 = np.clip(y0 - r0, 0, h - 1), np.clip(y1 - r0, 0, h - 1)
-    top = img[y0, x0] * (1 - fx) + img[y0, x1] * fx
-    bottom = img[y1, x0] * (1 - fx) + img[y1, x1] * fx
+    return img[y0, x0], img[y0, x1], img[y1, x0], img[y1, x1], fx[..., None], fy[..., None]
+
+
+def bilinear_at(img: np.ndarray, x: np.ndarray, y: np.ndarray, origin: tuple[int, int],
+                full_shape: tuple[int, int]) -> np.ndarray:
+    """:func:`bilinear` for a window ``img`` at ``origin`` (row, col) of a ``full_shape``
+    (H, W) image: the one bilinear sampler of the numpy backend."""
+    a, b, c, d, fx, fy = _window_corners(img, x, y, origin, full_shape)
+    top = a * (1 - fx) + b * fx
+    bottom = c * (1 - fx) + d * fx
     return top * (1 - fy) + bottom * fy
+
+
+def lerp_at(img: np.ndarray, x: np.ndarray, y: np.ndarray, origin: tuple[int, int],
+            full_shape: tuple[int, int]) -> np.ndarray:
+    """:func:`bilinear_at` written ``a + f (b - a)``: where the four corners are equal it
+    returns them exactly (the sampler of vector fields, so that a field that does not vary
+    is read back bit for bit)."""
+    a, b, c, d, fx, fy = _window_corners(img, x, y, origin, full_shape)
+    top = a + fx * (b - a)
+    bottom = c + fx * (d - c)
+    return top + fy * (bottom - top)
 
 
 def integrate(lin: np.ndarray, plan: BlurPlan) -> np.ndarray:

@@ -13,7 +13,12 @@
  * - present: K x h x w, 0 where layer k cannot reach the pixel at any sample (skipped).
  * - One work-item per listed pixel (pix: n x 2 (row, col) in the crop); counts: its sample
  *   count N; weights: N time weights when weighted != 0, else 1/N each.
- * - Sample j of a pixel p reads each layer k at p - D_k(p) (j - a (N-1)) / max(N-1, 1).
+ * - Sample j of a pixel p reads each layer k at q = p - D_k(q) t, t = (j - a (N-1)) /
+ *   max(N-1, 1): q = p - D_k(p) t for a rigid layer (warped[k] = 0), and INVERSE_STEPS
+ *   fixed-point steps from there for a warped one, D_k read bilinearly in the form
+ *   a + f (b - a) (exact where the corners are equal; clblur/reference.py lerp_at).
+ * - warped: K flags; vectors of a warped layer cover the whole crop, those of a rigid one
+ *   the listed pixels only.
  * - Floating-point contraction is off: every a*b+c is rounded as written; the float4 path
  *   does per component exactly what the scalar path does.
  * - Once the layers in front leave no transmittance (T = 0 exactly: an opaque layer), the
@@ -83,9 +88,33 @@ static px_t sample(__global const float *img, taps t)
 #define CH(p, i) ((p).v[i])
 #endif
 
+/* A vector field (h x w x 2) at taps t, as lerp_at: a + f (b - a). */
+static float2 sample_vector(__global const float *vec, taps t)
+{
+    float2 a = vload2(t.a, vec), b = vload2(t.b, vec), c = vload2(t.c, vec),
+           d = vload2(t.d, vec);
+    float2 top = a + t.fx * (b - a);
+    float2 bottom = c + t.fx * (d - c);
+    return top + t.fy * (bottom - top);
+}
+
+/* Where layer point at (px, py) at sample offset num / den was at the anchor time: the
+ * fixed-point steps of the conventions, from the first guess (x, y). */
+static float2 inverse_motion(__global const float *vec, int h, int w, int r0, int c0, int fh,
+                             int fw, float px, float py, float num, float den, float x, float y)
+{
+    for (int it = 0; it < INVERSE_STEPS; ++it) {
+        float2 d = sample_vector(vec, locate(h, w, r0, c0, fh, fw, x, y));
+        x = px - (d.x * num) / den;
+        y = py - (d.y * num) / den;
+    }
+    return (float2)(x, y);
+}
+
 __kernel void composite_layers(__global const float *planes, __global const float *vectors,
                                __global const float *flow, __global const float *linear,
-                               __global const uchar *present, __global const int *pix, __global const int *counts,
+                               __global const uchar *present, __global const uchar *warped,
+                               __global const int *pix, __global const int *counts,
                                __global const float *weights, int weighted, int n,
                                int layers, int h, int w, int r0, int c0,
                                int fh, int fw, float anchor, __global float *out)
@@ -124,6 +153,12 @@ __kernel void composite_layers(__global const float *planes, __global const floa
         for (int q = 0; q < m && left != 0.0f; ++q) {
             float x = px - (vx[q] * num) / den;
             float y = py - (vy[q] * num) / den;
+            if (warped[use[q]]) {
+                float2 at_q = inverse_motion(vectors + (size_t)use[q] * h * w * 2, h, w, r0,
+                                             c0, fh, fw, px, py, num, den, x, y);
+                x = at_q.x;
+                y = at_q.y;
+            }
             px_t s = sample(planes + use[q] * plane, locate(h, w, r0, c0, fh, fw, x, y));
             for (int c = 0; c < channels; ++c)
                 e[c] += left * CH(s, c);
@@ -209,9 +244,32 @@ static void sample8(__global const float *img, int h, int w, int r0, int c0, int
     *hi = top_hi * (1.0f - fy_hi) + bot_hi * fy_hi;
 }
 
+/* inverse_motion per lane (the same float operations, so the layouts agree bit for bit). */
+static void inverse_motion8(__global const float *vec, int h, int w, int r0, int c0, int fh,
+                            int fw, float8 px, float8 py, float8 num, float8 den, float8 *x,
+                            float8 *y)
+{
+    float pxs[LANES], pys[LANES], nums[LANES], dens[LANES], xs[LANES], ys[LANES];
+    vstore8(px, 0, pxs);
+    vstore8(py, 0, pys);
+    vstore8(num, 0, nums);
+    vstore8(den, 0, dens);
+    vstore8(*x, 0, xs);
+    vstore8(*y, 0, ys);
+    for (int l = 0; l < LANES; ++l) {
+        float2 q = inverse_motion(vec, h, w, r0, c0, fh, fw, pxs[l], pys[l], nums[l], dens[l],
+                                  xs[l], ys[l]);
+        xs[l] = q.x;
+        ys[l] = q.y;
+    }
+    *x = vload8(0, xs);
+    *y = vload8(0, ys);
+}
+
 __kernel void composite_lanes(__global const float *planes, __global const float *vectors,
                               __global const float *flow, __global const float *linear,
-                              __global const uchar *present, __global const int *chunks,
+                              __global const uchar *present, __global const uchar *warped,
+                              __global const int *chunks,
                               __global const int *counts, __global const float *weights,
                               int weighted, int n, int layers, int h, int w, int r0, int c0,
                               int fh, int fw, float anchor, __global float *out)
@@ -290,6 +348,9 @@ __kernel void composite_lanes(__global const float *planes, __global const float
             } else {
                 float8 x = px - (vx[q] * num) / den;
                 float8 y = py - (vy[q] * num) / den;
+                if (warped[use[q]])
+                    inverse_motion8(vectors + (size_t)use[q] * h * w * 2, h, w, r0, c0, fh, fw,
+                                    px, py, num, den, &x, &y);
                 sample8(planes + use[q] * plane, h, w, r0, c0, fh, fw, x, y, &s_lo, &s_hi);
                 s_lo = select((float16)(0.0f), s_lo, SPREAD_LO(there[q]));
                 s_hi = select((float16)(0.0f), s_hi, SPREAD_HI(there[q]));

@@ -125,6 +125,7 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
                     vectors=buf(layers.vectors.astype(np.float32, copy=False)),
                     flow=buf(layers.flow.astype(np.float32, copy=False)), linear=buf(linear),
                     present=buf(np.ascontiguousarray(layers.present, bool).view(np.uint8)),
+                    warped=buf(np.ascontiguousarray(layers.warped, bool).view(np.uint8)),
                     weights=buf(wts),
                     weighted=weighted, layers=k, h=h, w=w, r0=r0, c0=c0, fh=fh, fw=fw,
                     anchor=anchor)
