@@ -24,19 +24,28 @@ Conventions
   motion blur filter", HPG 2014): the image is cut into ``TILE`` x ``TILE`` tiles; a tile needs
   the layered path only when the vectors in the tiles within reach of it (``ceil((R + 2) /
   TILE)`` tiles, ``R`` = the longest vector times ``max(a, 1 - a)``) differ by more than
-  ``SPREAD_PX`` in x or y.  Elsewhere every surface that can reach a pixel moves alike, nothing
-  is revealed or hidden, and the result is the plain gather, bit for bit.
+  ``SPREAD_PX`` in x or y; within such tiles, only pixels near a motion edge or inside a
+  turning or stretching layer (:func:`region_mask`).  Elsewhere every surface that can reach a
+  pixel moves alike, nothing is revealed or hidden, and the result is the plain gather, bit
+  for bit.
 * Each layer ``k`` is a premultiplied image ``P_k = (M_k L, M_k)`` (linear light ``L``, 0/1
   coverage ``M_k``) with a vector field ``D_k``: a pixel's own vector on the layer, and the
   vector of the nearest layer pixel elsewhere (a layer moves locally as one piece).  At shutter
-  sample ``j`` pixel ``p`` reads each layer at ``p - D_k(p) (s_j - a)`` (bilinear, clamp to
-  edge; the positions and sample counts of ``clblur.motion``, with ``N(p) = ceil(max_k
+  sample ``j`` pixel ``p`` reads each layer at ``q = p - D_k(p) (s_j - a)`` (bilinear, clamp
+  to edge; the positions and sample counts of ``clblur.motion``, with ``N(p) = ceil(max_k
   |D_k(p)|) + 1`` by default) and composites front to back, ``E_j = sum_k T_k C_k``,
   ``T_{k+1} = T_k (1 - W_k)`` with ``(C_k, W_k)`` the sampled ``P_k``.  For a layer in rigid
   translation, sampling ``P_k`` along ``D_k`` equals splatting (scattering) the layer's pixels
   along their motion with bilinear weights, so a foreground's light lands on what lies behind
   it with the right coverage at every sample.  Light no layer covers (``T`` left over) is read
   from the image along ``p``'s own vector (the gather).
+* **Inverse motion.**  A layer whose vectors vary (it turns, scales or bends: ``warped``) is
+  read where the layer point that is at ``p`` at that sample was at the anchor time, the
+  solution of ``q = p - D_k(q) (s_j - a)``: ``INVERSE_STEPS`` fixed-point steps from the
+  rigid guess, ``D_k`` read bilinearly (``clblur.reference.lerp_at``, exact where it does not
+  vary).  ``p - D_k(p) t`` follows ``p``'s own point instead, which for a body that moves
+  while it turns is off by about ``turn * |v| * t^2`` (the gather's error inside a spinning
+  object).
 * **What is behind an object is not in the image.**  Assumption: a hidden pixel of a farther
   layer looks like the nearest visible pixel of the layers at or behind it and moves with it
   (nearest-neighbour extension, ``scipy.ndimage.distance_transform_edt``), within
