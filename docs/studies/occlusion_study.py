@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 import clblur
-from clblur import scenes
+from clblur import scenes, vectors
 
 FIG = Path(__file__).resolve().parent / "figures" / "occlusion"
 RESPONSE = "srgb"
@@ -68,6 +68,12 @@ def methods_for(r: scenes.Render, backend: str) -> dict[str, np.ndarray]:
         out["depth rank as layer IDs"] = clblur.blur(
             r.sharp, r.flow, RESPONSE, anchor="center", backend=backend,
             depth=rank.astype(np.int32))
+    if depth_supported():
+        # the renderer's two halves of the path, as Blender's Vector pass holds them (previous
+        # and next): each half integrated as layers, the exposures averaged
+        out["depth layers, bent path"] = vectors.blur_bent(
+            r.sharp, r.flow_first, r.flow_second, RESPONSE, backend=backend, layers=True,
+            depth=r.depth)
     if depth_supported() and plate_supported():
         # a multi-layer render also hands over the background alone: the hidden light of the
         # background is then known (hidden parts of far objects still are not)
@@ -224,7 +230,7 @@ def figures(renders: dict, table: dict) -> None:
 
 def summarise(table: dict, gopro: dict | None, gentle: dict | None = None) -> str:
     ms = ["gather", "speed layers", "depth layers", "depth rank as layer IDs",
-          "depth layers + clean plate", "sharp frame (no blur)"]
+          "depth layers, bent path", "depth layers + clean plate", "sharp frame (no blur)"]
 
     def cell(row, key, m):
         v = row[key].get(m)
