@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clblur.blur import blur
+from clblur.blur import blur, resolve_backend
 from clblur.errors import InputError
 from clblur.flow import FlowEstimator, FlowFolder, save_flows
 from clblur.io import refuse_overwrite
@@ -113,6 +113,11 @@ def blur_frame(frame: np.ndarray, backward: np.ndarray | None, forward: np.ndarr
     # The plan carries the frame, responses and saturation; the motion is the bent path the
     # integrator below closes over (the plan's own motion is not used).
     plan = make_plan(frame, (0.0, 0.0), response, saturation=saturation)
+    if not layers and resolve_backend(backend, device) == "opencl":
+        # the whole bent path on the device: one upload, one download per frame
+        from clblur.opencl.bent_path import blur_bent
+
+        return blur_bent(plan, first, second, samples, device)
     integrate = bent_path(first, second, samples=samples, backend=backend, device=device,
                           layers=layers, depth=depth)
     return run_numpy(plan, integrate)

@@ -160,6 +160,31 @@ def test_banded_pinned_transfers_on_two_queues_equal_the_shared_path(opencl, rng
     assert "image" in rt.pinned and "flow" in rt.pinned  # staging kept for the next call
 
 
+@pytest.mark.opencl
+def test_video_bent_path_variants_and_transfers_give_the_same_bits(opencl, rng, monkeypatch):
+    """clblur/opencl/bent_path.py with the GPU kernel variants and the banded transfers of a
+    device with its own memory, forced on this device: the default path's bits."""
+    from clblur.opencl import transfers
+    from clblur.opencl.bent_path import run_bent
+
+    rt = opencl.runtime(None)
+    monkeypatch.setattr(transfers, "MIN_BAND_ROWS", 8)  # 37 rows -> 4 bands
+    shape = (37, 53)
+    first, second = smooth_flow(rng, shape), smooth_flow(rng, shape)
+    plans = [make_plan(random_image(rng, np.uint8, 3, shape), (0.0, 0.0), "srgb"),
+             make_plan(random_image(rng, np.uint16, 5, shape), (0.0, 0.0), "exp")]
+    with rt.lock:
+        want = [run_bent(rt, p, first, second, None) for p in plans]
+    cl = opencl.pyopencl_module()
+    monkeypatch.setattr(rt, "unified", False)
+    monkeypatch.setattr(rt, "queues", (cl.CommandQueue(rt.context),))
+    for plan, expected in zip(plans, want, strict=True):
+        for gpu in (False, True):
+            with rt.lock:
+                got = run_bent(rt, plan, first, second, None, gpu=gpu)
+            assert np.array_equal(got, expected)
+
+
 # --- flow validation on the device, float16 flows ---------------------------------------------
 
 @pytest.mark.opencl

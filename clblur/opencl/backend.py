@@ -40,9 +40,9 @@ from clblur.opencl.program import Program
 from clblur.opencl.transfers import bands_of, download, pinned_empty, upload_rows
 from clblur.request import BlurPlan
 
-__all__ = ["DeviceInput", "FieldInput", "blur", "finish_args", "integrate_box",
+__all__ = ["DeviceInput", "FieldInput", "blur", "check_flow", "finish_args", "integrate_box",
            "integrate_field", "integrate_taps", "linearise", "pinned_empty", "run_plan",
-           "upload_flow", "upload_input"]
+           "sync_host", "upload_flow", "upload_input"]
 
 # Work-items per work-group along x, fixed so that drivers which specialise code per
 # work-group size (PoCL) build each kernel once, not once per image size.  Image kernels use
@@ -219,10 +219,12 @@ class FieldInput:
     ready: list
 
 
-def upload_flow(rt: Runtime, plan: BlurPlan, src: DeviceInput, resident=None) -> FieldInput:
+def upload_flow(rt: Runtime, plan: BlurPlan, src: DeviceInput, resident=None,
+                role: str = "flow") -> FieldInput:
     """The flow (float32, or float16 as given) and, for devices without fp64, the host
     sample counts; a zeroed pair of validation counters.  ``resident``: a
-    ``pyopencl.array.Array`` that already holds the flow."""
+    ``pyopencl.array.Array`` that already holds the flow.  ``role`` names the reused device
+    buffers (two flows in flight need two roles)."""
     assert isinstance(plan.motion, Field)
     flow = plan.motion.flow
     half = flow.dtype == np.float16
@@ -231,11 +233,11 @@ def upload_flow(rt: Runtime, plan: BlurPlan, src: DeviceInput, resident=None) ->
         buf, ready = resident.base_data, [[] for _ in src.bands]
         flow = resident.get(queue=rt.queue) if host_counts else flow
     else:
-        buf, ready = upload_rows(rt, "flow", flow, src.bands)
+        buf, ready = upload_rows(rt, role, flow, src.bands)
     counts = (sample_counts(flow[..., 0], flow[..., 1]) if host_counts
               else np.zeros(1, np.int32))
-    bad = rt.upload("bad_flow", np.zeros(2, np.int32))
-    return FieldInput(buf, half, rt.upload("counts", counts), host_counts, bad, ready)
+    bad = rt.upload(f"bad_{role}", np.zeros(2, np.int32))
+    return FieldInput(buf, half, rt.upload(f"{role}_counts", counts), host_counts, bad, ready)
 
 
 def integrate_field(rt: Runtime, prog: Program, gpu: bool, plan: BlurPlan, src: DeviceInput,
@@ -351,11 +353,11 @@ def run_plan(rt: Runtime, plan: BlurPlan, gpu: bool | None = None, *, half: bool
             done = integrate_field(rt, prog, gpu, plan, src, lin_buf, field, finish, after)
         pyopencl_module().wait_for_events(done)  # host-side tables are re-uploaded per group
     if field is not None:
-        _check_flow(rt, field)
+        check_flow(rt, field)
     if resident_out is not None:
         return None
     if out is not None:
-        _sync_host(rt, out_buf, out, done)
+        sync_host(rt, out_buf, out, done)
     else:
         out = np.empty((h, w, channels), dtype=out_dtype)
         download(rt, out, out_buf, src.bands, done)
@@ -364,7 +366,7 @@ def run_plan(rt: Runtime, plan: BlurPlan, gpu: bool | None = None, *, half: bool
     return plan.finish(out)
 
 
-def _sync_host(rt: Runtime, buf, out: np.ndarray, done: list) -> None:
+def sync_host(rt: Runtime, buf, out: np.ndarray, done: list) -> None:
     """Make the kernels' writes to ``buf`` (a USE_HOST_PTR buffer over ``out``) visible in
     ``out``: map it after ``done`` (PoCL uses ``out`` itself, aligned or not: no copy; the
     map is what the OpenCL specification asks for), then unmap."""
@@ -375,7 +377,9 @@ def _sync_host(rt: Runtime, buf, out: np.ndarray, done: list) -> None:
     rt.queue.finish()
 
 
-def _check_flow(rt: Runtime, field: FieldInput) -> None:
+def check_flow(rt: Runtime, field: FieldInput) -> None:
+    """Refuse the request when the device counted bad flow components (module
+    Conventions)."""
     counts = np.zeros(2, np.int32)
     pyopencl_module().enqueue_copy(rt.queue, counts, field.bad, is_blocking=True)
     if counts.any():

@@ -188,7 +188,7 @@ class Runtime:
 
     def wrap(self, array: np.ndarray):
         """A writable buffer over ``array`` itself (devices that share host memory): kernels
-        write into it in place; map it before reading ``array`` (``backend._sync_host``)."""
+        write into it in place; map it before reading ``array`` (``backend.sync_host``)."""
         cl = pyopencl_module()
         return cl.Buffer(self.context, cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR,
                          hostbuf=array)

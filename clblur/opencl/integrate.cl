@@ -885,3 +885,22 @@ __kernel void integrate_box_codes(__global const uchar *image, int in_kind,
                        grid, cells, gstride, gscale, STORE_ARGS, x0, ring_lo, ring_hi);
     }
 }
+
+/* clblur.video's bent path: the mean of its two halves' exposures (float32, n pixels x
+ * `channels`, written by integrate_field with the identity response and left on the device),
+ * finished (forward response, quantisation) as every blur is.  The reference averages the
+ * float32 exposures in float64; here the sum is float32 (one rounding, 2^-24 relative). */
+__kernel void finish_mean(__global const float *first, __global const float *second, int n,
+                          STORE_PARAMS)
+{
+    int i = get_global_id(0);
+    if (i >= n)
+        return;
+    size_t at = (size_t)i * channels + cbase;
+    float4 e = (float4)(0.0f);
+    e.x = 0.5f * (first[at] + second[at]);
+    if (cg > 1) e.y = 0.5f * (first[at + 1] + second[at + 1]);
+    if (cg > 2) e.z = 0.5f * (first[at + 2] + second[at + 2]);
+    if (cg > 3) e.w = 0.5f * (first[at + 3] + second[at + 3]);
+    store_pixel(e, i, STORE_ARGS);
+}
