@@ -40,9 +40,9 @@ from clblur.opencl.program import Program
 from clblur.opencl.transfers import bands_of, download, pinned_empty, upload_rows
 from clblur.request import BlurPlan
 
-__all__ = ["DeviceInput", "FieldInput", "blur", "check_flow", "finish_args", "integrate_box",
-           "integrate_field", "integrate_taps", "linearise", "pinned_empty", "run_plan",
-           "sync_host", "upload_flow", "upload_input"]
+__all__ = ["DeviceInput", "FieldInput", "blur", "check_flow", "collect_output", "finish_args",
+           "integrate_box", "integrate_field", "integrate_taps", "linearise", "output_target",
+           "pinned_empty", "run_plan", "sync_host", "upload_flow", "upload_input"]
 
 # Work-items per work-group along x, fixed so that drivers which specialise code per
 # work-group size (PoCL) build each kernel once, not once per image size.  Image kernels use
@@ -310,18 +310,7 @@ def run_plan(rt: Runtime, plan: BlurPlan, gpu: bool | None = None, *, half: bool
     img = plan.image
     h, w, channels = img.shape
     src = upload_input(rt, plan, resident_image)
-    out_kind = OUT_KINDS[img.dtype]
-    out_dtype = np.float32 if out_kind == OUT_F32 else img.dtype
-    # Devices that share host memory (CPUs) write straight into the returned array: no
-    # download copy (4K RGB uint8: 25 MB, ~5 % of a box blur).
-    out = None
-    if resident_out is not None:
-        out_buf = resident_out
-    elif rt.unified:
-        out = np.empty((h, w, channels), dtype=out_dtype)
-        out_buf = rt.wrap(out)
-    else:
-        out_buf = rt.buffer("output", h * w * channels * np.dtype(out_dtype).itemsize)
+    out, out_buf = (None, resident_out) if resident_out is not None else output_target(rt, img)
     tap_set = taps.space_invariant_taps(plan)
     box = tap_set.box() if tap_set is not None else None
     # Half storage halves the memory traffic.  The CPU field kernel is bound by instructions,
@@ -356,11 +345,36 @@ def run_plan(rt: Runtime, plan: BlurPlan, gpu: bool | None = None, *, half: bool
         check_flow(rt, field)
     if resident_out is not None:
         return None
+    return collect_output(rt, plan, out, out_buf, src.bands, done)
+
+
+def output_target(rt: Runtime, img: np.ndarray) -> tuple[np.ndarray | None, object]:
+    """(host array or None, device buffer) for the output codes of ``img`` (H x W x C).
+    Devices that share host memory (CPUs) write straight into the returned array: no
+    download copy (4K RGB uint8: 25 MB, ~5 % of a box blur)."""
+    h, w, channels = img.shape
+    out_dtype = _out_dtype(img)
+    if rt.unified:
+        out = np.empty((h, w, channels), dtype=out_dtype)
+        return out, rt.wrap(out)
+    return None, rt.buffer("output", h * w * channels * np.dtype(out_dtype).itemsize)
+
+
+def _out_dtype(img: np.ndarray) -> np.dtype:
+    """What the kernels store for ``img``: its integer dtype, else float32."""
+    return np.dtype(np.float32) if OUT_KINDS[img.dtype] == OUT_F32 else img.dtype
+
+
+def collect_output(rt: Runtime, plan: BlurPlan, out: np.ndarray | None, out_buf,
+                   bands: list[tuple[int, int]], done: list) -> np.ndarray:
+    """The output of ``output_target`` on the host, after ``done``, in the input's layout
+    (float64 inputs widened from the float32 the kernels store)."""
+    img = plan.image
     if out is not None:
         sync_host(rt, out_buf, out, done)
     else:
-        out = np.empty((h, w, channels), dtype=out_dtype)
-        download(rt, out, out_buf, src.bands, done)
+        out = np.empty(img.shape, dtype=_out_dtype(img))
+        download(rt, out, out_buf, bands, done)
     if img.dtype == np.float64:
         out = out.astype(np.float64)
     return plan.finish(out)

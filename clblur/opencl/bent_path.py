@@ -28,16 +28,15 @@ from clblur.opencl import response_pack
 from clblur.opencl.backend import (
     GROUP_SIZE,
     check_flow,
+    collect_output,
     finish_args,
     integrate_field,
     linearise,
-    sync_host,
+    output_target,
     upload_flow,
     upload_input,
 )
-from clblur.opencl.constants import OUT_F32, OUT_KINDS
 from clblur.opencl.device import Runtime, pyopencl_module, runtime
-from clblur.opencl.transfers import download
 from clblur.request import BlurPlan
 from clblur.responses import response
 
@@ -71,13 +70,7 @@ def run_bent(rt: Runtime, plan: BlurPlan, first: np.ndarray, second: np.ndarray,
     exposure = np.broadcast_to(np.zeros((), np.float32), img.shape)  # shape and dtype only
     linear_plan = replace(plan, image=exposure, responses=(response("linear"),) * channels)
     exposures = [rt.buffer(f"exposure_{k}", h * w * channels * 4) for k in range(2)]
-    out_dtype = np.float32 if OUT_KINDS[img.dtype] == OUT_F32 else img.dtype
-    out = None
-    if rt.unified:
-        out = np.empty((h, w, channels), dtype=out_dtype)
-        out_buf = rt.wrap(out)
-    else:
-        out_buf = rt.buffer("output", h * w * channels * np.dtype(out_dtype).itemsize)
+    out, out_buf = output_target(rt, img)
     fields = []
     done: list = []
     for cbase, cg in response_pack.channel_groups(channels):
@@ -99,11 +92,4 @@ def run_bent(rt: Runtime, plan: BlurPlan, first: np.ndarray, second: np.ndarray,
         cl.wait_for_events(done)
     for field in fields:
         check_flow(rt, field)
-    if out is not None:
-        sync_host(rt, out_buf, out, done)
-    else:
-        out = np.empty((h, w, channels), dtype=out_dtype)
-        download(rt, out, out_buf, [(0, h)], done)
-    if img.dtype == np.float64:
-        out = out.astype(np.float64)
-    return plan.finish(out)
+    return collect_output(rt, plan, out, out_buf, [(0, h)], done)
