@@ -129,14 +129,36 @@ def boundary_mask(v: np.ndarray, anchor: float, tile: int = TILE,
     return np.repeat(np.repeat(flagged, tile, axis=0), tile, axis=1)[:h, :w]
 
 
+def _inverse_departure(v: np.ndarray, anchor: float) -> np.ndarray:
+    """How far (px, the larger of x and y) the first fixed-point step of the inverse motion
+    moves each pixel's reading position at the two ends of the shutter: ``|t| |D(p - D(p) t)
+    - D(p)|`` for ``t = -a`` and ``1 - a`` (vectors read bilinearly, edges repeated).  A
+    measure of the motion itself, so flow noise of a few tenths of a pixel stays far below
+    ``SPREAD_PX`` while a body that turns as it moves does not."""
+    import cv2
+
+    v = np.ascontiguousarray(v, np.float32)
+    h, w = v.shape[:2]
+    xs, ys = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    out = np.zeros((h, w), np.float32)
+    for t in (-anchor, 1.0 - anchor):
+        if t == 0.0:
+            continue
+        there = cv2.remap(v, xs - v[..., 0] * np.float32(t), ys - v[..., 1] * np.float32(t),
+                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        np.maximum(out, abs(t) * np.abs(there - v).max(axis=2), out=out)
+    return out
+
+
 def region_mask(v: np.ndarray, anchor: float, tile: int = TILE,
                 spread: float = SPREAD_PX) -> np.ndarray:
     """The pixels that take the layered path: the flagged tiles of :func:`boundary_mask`,
     narrowed to the pixels within ``R + 2`` of a motion edge (a pixel whose 3 x 3
     neighbourhood's vectors differ by more than ``spread`` in x or y) and the pixels whose
-    vectors turn or stretch enough that the inverse motion departs from their own vector (the
-    3 x 3 difference, over its 2 px, times ``R`` beyond ``spread``).  Elsewhere every surface
-    that can reach a pixel moves as the pixel does, and the gather is kept."""
+    inverse motion departs from their own vector by more than ``spread`` in x or y (one
+    fixed-point step at either end of the shutter, :func:`_inverse_departure`: inside a
+    turning or stretching object).  Elsewhere every surface that can reach a pixel moves as
+    the pixel does, and the gather is kept."""
     import cv2
     from scipy.ndimage import maximum_filter, minimum_filter
 
@@ -152,7 +174,6 @@ def region_mask(v: np.ndarray, anchor: float, tile: int = TILE,
     c0, c1 = max(cols[0] * tile - margin, 0), min((cols[-1] + 1) * tile + margin, w)
     crop = v[r0:r1, c0:c1]
     edge = np.zeros(crop.shape[:2], bool)
-    warped = np.zeros(crop.shape[:2], bool)
     square = np.ones((3, 3), np.uint8)
     for c in range(2):
         comp = np.ascontiguousarray(crop[..., c])
@@ -164,7 +185,7 @@ def region_mask(v: np.ndarray, anchor: float, tile: int = TILE,
             spread_c = (maximum_filter(comp, size=3, mode="nearest")
                         - minimum_filter(comp, size=3, mode="nearest"))
         edge |= spread_c > spread
-        warped |= spread_c * (0.5 * r) > spread
+    warped = _inverse_departure(crop, anchor) > spread
     if edge.any() or warped.any():
         near = distance_to(edge) <= r + 2.0 if edge.any() else warped
         tiles = flagged[(np.arange(r0, r1) // tile)[:, None], (np.arange(c0, c1) // tile)]
