@@ -129,24 +129,35 @@ def boundary_mask(v: np.ndarray, anchor: float, tile: int = TILE,
     return np.repeat(np.repeat(flagged, tile, axis=0), tile, axis=1)[:h, :w]
 
 
-def _inverse_departure(v: np.ndarray, anchor: float) -> np.ndarray:
+def _inverse_departure(v: np.ndarray, anchor: float, at: tuple[np.ndarray, np.ndarray]
+                       ) -> np.ndarray:
     """How far (px, the larger of x and y) the first fixed-point step of the inverse motion
-    moves each pixel's reading position at the two ends of the shutter: ``|t| |D(p - D(p) t)
-    - D(p)|`` for ``t = -a`` and ``1 - a`` (vectors read bilinearly, edges repeated).  A
-    measure of the motion itself, so flow noise of a few tenths of a pixel stays far below
-    ``SPREAD_PX`` while a body that turns as it moves does not."""
+    moves the reading positions of the pixels ``at`` (rows, cols) at the two ends of the
+    shutter: ``|t| |D(p - D(p) t) - D(p)|`` for ``t = -a`` and ``1 - a`` (vectors read
+    bilinearly, edges repeated).  A measure of the motion itself, so flow noise of a few
+    tenths of a pixel stays far below ``SPREAD_PX`` while a body that turns as it moves does
+    not."""
     import cv2
 
     v = np.ascontiguousarray(v, np.float32)
-    h, w = v.shape[:2]
-    xs, ys = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
-    out = np.zeros((h, w), np.float32)
+    own = v[at]
+    n = own.shape[0]
+    ys, xs = (a.astype(np.float32) for a in at)
+    out = np.zeros(n, np.float32)
+    # cv2.remap takes maps narrower than 2^15: the positions as rows of at most 4096
+    width = max(min(n, 4096), 1)
+    pad = -n % width
+
+    def rows(a: np.ndarray) -> np.ndarray:
+        return np.pad(a, (0, pad)).reshape(-1, width)
     for t in (-anchor, 1.0 - anchor):
-        if t == 0.0:
+        if t == 0.0 or not n:
             continue
-        there = cv2.remap(v, xs - v[..., 0] * np.float32(t), ys - v[..., 1] * np.float32(t),
-                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        np.maximum(out, abs(t) * np.abs(there - v).max(axis=2), out=out)
+        mx = rows(xs - own[:, 0] * np.float32(t))
+        my = rows(ys - own[:, 1] * np.float32(t))
+        there = cv2.remap(v, mx, my, cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_REPLICATE).reshape(-1, 2)[:n]
+        np.maximum(out, abs(t) * np.abs(there - own).max(axis=1), out=out)
     return out
 
 
@@ -174,6 +185,7 @@ def region_mask(v: np.ndarray, anchor: float, tile: int = TILE,
     c0, c1 = max(cols[0] * tile - margin, 0), min((cols[-1] + 1) * tile + margin, w)
     crop = v[r0:r1, c0:c1]
     edge = np.zeros(crop.shape[:2], bool)
+    varies = np.zeros(crop.shape[:2], bool)
     square = np.ones((3, 3), np.uint8)
     for c in range(2):
         comp = np.ascontiguousarray(crop[..., c])
@@ -185,11 +197,15 @@ def region_mask(v: np.ndarray, anchor: float, tile: int = TILE,
             spread_c = (maximum_filter(comp, size=3, mode="nearest")
                         - minimum_filter(comp, size=3, mode="nearest"))
         edge |= spread_c > spread
-    warped = _inverse_departure(crop, anchor) > spread
-    if edge.any() or warped.any():
-        near = distance_to(edge) <= r + 2.0 if edge.any() else warped
-        tiles = flagged[(np.arange(r0, r1) // tile)[:, None], (np.arange(c0, c1) // tile)]
-        out[r0:r1, c0:c1] = (near | warped) & tiles
+        varies |= spread_c > 0
+    near = distance_to(edge) <= r + 2.0 if edge.any() else np.zeros(edge.shape, bool)
+    # Away from motion edges, only a pixel whose vectors vary around it can read points its
+    # own vector does not (a smooth field with a flat 3 x 3 patch is taken as translating)
+    at = np.nonzero(varies & ~near)
+    warped = np.zeros(edge.shape, bool)
+    warped[at] = _inverse_departure(crop, anchor, at) > spread
+    tiles = flagged[(np.arange(r0, r1) // tile)[:, None], (np.arange(c0, c1) // tile)]
+    out[r0:r1, c0:c1] = (near | warped) & tiles
     return out
 
 

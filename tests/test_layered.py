@@ -118,6 +118,26 @@ def test_region_takes_the_inside_of_a_turning_object(rng):
         assert not layered.region_mask(flow.astype(np.float32), 0.5)[inside].any()
 
 
+def test_inverse_departure_of_many_pixels():
+    """layered_exposure._inverse_departure against a direct evaluation, for more pixels than
+    one cv2.remap row may hold (2^15)."""
+    from scipy.ndimage import map_coordinates
+
+    h, w = 200, 220
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    v = np.stack([12 - (yy - 100) * 0.3, (xx - 110) * 0.3 + 0.01 * xx], -1).astype(np.float32)
+    at = np.nonzero(np.ones((h, w), bool))
+    got = layered._inverse_departure(v, 0.5, at)
+    want = np.zeros(h * w)
+    for t in (-0.5, 0.5):
+        pos = [yy - v[..., 1] * t, xx - v[..., 0] * t]
+        there = np.stack([map_coordinates(v[..., c], pos, order=1, mode="nearest")
+                          for c in range(2)], -1)
+        want = np.maximum(want, abs(t) * np.abs(there - v).max(axis=2).ravel())
+    assert got.shape == (h * w,)
+    np.testing.assert_allclose(got, want, atol=0.02)  # OpenCV's 1/32 px bilinear weights
+
+
 def test_layer_ids_order_like_depth(crossing):
     sc, frame, truth, flow, depth, swept = crossing
     ids = np.where(depth < 10, 0, np.where(depth < 50, 1, 2)).astype(np.int32)
