@@ -245,20 +245,21 @@ def composite(layers: Layers, anchor: float, samples: int | None, weights: np.nd
     den = np.maximum(n - 1, 1)
     channels = layers.linear.shape[2]
     acc = np.zeros((h, w, channels))
+    vectors = [d.astype(np.float64) for d in layers.vectors]  # once, not per sample
     for j in range(int(n.max())):
         active = j < n
         num = j - anchor * (n - 1)
         left = np.ones((h, w, 1))
         e = np.zeros((h, w, channels))
-        for plane, d, there, warped in zip(layers.planes, layers.vectors, layers.present,
+        for plane, d, there, warped in zip(layers.planes, vectors, layers.present,
                                            layers.warped, strict=True):
-            x = xx - (d[..., 0].astype(np.float64) * num) / den
-            y = yy - (d[..., 1].astype(np.float64) * num) / den
+            x = xx - (d[..., 0] * num) / den
+            y = yy - (d[..., 1] * num) / den
             if warped:
                 # inverse motion (module Conventions): the layer point at p at this sample
                 # is q = p - D_k(q) t; fixed-point steps from q = p - D_k(p) t
                 for _ in range(INVERSE_STEPS):
-                    dq = lerp_at(d.astype(np.float64), x, y, layers.origin, full_shape)
+                    dq = lerp_at(d, x, y, layers.origin, full_shape)
                     x = xx - (dq[..., 0] * num) / den
                     y = yy - (dq[..., 1] * num) / den
             s = bilinear_at(plane, x, y, layers.origin, full_shape) * there[..., None]

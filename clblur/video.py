@@ -113,7 +113,8 @@ def blur_frame(frame: np.ndarray, backward: np.ndarray | None, forward: np.ndarr
     # The plan carries the frame, responses and saturation; the motion is the bent path the
     # integrator below closes over (the plan's own motion is not used).
     plan = make_plan(frame, (0.0, 0.0), response, saturation=saturation)
-    if not layers and resolve_backend(backend, device) == "opencl":
+    backend = resolve_backend(backend, device)  # once per frame, not once per half
+    if not layers and backend == "opencl":
         # the whole bent path on the device: one upload, one download per frame
         from clblur.opencl.bent_path import blur_bent
 
