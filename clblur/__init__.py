@@ -5,6 +5,7 @@ Importing clblur creates no OpenCL context; the backend creates one lazily, once
 
 from clblur.blur import blur
 from clblur.motion import PSF, Field, Uniform
+from clblur.render_layers import blur_layers
 from clblur.responses import (
     SRGB,
     Exp,
@@ -18,5 +19,5 @@ from clblur.responses import (
 
 __version__ = "0.1.0"
 
-__all__ = ["blur", "response", "load_response", "Response", "Linear", "Exp", "Gamma", "SRGB",
-           "Table", "Uniform", "Field", "PSF", "__version__"]
+__all__ = ["blur", "blur_layers", "response", "load_response", "Response", "Linear", "Exp",
+           "Gamma", "SRGB", "Table", "Uniform", "Field", "PSF", "__version__"]

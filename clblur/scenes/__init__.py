@@ -64,8 +64,8 @@ from clblur.scenes.description import (
     star_mask,
     wave_texture,
 )
-from clblur.scenes.renderer import Render, psnr, render
+from clblur.scenes.renderer import Render, object_layers, psnr, render
 
 __all__ = ["Texture", "wave_texture", "flat_texture", "Disc", "Rect", "MaskShape", "star_mask",
-           "SceneObject", "Background", "Scene", "Render", "render", "psnr",
+           "SceneObject", "Background", "Scene", "Render", "render", "object_layers", "psnr",
            "frame_displacements", "example_scenes"]

@@ -21,7 +21,7 @@ from clblur.pixels import imax, quantise
 from clblur.responses import Response, per_channel
 from clblur.scenes.description import Scene, SceneObject
 
-__all__ = ["Render", "render", "psnr"]
+__all__ = ["Render", "object_layers", "render", "psnr"]
 
 
 @dataclass(eq=False)
@@ -211,6 +211,64 @@ def render(scene: Scene, response="srgb", dtype=np.uint8, *, samples: int = 64,
                   hidden=(hid_acc / samples).astype(np.float32),
                   response=resp, samples=samples)
 
+
+
+def object_layers(scene: Scene, response="srgb", dtype=np.uint8, *, spp: int = 2,
+                  channels: int = 3, overscan: int = 0) -> list[tuple[np.ndarray, np.ndarray,
+                                                                           np.ndarray, np.ndarray]]:
+    """The scene as a multi-layer render at t = 0: every object alone, then the background.
+
+    Front to back, one ``(image, flow, first, second)`` per layer, ``overscan`` pixels beyond
+    the frame on every side: ``image`` is H x W x (C + 1) in ``dtype``, colour through the
+    response then coverage (straight alpha for integer dtypes, premultiplied for float: the
+    convention of ``clblur.blur_layers``), the object's coverage anti-aliased as ``render``'s
+    sharp frame; ``flow``, ``first`` and ``second`` are its vectors at the centres of the
+    pixels it covers at all (its rigid motion there; zero elsewhere), as ``render`` defines
+    them.  The background layer is opaque.
+    """
+    h, w, m = scene.height + 2 * overscan, scene.width + 2 * overscan, overscan
+    resp = per_channel(response, channels)
+    x, y = _grid(h, w, spp)
+    x, y = x - m, y - m  # scene coordinates
+    yc, xc = (a.astype(np.float64) - m for a in np.mgrid[0:h, 0:w])
+    bvx, bvy = scene.background.velocity
+
+    def encode(premultiplied: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+        straight = dtype is not None and np.dtype(dtype).kind == "u"
+        colour = premultiplied / np.where(alpha > 0, alpha, 1.0)[..., None] if straight \
+            else premultiplied
+        out = np.empty(colour.shape[:2] + (channels + 1,))
+        for c, r in enumerate(resp):
+            out[..., c] = r.forward(colour[..., c])
+        out[..., channels] = alpha
+        if straight:
+            out[alpha == 0] = 0.0
+        return quantise(out, dtype)
+
+    layers = []
+    for i in sorted(range(len(scene.objects)), key=lambda i: scene.objects[i].depth):
+        obj = scene.objects[i]
+        u, v = obj.to_local(x, y, 0.0)
+        inside = obj.shape.inside(u, v)
+        light = np.zeros(x.shape + (channels,))
+        light[inside] = obj.texture(u[inside], v[inside])
+        alpha = inside.mean(axis=2)
+        vec = np.zeros((3, h, w, 2))
+        # the body's motion at every pixel it covers at all (a rigid motion is defined at the
+        # centre of a rim pixel too, whether or not the shape contains that point)
+        u, v = obj.to_local(xc, yc, 0.0)
+        at = alpha > 0
+        u, v = u[at], v[at]
+        if at.any():
+            p = {t: np.stack(obj.to_screen(u, v, t), axis=-1) for t in (-0.5, 0.0, 0.5)}
+            vec[0][at], vec[1][at], vec[2][at] = p[0.5] - p[-0.5], p[0.0] - p[-0.5], \
+                p[0.5] - p[0.0]
+        layers.append((encode(light.mean(axis=2), alpha), *vec.astype(np.float32)))
+    plate = scene.background.texture(x, y).mean(axis=2)
+    full = np.empty((h, w, 2), np.float32)
+    full[...] = (bvx, bvy)
+    layers.append((encode(plate, np.ones((h, w))), full, full / 2, full / 2))
+    return layers
 
 
 def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:

@@ -1,0 +1,142 @@
+"""Multi-layer renders (``clblur.blur_layers``): each object its own layer, nothing hidden."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+import clblur
+from clblur.errors import InputError
+from clblur.scenes import example_scenes, object_layers, psnr, render
+
+
+@pytest.fixture(scope="module")
+def crossing():
+    """The study's crossing with the fast disc behind, smaller: truth and its layers."""
+    scene = example_scenes(160, 112)["crossing_fast_behind"]
+    return scene, render(scene, "srgb", np.uint8, samples=48), object_layers(scene, "srgb")
+
+
+def straight(layers):
+    return [(image, flow) for image, flow, _, _ in layers]
+
+
+def bent(layers):
+    return [(image, (first, second)) for image, _, first, second in layers]
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.float32])
+def test_one_layer_is_the_gather_with_alpha(dtype, rng):
+    """One layer, translating: the composite of one plane along its vector is the gather of
+    the premultiplied image, which is what ``blur(..., alpha=True)`` does (any coverage)."""
+    image = rng.random((30, 40, 4))
+    image = (image * 255).astype(np.uint8) if dtype == np.uint8 else image.astype(dtype)
+    flow = np.empty((30, 40, 2), np.float32)
+    flow[...] = (5.5, -2.0)
+    for motion in (flow, (5.5, -2.0)):
+        for anchor in ("center", "start"):
+            want = clblur.blur(image, motion, "srgb", alpha=True, anchor=anchor,
+                               backend="numpy")
+            got = clblur.blur_layers([(image, motion)], "srgb", anchor=anchor, backend="numpy")
+            np.testing.assert_array_equal(got, want)
+
+
+def test_still_layers_are_composited_over(rng):
+    """No motion: the front layer over the back one, in linear light (premultiplied float)."""
+    front = rng.random((20, 24, 4)).astype(np.float32)
+    front[..., :3] *= front[..., 3:]  # premultiplied
+    back = rng.random((20, 24, 4)).astype(np.float32)
+    back[..., 3] = 1.0
+    zero = np.zeros((20, 24, 2), np.float32)
+    got = clblur.blur_layers([(front, zero), (back, zero)], "linear", backend="numpy")
+    want = front + (1.0 - front[..., 3:]) * back
+    np.testing.assert_allclose(got, want, atol=1e-6)
+
+
+def test_a_crossing_behind_is_right_from_its_layers(crossing):
+    """The far, fast disc passes behind the near one; part of it is hidden at the frame time.
+    From one frame and its depth that part is a guess; from the layers it is known."""
+    scene, truth, layers = crossing
+    swept = truth.swept
+    from_layers = psnr(clblur.blur_layers(bent(layers), "srgb", backend="numpy")[..., :3],
+                       truth.image, swept)
+    from_frame = psnr(clblur.blur(truth.sharp, truth.flow, "srgb", depth=truth.depth,
+                                  backend="numpy"), truth.image, swept)
+    assert from_layers >= 44.0
+    assert from_layers > from_frame + 3.0
+    # the order is what makes it right: the far disc listed first paints over the near one
+    swapped = [layers[1], layers[0], layers[2]]
+    wrong = psnr(clblur.blur_layers(bent(swapped), "srgb", backend="numpy")[..., :3],
+                 truth.image, swept)
+    assert wrong < from_layers - 10.0
+
+
+def test_overscan_brings_in_what_enters_the_frame():
+    """A star leaving the frame: its parts outside the frame at the frame time were inside
+    earlier in the shutter.  Layers with overscan hold them; the output keeps the frame's size."""
+    scene = example_scenes(160, 112)["star_leaving"]
+    truth = render(scene, "srgb", np.uint8, samples=48)
+    edge = np.zeros(truth.swept.shape, bool)
+    edge[:, -12:] = True
+    edge &= truth.swept
+    scores = {}
+    for m in (0, 24):
+        out = clblur.blur_layers(bent(object_layers(scene, "srgb", overscan=m)), "srgb",
+                                 overscan=m, backend="numpy")
+        assert out.shape == truth.image.shape[:2] + (4,)
+        scores[m] = psnr(out[..., :3], truth.image, edge)
+    assert scores[24] > scores[0] + 3.0
+
+
+def test_transparent_layers_leave_coverage(crossing):
+    """Without the background layer the result is the objects' premultiplied exposure: its
+    coverage is the shutter-averaged coverage of the objects (the renderer's, within the
+    rounding of the coverage and the sampling of the rims)."""
+    scene, truth, layers = crossing
+    floats = object_layers(scene, "srgb", np.float32)[:-1]
+    out = clblur.blur_layers(bent(floats), "srgb", backend="numpy")
+    err = np.abs(out[..., 3] - truth.exposure_alpha)
+    assert err.mean() < 2e-3 and np.percentile(err, 99) < 0.05
+    assert out[..., 3].max() <= 1.0 + 1e-6
+
+
+def test_bad_layers_are_one_line_errors(rng):
+    image = rng.random((10, 12, 4)).astype(np.float32)
+    flow = np.zeros((10, 12, 2), np.float32)
+    cases = {
+        "non-empty list": [],
+        "(image, motion) pair": [(image,)],
+        "mix straight and bent": [(image, flow), (image, (flow, flow))],
+        "layers must match": [(image, flow), (image[:9], flow[:9])],
+        "pair (first, second)": [(image, (flow, flow, flow))],
+    }
+    for words, layers in cases.items():
+        with pytest.raises(InputError, match=re.escape(words)):
+            clblur.blur_layers(layers, "srgb", backend="numpy")
+    with pytest.raises(InputError, match="overscan"):
+        clblur.blur_layers([(image, flow)], "srgb", overscan=5, backend="numpy")
+    with pytest.raises(InputError, match="overscan"):
+        clblur.blur_layers([(image, flow)], "srgb", overscan=-1, backend="numpy")
+    with pytest.raises(InputError, match="bent"):
+        clblur.blur_layers([(image, (flow, flow))], "srgb", weights=[1, 2, 1], backend="numpy")
+    with pytest.raises(ValueError, match="NaN"):
+        clblur.blur_layers([(image, np.full_like(flow, np.nan))], "srgb", backend="numpy")
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.float32])
+def test_opencl_render_layers_match_the_reference(opencl, dtype):
+    """The device composite of multi-layer renders within docs/tolerances.md ("Layered
+    exposure"): straight and bent, overscan, a turning object."""
+    for name in ("crossing_fast_behind", "spinning_rect"):
+        scene = example_scenes(160, 112)[name]
+        layers = object_layers(scene, "srgb", dtype, overscan=6)
+        for form in (straight, bent):
+            ref = clblur.blur_layers(form(layers), "srgb", overscan=6, backend="numpy")
+            got = clblur.blur_layers(form(layers), "srgb", overscan=6, backend="opencl")
+            if dtype == np.uint8:
+                d = np.abs(ref.astype(np.int64) - got)
+                assert d.max() <= 1 and (d > 0).mean() <= 0.02
+            else:
+                np.testing.assert_allclose(got, ref, atol=2e-5, rtol=1e-5)
