@@ -140,3 +140,29 @@ def test_opencl_render_layers_match_the_reference(opencl, dtype):
                 assert d.max() <= 1 and (d > 0).mean() <= 0.02
             else:
                 np.testing.assert_allclose(got, ref, atol=2e-5, rtol=1e-5)
+
+
+def test_command_line_blurs_layer_files(tmp_path, crossing, capsys):
+    """``clblur blur-layers``: PNG layers with .npy vectors give the library's result; bad
+    layers are one line and exit code 2."""
+    from clblur.cli import main
+    from clblur.io import read_image, write_image
+
+    _, _, layers = crossing
+    argv = ["blur-layers", str(tmp_path / "out.png"), "--response", "srgb",
+            "--backend", "numpy"]
+    for i, (image, flow, _, _) in enumerate(layers):
+        write_image(tmp_path / f"layer{i}.png", image)
+        np.save(tmp_path / f"layer{i}.npy", flow)
+        argv += ["--layer", str(tmp_path / f"layer{i}.png"), str(tmp_path / f"layer{i}.npy")]
+    assert main(argv) == 0
+    want = clblur.blur_layers(straight(layers), "srgb", backend="numpy")
+    np.testing.assert_array_equal(read_image(tmp_path / "out.png"), want)
+    write_image(tmp_path / "rgb.png", layers[0][0][..., :3])
+    capsys.readouterr()
+    bad = ["blur-layers", str(tmp_path / "bad.png"), "--backend", "numpy",
+           "--layer", str(tmp_path / "rgb.png"), str(tmp_path / "layer0.npy")]
+    assert main(bad) == 2
+    err = capsys.readouterr().err.strip()
+    assert "alpha" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "bad.png").exists()

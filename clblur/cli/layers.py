@@ -1,0 +1,63 @@
+"""``clblur blur-layers OUT --layer IMAGE VECTORS ...``: a multi-layer render, front to back."""
+
+from __future__ import annotations
+
+import argparse
+
+from clblur.cli.options import add_blur_options, blur_options, check_device, check_response
+from clblur.errors import InputError
+
+__all__ = ["register", "run"]
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "blur-layers", help="blur a multi-layer render: each layer with its own vectors",
+        description="Motion blur of a multi-layer render (clblur.blur_layers): every layer "
+                    "(an RGBA image: straight alpha for 8/16-bit files, premultiplied for "
+                    "float) moves along its own vectors and the layers occlude each other "
+                    "front to back at every shutter sample, in linear light.")
+    p.add_argument("output")
+    p.add_argument("--layer", nargs=2, action="append", required=True,
+                   metavar=("IMAGE", "VECTORS"),
+                   help="one layer, nearest first (repeat the option): an RGBA image and its "
+                        "vectors (.npy H x W x 2, .flo or EXR, in the --vectors convention)")
+    add_blur_options(p)
+    p.add_argument("--vectors", choices=["clblur", "blender", "nuke"], default="clblur",
+                   help="convention of the vector files (default clblur; see docs/model.md)")
+    p.add_argument("--vector-shutter", type=float, default=0.5, metavar="FRAMES",
+                   help="with --vectors blender|nuke: centred shutter in frames (default 0.5)")
+    p.add_argument("--overscan", type=int, default=0, metavar="PX",
+                   help="pixels by which the layers extend beyond the output on every side "
+                        "(default 0)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import clblur
+    from clblur.io import IMAGE_FORMATS, check_output, read_flow, read_image, write_image
+
+    paths = [p for pair in args.layer for p in pair]
+    check_output(args.output, *paths, suffixes=tuple(IMAGE_FORMATS))
+    check_response(args.response)
+    check_device(args)
+    layers = []
+    for image_path, vector_path in args.layer:
+        image = read_image(image_path)
+        if image.ndim != 3 or image.shape[2] not in (2, 4):
+            raise InputError(f"layer {image_path}: needs colour and alpha (2 or 4 channels), "
+                             f"got shape {image.shape}")
+        if args.vectors == "clblur":
+            flow = read_flow(vector_path)
+        else:
+            from clblur.vectors import load_flow
+
+            flow = load_flow(vector_path, args.vectors, args.vector_shutter)
+        layers.append((image, flow))
+    if layers[0][0].dtype.kind == "f" and not args.output.lower().endswith(
+            (".tif", ".tiff", ".exr")):
+        raise InputError(f"{args.output} cannot hold float images; write .tif, .tiff or .exr")
+    out = clblur.blur_layers(layers, **blur_options(args), overscan=args.overscan)
+    write_image(args.output, out)
+    print(f"wrote {args.output}")
+    return 0
