@@ -158,11 +158,17 @@ def test_command_line_blurs_layer_files(tmp_path, crossing, capsys):
     assert main(argv) == 0
     want = clblur.blur_layers(straight(layers), "srgb", backend="numpy")
     np.testing.assert_array_equal(read_image(tmp_path / "out.png"), want)
-    write_image(tmp_path / "rgb.png", layers[0][0][..., :3])
+    # an RGB layer is opaque: the background without its alpha channel gives the same
+    write_image(tmp_path / "rgb.png", layers[-1][0][..., :3])
+    rgb = argv[:-2] + [str(tmp_path / "rgb.png"), argv[-1]]
+    rgb[1] = str(tmp_path / "out_rgb.png")
+    assert main(rgb) == 0
+    np.testing.assert_array_equal(read_image(tmp_path / "out_rgb.png"), want)
+    write_image(tmp_path / "small.png", layers[0][0][1:])
     capsys.readouterr()
     bad = ["blur-layers", str(tmp_path / "bad.png"), "--backend", "numpy",
-           "--layer", str(tmp_path / "rgb.png"), str(tmp_path / "layer0.npy")]
+           "--layer", str(tmp_path / "small.png"), str(tmp_path / "layer0.npy")]
     assert main(bad) == 2
     err = capsys.readouterr().err.strip()
-    assert "alpha" in err and len(err.splitlines()) == 1
+    assert "shape" in err and len(err.splitlines()) == 1
     assert not (tmp_path / "bad.png").exists()

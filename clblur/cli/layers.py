@@ -20,8 +20,9 @@ def register(sub) -> None:
     p.add_argument("output")
     p.add_argument("--layer", nargs=2, action="append", required=True,
                    metavar=("IMAGE", "VECTORS"),
-                   help="one layer, nearest first (repeat the option): an RGBA image and its "
-                        "vectors (.npy H x W x 2, .flo or EXR, in the --vectors convention)")
+                   help="one layer, nearest first (repeat the option): an image with alpha (without "
+                        "alpha: opaque, e.g. the background) and its vectors (.npy H x W x 2, "
+                        ".flo or EXR, in the --vectors convention)")
     add_blur_options(p)
     p.add_argument("--vectors", choices=["clblur", "blender", "nuke"], default="clblur",
                    help="convention of the vector files (default clblur; see docs/model.md)")
@@ -31,6 +32,17 @@ def register(sub) -> None:
                    help="pixels by which the layers extend beyond the output on every side "
                         "(default 0)")
     p.set_defaults(func=run)
+
+
+def _opaque(image):
+    """``image`` with a full-coverage alpha channel appended."""
+    import numpy as np
+
+    from clblur.pixels import imax
+
+    image = image.reshape(image.shape[:2] + (-1,))
+    full = imax(image.dtype) if image.dtype.kind == "u" else 1.0
+    return np.concatenate([image, np.full(image.shape[:2] + (1,), full, image.dtype)], axis=2)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -44,9 +56,11 @@ def run(args: argparse.Namespace) -> int:
     layers = []
     for image_path, vector_path in args.layer:
         image = read_image(image_path)
-        if image.ndim != 3 or image.shape[2] not in (2, 4):
-            raise InputError(f"layer {image_path}: needs colour and alpha (2 or 4 channels), "
-                             f"got shape {image.shape}")
+        if image.ndim == 2 or image.shape[2] in (1, 3):
+            image = _opaque(image)  # grey or RGB: a layer that covers every pixel
+        elif image.shape[2] not in (2, 4):
+            raise InputError(f"layer {image_path}: expected grey or RGB, with or without "
+                             f"alpha, got {image.shape[2]} channels")
         if args.vectors == "clblur":
             flow = read_flow(vector_path)
         else:

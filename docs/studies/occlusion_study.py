@@ -12,9 +12,11 @@ DIS flows, same bent path) with a depth proxy for the depth layers.
 
 Methods: ``gather`` is ``clblur.blur``; ``speed layers`` is ``clblur.blur(..., depth="speed")``,
 what ``clblur video --layers`` runs; ``depth layers`` is ``clblur.blur(..., depth=depth)`` and
-``depth layers + clean plate`` adds ``background=plate``.  The two-layer speed exposure that
-``clblur video --layers`` ran before the layered integrator (``clblur/video_layers.py``) was
-scored by this script at commit fdb19ad: ``figures/occlusion/results_video_layers.json``.
+``depth layers + clean plate`` adds ``background=plate``; ``render layers`` blurs the
+scene's multi-layer render (every object alone, then the background: ``clblur.blur_layers``).
+The two-layer speed exposure that ``clblur video --layers`` ran before the layered
+integrator (``clblur/video_layers.py``) was scored by this script at commit fdb19ad:
+``figures/occlusion/results_video_layers.json``.
 
 Run:  python docs/studies/occlusion_study.py [--backend numpy] [--samples 128] [--no-gopro]
 Writes docs/studies/figures/occlusion/{results.json,*.png} and prints the tables.
@@ -50,8 +52,10 @@ def plate_supported() -> bool:
     return "background" in inspect.signature(clblur.blur).parameters
 
 
-def methods_for(r: scenes.Render, backend: str) -> dict[str, np.ndarray]:
-    """Every method's blur of the sharp frame along the renderer's vectors."""
+def methods_for(r: scenes.Render, backend: str, scene: scenes.Scene | None = None,
+                spp: int = 2) -> dict[str, np.ndarray]:
+    """Every method's blur of the sharp frame along the renderer's vectors; with ``scene``,
+    also of the scene's multi-layer render (``clblur.blur_layers``)."""
     out = {"sharp frame (no blur)": r.sharp,
            "gather": clblur.blur(r.sharp, r.flow, RESPONSE, anchor="center", backend=backend)}
     # what clblur video --layers runs: layered exposure ordered by speed (faster = nearer)
@@ -80,6 +84,21 @@ def methods_for(r: scenes.Render, backend: str) -> dict[str, np.ndarray]:
         out["depth layers + clean plate"] = clblur.blur(
             r.sharp, r.flow, RESPONSE, anchor="center", backend=backend, depth=r.depth,
             background=r.plate)
+    if scene is not None and hasattr(clblur, "blur_layers"):
+        # a multi-layer render: every object alone as its own RGBA layer with its vectors,
+        # then the background alone (scenes.object_layers), so nothing hidden at the frame
+        # time is guessed; uint8 sRGB with straight alpha, as the sharp frame is
+        layers = scenes.object_layers(scene, RESPONSE, np.uint8, spp=spp)
+        out["render layers"] = clblur.blur_layers(
+            [(image, flow) for image, flow, _, _ in layers], RESPONSE, backend=backend)[..., :3]
+        # the same with the two halves and an overscan that holds whatever can enter the
+        # frame during the shutter: a bent half anchored at one end reaches its whole length
+        m = int(np.ceil(np.hypot(*np.concatenate([r.flow_first, r.flow_second]).reshape(
+            -1, 2).T).max())) + 2
+        layers = scenes.object_layers(scene, RESPONSE, np.uint8, spp=spp, overscan=m)
+        out["render layers, bent path, overscan"] = clblur.blur_layers(
+            [(image, (first, second)) for image, _, first, second in layers], RESPONSE,
+            overscan=m, backend=backend)[..., :3]
     return out
 
 
@@ -89,7 +108,7 @@ def scene_part(args, contrast: float = 0.6) -> tuple[dict, dict]:
         t0 = time.perf_counter()
         r = scenes.render(scene, RESPONSE, np.uint8, samples=args.samples, spp=args.spp)
         t1 = time.perf_counter()
-        got = methods_for(r, args.backend)
+        got = methods_for(r, args.backend, scene, args.spp)
         visible = r.swept & (r.hidden < HIDDEN_MAX)
         row = {"description": scene.description, "render_s": round(t1 - t0, 2),
                "swept_fraction": float(r.swept.mean()),
@@ -230,7 +249,8 @@ def figures(renders: dict, table: dict) -> None:
 
 def summarise(table: dict, gopro: dict | None, gentle: dict | None = None) -> str:
     ms = ["gather", "speed layers", "depth layers", "depth rank as layer IDs",
-          "depth layers, bent path", "depth layers + clean plate", "sharp frame (no blur)"]
+          "depth layers, bent path", "depth layers + clean plate", "render layers",
+          "render layers, bent path, overscan", "sharp frame (no blur)"]
 
     def cell(row, key, m):
         v = row[key].get(m)
