@@ -37,7 +37,10 @@ class Layers:
     bool, the pixels to composite; ``present``: K x h x w bool, whether layer ``k`` can cover
     the pixel at any sample (farther than its reach plus the bilinear footprint it reads only
     zeros, so skipping it changes nothing but the sample count); ``warped``: K bool, whether
-    layer ``k``'s vectors vary (not a rigid translation).  ``present`` holds values at the
+    layer ``k``'s vectors vary (not a rigid translation).  ``curvature``: None (straight
+    paths), or K x h x w x 2 float32 ``C_k``, the quadratic term of a curved path
+    (``clblur.layered_exposure``, curved paths; only ``clblur.render_layers`` builds it; a
+    layer is ``warped`` when its ``D_k`` or its ``C_k`` vary).  ``present`` holds values at the
     region's pixels only (False elsewhere: nothing reads it), and so do the ``vectors`` of a
     rigid layer; a warped layer's ``vectors`` cover the whole crop, because the composite
     reads them where its samples land (``clblur.layered_exposure``, inverse motion).
@@ -51,6 +54,7 @@ class Layers:
     region: np.ndarray
     present: np.ndarray
     warped: np.ndarray
+    curvature: np.ndarray | None = None
 
 
 # cv2's exact transform returns float32 distances; squared, they round back to the exact

@@ -46,6 +46,11 @@ Conventions
   vary).  ``p - D_k(p) t`` follows ``p``'s own point instead, which for a body that moves
   while it turns is off by about ``turn * |v| * t^2`` (the gather's error inside a spinning
   object).
+* **Curved paths** (``Layers.curvature``, built by ``clblur.render_layers`` from a bent
+  path's two halves): layer ``k`` moves along ``D_k t + C_k t^2``, ``t = (s_j - a)``, read at
+  the solution of ``q = p - D_k(q) t - C_k(q) t^2`` (the same fixed-point steps, ``C_k`` read
+  as ``D_k`` is), and a pixel's default sample count takes ``|D_k| + |C_k| / 2`` (a bound on
+  the path's length over a unit time span) in place of ``|D_k|``.
 * **What is behind an object is not in the image.**  Assumption: a hidden pixel of a farther
   layer looks like the nearest visible pixel of the layers at or behind it and moves with it
   (nearest-neighbour extension, ``scipy.ndimage.distance_transform_edt``), within
@@ -220,13 +225,18 @@ def counts(layers: Layers, samples: int | None,
     pick = (Ellipsis,) if at is None else tuple(at)
     flow = layers.flow[pick]
     n = sample_counts(flow[..., 0], flow[..., 1])
-    for d, there in zip(layers.vectors, layers.present, strict=True):
+    for k, (d, there) in enumerate(zip(layers.vectors, layers.present, strict=True)):
         # a layer that can reach the pixel: its D_k there (one layer at a time, only where
         # it is present: far fewer pixels than the crop times the layers)
         there = there[pick]
         if there.any():
             dk = d[pick][there]
-            n[there] = np.maximum(n[there], sample_counts(dk[:, 0], dk[:, 1]))
+            if layers.curvature is None:
+                n[there] = np.maximum(n[there], sample_counts(dk[:, 0], dk[:, 1]))
+            else:  # a curved path: |D_k| + |C_k| / 2 bounds its length (module Conventions)
+                ck = layers.curvature[k][pick][there].astype(np.float64)
+                length = np.hypot(dk[:, 0], dk[:, 1]) + 0.5 * np.hypot(ck[:, 0], ck[:, 1])
+                n[there] = np.maximum(n[there], sample_counts(length, 0.0 * length))
     return n
 
 
@@ -246,22 +256,33 @@ def composite(layers: Layers, anchor: float, samples: int | None, weights: np.nd
     channels = layers.linear.shape[2]
     acc = np.zeros((h, w, channels))
     vectors = [d.astype(np.float64) for d in layers.vectors]  # once, not per sample
+    curves = [None] * len(vectors) if layers.curvature is None else \
+        [c.astype(np.float64) for c in layers.curvature]
     for j in range(int(n.max())):
         active = j < n
         num = j - anchor * (n - 1)
+        tt = (num * num) / (den * den)  # t^2 of a curved path
         left = np.ones((h, w, 1))
         e = np.zeros((h, w, channels))
-        for plane, d, there, warped in zip(layers.planes, vectors, layers.present,
-                                           layers.warped, strict=True):
+        for plane, d, c, there, warped in zip(layers.planes, vectors, curves, layers.present,
+                                              layers.warped, strict=True):
             x = xx - (d[..., 0] * num) / den
             y = yy - (d[..., 1] * num) / den
+            if c is not None:
+                x = x - c[..., 0] * tt
+                y = y - c[..., 1] * tt
             if warped:
                 # inverse motion (module Conventions): the layer point at p at this sample
-                # is q = p - D_k(q) t; fixed-point steps from q = p - D_k(p) t
+                # is q = p - D_k(q) t (- C_k(q) t^2); fixed-point steps from the guess at p
                 for _ in range(INVERSE_STEPS):
                     dq = lerp_at(d, x, y, layers.origin, full_shape)
+                    if c is not None:
+                        cq = lerp_at(c, x, y, layers.origin, full_shape)
                     x = xx - (dq[..., 0] * num) / den
                     y = yy - (dq[..., 1] * num) / den
+                    if c is not None:
+                        x = x - cq[..., 0] * tt
+                        y = y - cq[..., 1] * tt
             s = bilinear_at(plane, x, y, layers.origin, full_shape) * there[..., None]
             e += left * s[..., :channels]
             left = left * (1.0 - s[..., channels:])

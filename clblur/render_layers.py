@@ -18,7 +18,9 @@ Conventions
   it takes the vector of its nearest such pixel), or a
   pair ``(first, second)`` for a bent path (``first`` ends at the frame time, ``second``
   starts there: ``clblur.vectors.blur_bent``'s convention, what Blender's Vector pass holds as
-  previous and next).  All layers have the same shape, dtype and form of motion.
+  previous and next), followed as two straight halves or, with ``curved=True``, as the
+  parabola through its three points (``clblur.layered_exposure``, curved paths).  All
+  layers have the same shape, dtype and form of motion.
 * Every shutter sample composites the layers front to back in linear light
   (``clblur.layered_exposure.composite``: inverse motion for layers whose vectors vary, the
   same sample positions and counts); coverage is composited as one more channel, so the result
@@ -67,11 +69,13 @@ def _field_of(plan: BlurPlan) -> np.ndarray:
 
 
 def layers_for(linear: Sequence[np.ndarray], flows: Sequence[np.ndarray], anchor: float,
-               region: np.ndarray) -> Layers:
+               region: np.ndarray,
+               curvature: Sequence[np.ndarray] | None = None) -> Layers:
     """The :class:`clblur.layer_planes.Layers` of a multi-layer render (module Conventions).
 
     ``linear``: per layer, H x W x (C + 1) premultiplied linear colour and coverage (float64);
-    ``flows``: per layer, H x W x 2 vectors; ``region``: the pixels to composite.  Each plane
+    ``flows``: per layer, H x W x 2 vectors; ``region``: the pixels to composite;
+    ``curvature``: per layer, the quadratic term of a curved path, or None.  Each plane
     carries its coverage twice, as light (so the composite sums it) and as coverage.
     """
     from scipy.ndimage import distance_transform_edt
@@ -82,7 +86,9 @@ def layers_for(linear: Sequence[np.ndarray], flows: Sequence[np.ndarray], anchor
     vectors = np.zeros((k, h, w, 2), np.float32)
     present = np.zeros((k, h, w), bool)
     warped = np.zeros(k, bool)
+    curves = None if curvature is None else np.zeros((k, h, w, 2), np.float32)
     at = np.nonzero(region)
+    span = max(anchor, 1.0 - anchor)
     for i, (lin, flow) in enumerate(zip(linear, flows, strict=True)):
         planes[i, ..., :cp] = lin
         planes[i, ..., cp] = lin[..., -1]
@@ -94,21 +100,29 @@ def layers_for(linear: Sequence[np.ndarray], flows: Sequence[np.ndarray], anchor
         solid = lin[..., -1] >= 0.5
         if not solid.any():
             solid = covered
-        own = flow[solid]
-        if (own == own[0]).all():
-            vectors[i] = own[0]  # one vector: a rigid translation
+        fields = [flow] if curvature is None else [flow, curvature[i]]
+        owns = [f[solid] for f in fields]
+        if all((own == own[0]).all() for own in owns):  # a rigid translation
+            vectors[i] = owns[0][0]
+            if curves is not None:
+                curves[i] = owns[1][0]
         else:
             nearest = distance_transform_edt(~solid, return_indices=True,
                                              return_distances=False)
             vectors[i] = flow[nearest[0], nearest[1]]
+            if curves is not None:
+                curves[i] = curvature[i][nearest[0], nearest[1]]
             warped[i] = True
         dist = distance_transform_edt(~covered)
         d = vectors[i][at]
-        farthest = np.hypot(d[:, 0], d[:, 1]) * max(anchor, 1.0 - anchor)
+        farthest = np.hypot(d[:, 0], d[:, 1]) * span
+        if curves is not None:
+            c = curves[i][at]
+            farthest += np.hypot(c[:, 0], c[:, 1]) * span * span
         present[i][at] = dist[at] <= farthest + 1.5  # a bilinear footprint reaches sqrt(2) px
     return Layers(origin=(0, 0), planes=planes, vectors=vectors,
                   flow=np.zeros((h, w, 2), np.float32), linear=np.zeros((h, w, cp)),
-                  region=region, present=present, warped=warped)
+                  region=region, present=present, warped=warped, curvature=curves)
 
 
 def _composite(layers: Layers, plan: BlurPlan, backend: str, device: str | None) -> np.ndarray:
@@ -130,7 +144,7 @@ def _composite(layers: Layers, plan: BlurPlan, backend: str, device: str | None)
 
 def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "center",
                 samples: int | None = None, weights=None, overscan: int = 0,
-                backend: str = "auto", saturation: float = 1.0,
+                curved: bool = False, backend: str = "auto", saturation: float = 1.0,
                 device: str | None = None) -> np.ndarray:
     """Motion blur of a multi-layer render: each layer moves along its own vectors and the
     layers occlude each other front to back at every shutter sample, in linear light.
@@ -143,6 +157,10 @@ def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "cente
     response, samples, weights, saturation, backend, device : as ``clblur.blur``.
     anchor : as ``clblur.blur``, for straight motion; a bent path is anchored at its bend.
     overscan : pixels by which the layers extend beyond the output on every side.
+    curved : with a bent path, follow the parabola through its three points (the start, the
+        bend at the frame time, the end) instead of two straight halves: ``P(t) - P(0) =
+        (first + second) t + 2 (second - first) t^2``, ``t`` in [-1/2, 1/2] (constant
+        acceleration; Blender's Vector Blur "curved" option interpolates the same points).
 
     Returns
     -------
@@ -171,6 +189,8 @@ def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "cente
     bent = forms[0][0] == "bent"
     if bent and weights is not None:
         raise InputError("time weights apply to a straight path, not to a bent one")
+    if curved and not bent:
+        raise InputError("curved=True needs a bent path: give each layer (first, second)")
     first_image = np.asarray(layers[0][0])
     shape, dtype = first_image.shape, first_image.dtype
     for i, (image, _) in enumerate(layers):
@@ -196,7 +216,15 @@ def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "cente
     region = np.zeros((h, w), bool)
     region[overscan:h - overscan, overscan:w - overscan] = True
     acc = 0.0
-    for half in plans:
+    if curved:
+        from dataclasses import replace
+
+        first, second = ([_field_of(p).astype(np.float64) for p in half] for half in plans)
+        chord = [(f + s).astype(np.float32) for f, s in zip(first, second, strict=True)]
+        bend = [(2.0 * (s - f)).astype(np.float32) for f, s in zip(first, second, strict=True)]
+        stack = layers_for(linear, chord, 0.5, region, curvature=bend)
+        acc = _composite(stack, replace(plans[0][0], anchor=0.5), ran, device)
+    for half in [] if curved else plans:
         flows = [_field_of(p) for p in half]
         stack = layers_for(linear, flows, half[0].anchor, region)
         acc = acc + _composite(stack, half[0], ran, device) / len(plans)

@@ -20,9 +20,9 @@ def register(sub) -> None:
     p.add_argument("output")
     p.add_argument("--layer", nargs=2, action="append", required=True,
                    metavar=("IMAGE", "VECTORS"),
-                   help="one layer, nearest first (repeat the option): an image with alpha (without "
-                        "alpha: opaque, e.g. the background) and its vectors (.npy H x W x 2, "
-                        ".flo or EXR, in the --vectors convention)")
+                   help="one layer, nearest first (repeat the option): an image with alpha "
+                        "(without alpha: opaque, e.g. the background) and its vectors (.npy "
+                        "H x W x 2, .flo or EXR, in the --vectors convention)")
     add_blur_options(p)
     p.add_argument("--vectors", choices=["clblur", "blender", "nuke"], default="clblur",
                    help="convention of the vector files (default clblur; see docs/model.md)")

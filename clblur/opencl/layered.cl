@@ -19,6 +19,10 @@
  *   a + f (b - a) (exact where the corners are equal; clblur/reference.py lerp_at).
  * - warped: K flags; vectors of a warped layer cover the whole crop, those of a rigid one
  *   the listed pixels only.
+ * - Curved paths (curved != 0): curvature is K x h x w x 2, C_k laid out as vectors; the
+ *   path is D_k t + C_k t^2, read at q = p - D_k(q) t - C_k(q) t^2 (t^2 formed as
+ *   (num * num) / (den * den)); C_k is read where D_k is, in the same way.  curved == 0:
+ *   curvature is a placeholder and never read.
  * - Floating-point contraction is off: every a*b+c is rounded as written; the float4 path
  *   does per component exactly what the scalar path does.
  * - Once the layers in front leave no transmittance (T = 0 exactly: an opaque layer), the
@@ -99,14 +103,22 @@ static float2 sample_vector(__global const float *vec, taps t)
 }
 
 /* Where layer point at (px, py) at sample offset num / den was at the anchor time: the
- * fixed-point steps of the conventions, from the first guess (x, y). */
-static float2 inverse_motion(__global const float *vec, int h, int w, int r0, int c0, int fh,
-                             int fw, float px, float py, float num, float den, float x, float y)
+ * fixed-point steps of the conventions, from the first guess (x, y); curv (when curved) is
+ * the layer's C_k and tt the sample's t^2. */
+static float2 inverse_motion(__global const float *vec, __global const float *curv, int curved,
+                             int h, int w, int r0, int c0, int fh, int fw, float px, float py,
+                             float num, float den, float tt, float x, float y)
 {
     for (int it = 0; it < INVERSE_STEPS; ++it) {
-        float2 d = sample_vector(vec, locate(h, w, r0, c0, fh, fw, x, y));
+        taps at = locate(h, w, r0, c0, fh, fw, x, y);
+        float2 d = sample_vector(vec, at);
         x = px - (d.x * num) / den;
         y = py - (d.y * num) / den;
+        if (curved) {
+            float2 c = sample_vector(curv, at);
+            x = x - c.x * tt;
+            y = y - c.y * tt;
+        }
     }
     return (float2)(x, y);
 }
@@ -114,6 +126,7 @@ static float2 inverse_motion(__global const float *vec, int h, int w, int r0, in
 __kernel void composite_layers(__global const float *planes, __global const float *vectors,
                                __global const float *flow, __global const float *linear,
                                __global const uchar *present, __global const uchar *warped,
+                               __global const float *curvature, int curved,
                                __global const int *pix, __global const int *counts,
                                __global const float *weights, int weighted, int n,
                                int layers, int h, int w, int r0, int c0,
@@ -131,7 +144,7 @@ __kernel void composite_layers(__global const float *planes, __global const floa
     size_t at = (size_t)row * w + col;
     /* the layers that can reach this pixel, front to back, with their vectors */
     int use[MAXK];
-    float vx[MAXK], vy[MAXK];
+    float vx[MAXK], vy[MAXK], cx[MAXK], cy[MAXK];
     int m = 0;
     for (int k = 0; k < layers; ++k) {
         if (!present[(size_t)k * h * w + at])
@@ -139,6 +152,8 @@ __kernel void composite_layers(__global const float *planes, __global const floa
         use[m] = k;
         vx[m] = vectors[((size_t)k * h * w + at) * 2];
         vy[m] = vectors[((size_t)k * h * w + at) * 2 + 1];
+        cx[m] = curved ? curvature[((size_t)k * h * w + at) * 2] : 0.0f;
+        cy[m] = curved ? curvature[((size_t)k * h * w + at) * 2 + 1] : 0.0f;
         ++m;
     }
     float fx = flow[2 * at], fy = flow[2 * at + 1];
@@ -147,15 +162,22 @@ __kernel void composite_layers(__global const float *planes, __global const floa
         acc[c] = 0.0f;
     for (int j = 0; j < N; ++j) {
         float num = (float)j - anchor * (float)(N - 1);
+        float tt = (num * num) / (den * den);
         float left = 1.0f;
         for (int c = 0; c < channels; ++c)
             e[c] = 0.0f;
         for (int q = 0; q < m && left != 0.0f; ++q) {
             float x = px - (vx[q] * num) / den;
             float y = py - (vy[q] * num) / den;
+            if (curved) {
+                x = x - cx[q] * tt;
+                y = y - cy[q] * tt;
+            }
             if (warped[use[q]]) {
-                float2 at_q = inverse_motion(vectors + (size_t)use[q] * h * w * 2, h, w, r0,
-                                             c0, fh, fw, px, py, num, den, x, y);
+                size_t field = (size_t)use[q] * h * w * 2;
+                float2 at_q = inverse_motion(vectors + field, curvature + (curved ? field : 0),
+                                             curved, h, w, r0, c0, fh, fw, px, py, num, den,
+                                             tt, x, y);
                 x = at_q.x;
                 y = at_q.y;
             }
@@ -245,20 +267,21 @@ static void sample8(__global const float *img, int h, int w, int r0, int c0, int
 }
 
 /* inverse_motion per lane (the same float operations, so the layouts agree bit for bit). */
-static void inverse_motion8(__global const float *vec, int h, int w, int r0, int c0, int fh,
-                            int fw, float8 px, float8 py, float8 num, float8 den, float8 *x,
-                            float8 *y)
+static void inverse_motion8(__global const float *vec, __global const float *curv, int curved,
+                            int h, int w, int r0, int c0, int fh, int fw, float8 px, float8 py,
+                            float8 num, float8 den, float8 tt, float8 *x, float8 *y)
 {
-    float pxs[LANES], pys[LANES], nums[LANES], dens[LANES], xs[LANES], ys[LANES];
+    float pxs[LANES], pys[LANES], nums[LANES], dens[LANES], tts[LANES], xs[LANES], ys[LANES];
     vstore8(px, 0, pxs);
     vstore8(py, 0, pys);
     vstore8(num, 0, nums);
     vstore8(den, 0, dens);
+    vstore8(tt, 0, tts);
     vstore8(*x, 0, xs);
     vstore8(*y, 0, ys);
     for (int l = 0; l < LANES; ++l) {
-        float2 q = inverse_motion(vec, h, w, r0, c0, fh, fw, pxs[l], pys[l], nums[l], dens[l],
-                                  xs[l], ys[l]);
+        float2 q = inverse_motion(vec, curv, curved, h, w, r0, c0, fh, fw, pxs[l], pys[l],
+                                  nums[l], dens[l], tts[l], xs[l], ys[l]);
         xs[l] = q.x;
         ys[l] = q.y;
     }
@@ -269,6 +292,7 @@ static void inverse_motion8(__global const float *vec, int h, int w, int r0, int
 __kernel void composite_lanes(__global const float *planes, __global const float *vectors,
                               __global const float *flow, __global const float *linear,
                               __global const uchar *present, __global const uchar *warped,
+                              __global const float *curvature, int curved,
                               __global const int *chunks,
                               __global const int *counts, __global const float *weights,
                               int weighted, int n, int layers, int h, int w, int r0, int c0,
@@ -292,11 +316,12 @@ __kernel void composite_lanes(__global const float *planes, __global const float
     float8 fx = vload8(0, fxs), fy = vload8(0, fys);
     /* the layers that can reach any lane, front to back, with their vectors and lane masks */
     int use[MAXK];
-    float8 vx[MAXK], vy[MAXK];
+    float8 vx[MAXK], vy[MAXK], cx[MAXK], cy[MAXK];
     int8 there[MAXK];
     int m = 0;
     for (int k = 0; k < layers; ++k) {
         int flags[LANES];
+        float cxs[LANES], cys[LANES];
         int any = 0;
         for (int l = 0; l < LANES; ++l) {
             size_t at = (size_t)k * h * w + ats[l];
@@ -304,12 +329,16 @@ __kernel void composite_lanes(__global const float *planes, __global const float
             any |= flags[l];
             vxs[l] = vectors[2 * at];
             vys[l] = vectors[2 * at + 1];
+            cxs[l] = curved ? curvature[2 * at] : 0.0f;
+            cys[l] = curved ? curvature[2 * at + 1] : 0.0f;
         }
         if (!any)
             continue;
         use[m] = k;
         vx[m] = vload8(0, vxs);
         vy[m] = vload8(0, vys);
+        cx[m] = vload8(0, cxs);
+        cy[m] = vload8(0, cys);
         there[m] = vload8(0, flags);
         ++m;
     }
@@ -324,7 +353,8 @@ __kernel void composite_lanes(__global const float *planes, __global const float
     bool still[MAXK];
     float16 still_lo[MAXK], still_hi[MAXK];
     for (int q = 0; q < m; ++q) {
-        still[q] = all(vx[q] == 0.0f) && all(vy[q] == 0.0f);
+        still[q] = all(vx[q] == 0.0f) && all(vy[q] == 0.0f) && all(cx[q] == 0.0f) &&
+                   all(cy[q] == 0.0f);
         if (still[q]) {
             sample8(planes + use[q] * plane, h, w, r0, c0, fh, fw, px, py, &still_lo[q],
                     &still_hi[q]);
@@ -339,6 +369,7 @@ __kernel void composite_lanes(__global const float *planes, __global const float
     float16 acc_lo = 0.0f, acc_hi = 0.0f;
     for (int j = 0; j < nmax; ++j) {
         float8 num = (float8)((float)j) - anchor * n1;
+        float8 tt = (num * num) / (den * den);
         float8 left = 1.0f;
         float16 e_lo = 0.0f, e_hi = 0.0f, s_lo, s_hi;
         for (int q = 0; q < m; ++q) {
@@ -348,9 +379,15 @@ __kernel void composite_lanes(__global const float *planes, __global const float
             } else {
                 float8 x = px - (vx[q] * num) / den;
                 float8 y = py - (vy[q] * num) / den;
-                if (warped[use[q]])
-                    inverse_motion8(vectors + (size_t)use[q] * h * w * 2, h, w, r0, c0, fh, fw,
-                                    px, py, num, den, &x, &y);
+                if (curved) {
+                    x = x - cx[q] * tt;
+                    y = y - cy[q] * tt;
+                }
+                if (warped[use[q]]) {
+                    size_t field = (size_t)use[q] * h * w * 2;
+                    inverse_motion8(vectors + field, curvature + (curved ? field : 0), curved,
+                                    h, w, r0, c0, fh, fw, px, py, num, den, tt, &x, &y);
+                }
                 sample8(planes + use[q] * plane, h, w, r0, c0, fh, fw, x, y, &s_lo, &s_hi);
                 s_lo = select((float16)(0.0f), s_lo, SPREAD_LO(there[q]));
                 s_hi = select((float16)(0.0f), s_hi, SPREAD_HI(there[q]));
