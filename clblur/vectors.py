@@ -204,18 +204,22 @@ def read_vectors(path: str | os.PathLike, convention: str) -> dict[str, np.ndarr
 
 
 def load_flow(path: str | os.PathLike, convention: str = "clblur",
-              shutter: float = 0.5) -> np.ndarray:
+              shutter: float = 0.5, *, bent: bool = False):
     """clblur's straight flow (anchor ``center``) from a file in ``convention``
     (``clblur``: ``.npy``/``.flo``/``.exr`` flow as is; ``blender``/``nuke``: a vector pass
-    and a centred shutter of ``shutter`` frames)."""
+    and a centred shutter of ``shutter`` frames).  ``bent=True`` (a renderer's pass only):
+    the two halves ``(first, second)`` of the bent path instead."""
     if convention not in CONVENTIONS:
         raise ValueError(f"unknown vector convention {convention!r}; use one of "
                          f"{', '.join(CONVENTIONS)}")
     if convention == "clblur":
+        if bent:
+            raise ValueError("a bent path needs a renderer's vector pass (blender or nuke): "
+                             "a clblur flow is one straight vector per pixel")
         from clblur.io import read_flow
 
         return read_flow(path)
     v = read_vectors(path, convention)
     if convention == "blender":
-        return from_blender(v["pass"], shutter)
-    return from_nuke(v.get("forward"), v.get("backward"), shutter)
+        return from_blender(v["pass"], shutter, bent=bent)
+    return from_nuke(v.get("forward"), v.get("backward"), shutter, bent=bent)

@@ -67,6 +67,9 @@ def make_inputs(root: Path) -> Path:
         lin = (img / 255.0).astype(np.float32)
         exr.write_image(work / "beauty.exr", lin)
         exr.write_image(work / "plate.exr", lin)
+        cover = np.zeros((24, 32, 1), np.float32)
+        cover[6:18, 8:20] = 1.0  # an opaque box, premultiplied
+        exr.write_image(work / "ball.exr", np.concatenate([lin * cover, cover], axis=2))
         v = rng.normal(0, 2, (24, 32)).astype(np.float32)
         exr.write_channels(work / "vectors.exr", {f"Vector.{c}": v for c in "XYZW"})
         exr.write_channels(work / "motion.exr", {f"{layer}.{c}": v for layer in

@@ -172,6 +172,10 @@ def test_command_line_blurs_layer_files(tmp_path, crossing, capsys):
     err = capsys.readouterr().err.strip()
     assert "shape" in err and len(err.splitlines()) == 1
     assert not (tmp_path / "bad.png").exists()
+    # a bent path needs a renderer's pass (a clblur flow is one straight vector per pixel)
+    bad = [*argv[:1], str(tmp_path / "bad.png"), *argv[2:], "--path", "bent"]
+    assert main(bad) == 2
+    assert "--vectors blender or nuke" in capsys.readouterr().err
 
 
 def test_curved_path_without_a_bend_is_the_straight_path(crossing):

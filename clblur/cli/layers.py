@@ -28,6 +28,10 @@ def register(sub) -> None:
                    help="convention of the vector files (default clblur; see docs/model.md)")
     p.add_argument("--vector-shutter", type=float, default=0.5, metavar="FRAMES",
                    help="with --vectors blender|nuke: centred shutter in frames (default 0.5)")
+    p.add_argument("--path", choices=["straight", "bent", "curved"], default="straight",
+                   help="with --vectors blender|nuke: the exposure chord (straight, default), "
+                        "the two halves about the frame time (bent), or the parabola through "
+                        "their three points (curved)")
     p.add_argument("--overscan", type=int, default=0, metavar="PX",
                    help="pixels by which the layers extend beyond the output on every side "
                         "(default 0)")
@@ -53,6 +57,10 @@ def run(args: argparse.Namespace) -> int:
     check_output(args.output, *paths, suffixes=tuple(IMAGE_FORMATS))
     check_response(args.response)
     check_device(args)
+    bent = args.path != "straight"
+    if bent and args.vectors == "clblur":
+        raise InputError(f"--path {args.path} needs a renderer's vector pass: give --vectors "
+                         "blender or nuke")
     layers = []
     for image_path, vector_path in args.layer:
         image = read_image(image_path)
@@ -66,12 +74,16 @@ def run(args: argparse.Namespace) -> int:
         else:
             from clblur.vectors import load_flow
 
-            flow = load_flow(vector_path, args.vectors, args.vector_shutter)
+            flow = load_flow(vector_path, args.vectors, args.vector_shutter, bent=bent)
         layers.append((image, flow))
     if layers[0][0].dtype.kind == "f" and not args.output.lower().endswith(
             (".tif", ".tiff", ".exr")):
         raise InputError(f"{args.output} cannot hold float images; write .tif, .tiff or .exr")
-    out = clblur.blur_layers(layers, **blur_options(args), overscan=args.overscan)
+    options = blur_options(args)
+    if bent:
+        options.pop("anchor")  # a bent path is anchored at its bend
+    out = clblur.blur_layers(layers, **options, overscan=args.overscan,
+                             curved=args.path == "curved")
     write_image(args.output, out)
     print(f"wrote {args.output}")
     return 0
