@@ -19,8 +19,8 @@ from __future__ import annotations
 import numpy as np
 
 from clblur.motion import PSF, Field, Uniform, sample_counts, uniform_taps
+from clblur.pixels import linearisation_table, normalise, quantise
 from clblur.pixels import linearise as linearise_channel
-from clblur.pixels import normalise, quantise
 from clblur.request import BlurPlan
 from clblur.sampling import bilinear_corners
 
@@ -110,15 +110,26 @@ def integrate(lin: np.ndarray, plan: BlurPlan) -> np.ndarray:
 
 
 def linearise(plan: BlurPlan) -> np.ndarray:
-    """Pixel values -> linear exposures (float64, H x W x C); alpha as in the Conventions."""
-    values = normalise(plan.image)
-    lin = np.empty_like(values)
+    """Pixel values -> linear exposures (float64, H x W x C); alpha as in the Conventions.
+
+    Integer images go through the per-code table (``clblur.pixels.linearisation_table``):
+    the same function at the same inputs, evaluated once per code value instead of once per
+    pixel."""
     colour = plan.colour_channels
-    for c in range(colour):
-        lin[..., c] = linearise_channel(values[..., c], plan.responses[c], plan.dtype,
-                                        plan.saturation)
+    if plan.dtype.kind == "u":
+        lin = np.empty(plan.image.shape, np.float64)
+        for c in range(colour):
+            table = linearisation_table(plan.responses[c], plan.dtype, plan.saturation)
+            lin[..., c] = table[plan.image[..., c]]
+        values = None
+    else:
+        values = normalise(plan.image)
+        lin = np.empty_like(values)
+        for c in range(colour):
+            lin[..., c] = linearise_channel(values[..., c], plan.responses[c], plan.dtype,
+                                            plan.saturation)
     if plan.alpha:
-        a = values[..., -1]
+        a = values[..., -1] if values is not None else normalise(plan.image[..., -1])
         lin[..., -1] = a
         if plan.dtype.kind == "u":  # straight alpha in the file: premultiply in linear light
             lin[..., :colour] *= a[..., None]

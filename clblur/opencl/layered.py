@@ -174,18 +174,7 @@ def integrator(device: str | None = None):
         if not region.any():
             return None
         def crop_linear(crop):  # linearise only the crop the layers need
-            image = plan.image[crop]
-            if plan.alpha or image.dtype.kind != "u":
-                return reference.linearise(replace(plan, image=image, background=None))
-            # integer codes: the reference's per-pixel function evaluated once per code
-            from clblur.pixels import linearisation_table
-
-            image = image.reshape(image.shape[:2] + (-1,))
-            out = np.empty(image.shape, np.float64)
-            for c in range(image.shape[2]):
-                table = linearisation_table(plan.responses[c], plan.dtype, plan.saturation)
-                out[..., c] = table[image[..., c]]
-            return out
+            return reference.linearise(replace(plan, image=plan.image[crop], background=None))
         layers = layered.prepare(crop_linear, v, order, plan.anchor, region,
                                  layered.background_linear(plan), rule=rule)
         if layers is None:
