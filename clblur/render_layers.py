@@ -69,20 +69,23 @@ def _field_of(plan: BlurPlan) -> np.ndarray:
 
 
 def layers_for(linear: Sequence[np.ndarray], flows: Sequence[np.ndarray], anchor: float,
-               region: np.ndarray,
-               curvature: Sequence[np.ndarray] | None = None) -> Layers:
+               region: np.ndarray, curvature: Sequence[np.ndarray] | None = None,
+               dtype=np.float64) -> Layers:
     """The :class:`clblur.layer_planes.Layers` of a multi-layer render (module Conventions).
 
     ``linear``: per layer, H x W x (C + 1) premultiplied linear colour and coverage (float64);
     ``flows``: per layer, H x W x 2 vectors; ``region``: the pixels to composite;
-    ``curvature``: per layer, the quadratic term of a curved path, or None.  Each plane
-    carries its coverage twice, as light (so the composite sums it) and as coverage.
+    ``curvature``: per layer, the quadratic term of a curved path, or None; ``dtype``: of
+    the planes (float32 for the device, which composites in float32).  Each plane carries its
+    coverage twice, as light (so the composite sums it) and as coverage.
     """
     from scipy.ndimage import distance_transform_edt
 
+    from clblur.layer_planes import distance_to
+
     h, w, cp = linear[0].shape
     k = len(linear)
-    planes = np.empty((k, h, w, cp + 1))
+    planes = np.empty((k, h, w, cp + 1), dtype)
     vectors = np.zeros((k, h, w, 2), np.float32)
     present = np.zeros((k, h, w), bool)
     warped = np.zeros(k, bool)
@@ -113,7 +116,7 @@ def layers_for(linear: Sequence[np.ndarray], flows: Sequence[np.ndarray], anchor
             if curves is not None:
                 curves[i] = curvature[i][nearest[0], nearest[1]]
             warped[i] = True
-        dist = distance_transform_edt(~covered)
+        dist = distance_to(covered)
         d = vectors[i][at]
         farthest = np.hypot(d[:, 0], d[:, 1]) * span
         if curves is not None:
@@ -121,7 +124,7 @@ def layers_for(linear: Sequence[np.ndarray], flows: Sequence[np.ndarray], anchor
             farthest += np.hypot(c[:, 0], c[:, 1]) * span * span
         present[i][at] = dist[at] <= farthest + 1.5  # a bilinear footprint reaches sqrt(2) px
     return Layers(origin=(0, 0), planes=planes, vectors=vectors,
-                  flow=np.zeros((h, w, 2), np.float32), linear=np.zeros((h, w, cp)),
+                  flow=np.zeros((h, w, 2), np.float32), linear=np.zeros((h, w, cp), dtype),
                   region=region, present=present, warped=warped, curvature=curves)
 
 
@@ -160,7 +163,8 @@ def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "cente
     curved : with a bent path, follow the parabola through its three points (the start, the
         bend at the frame time, the end) instead of two straight halves: ``P(t) - P(0) =
         (first + second) t + 2 (second - first) t^2``, ``t`` in [-1/2, 1/2] (constant
-        acceleration; Blender's Vector Blur "curved" option interpolates the same points).
+        acceleration; compare Blender's Vector Blur ``use_curved``, a Bézier through the
+        frames).
 
     Returns
     -------
@@ -216,17 +220,18 @@ def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "cente
     region = np.zeros((h, w), bool)
     region[overscan:h - overscan, overscan:w - overscan] = True
     acc = 0.0
+    planes = np.float64 if ran == "numpy" else np.float32  # what each backend composites in
     if curved:
         from dataclasses import replace
 
         first, second = ([_field_of(p).astype(np.float64) for p in half] for half in plans)
         chord = [(f + s).astype(np.float32) for f, s in zip(first, second, strict=True)]
         bend = [(2.0 * (s - f)).astype(np.float32) for f, s in zip(first, second, strict=True)]
-        stack = layers_for(linear, chord, 0.5, region, curvature=bend)
+        stack = layers_for(linear, chord, 0.5, region, curvature=bend, dtype=planes)
         acc = _composite(stack, replace(plans[0][0], anchor=0.5), ran, device)
     for half in [] if curved else plans:
         flows = [_field_of(p) for p in half]
-        stack = layers_for(linear, flows, half[0].anchor, region)
+        stack = layers_for(linear, flows, half[0].anchor, region, dtype=planes)
         acc = acc + _composite(stack, half[0], ran, device) / len(plans)
     inner = (slice(overscan, h - overscan), slice(overscan, w - overscan))
     return finish(np.asarray(acc)[inner], plans[0][0])
