@@ -92,13 +92,17 @@ def methods_for(r: scenes.Render, backend: str, scene: scenes.Scene | None = Non
         out["render layers"] = clblur.blur_layers(
             [(image, flow) for image, flow, _, _ in layers], RESPONSE, backend=backend)[..., :3]
         # the same with the two halves and an overscan that holds whatever can enter the
-        # frame during the shutter: a bent half anchored at one end reaches its whole length
-        m = int(np.ceil(np.hypot(*np.concatenate([r.flow_first, r.flow_second]).reshape(
-            -1, 2).T).max())) + 2
+        # frame during the shutter: a bent half anchored at one end reaches its whole length,
+        # the parabola through the halves' points |D| / 2 + |C| / 4 (D = f + s, C = 2 (s - f))
+        f, s = (a.reshape(-1, 2).astype(np.float64) for a in (r.flow_first, r.flow_second))
+        m = int(np.ceil(max(np.hypot(*f.T).max(), np.hypot(*s.T).max(),
+                            (np.hypot(*(f + s).T) / 2 + np.hypot(*(s - f).T) / 2).max()))) + 2
         layers = scenes.object_layers(scene, RESPONSE, np.uint8, spp=spp, overscan=m)
+        bent = [(image, (first, second)) for image, _, first, second in layers]
         out["render layers, bent path, overscan"] = clblur.blur_layers(
-            [(image, (first, second)) for image, _, first, second in layers], RESPONSE,
-            overscan=m, backend=backend)[..., :3]
+            bent, RESPONSE, overscan=m, backend=backend)[..., :3]
+        out["render layers, curved path, overscan"] = clblur.blur_layers(
+            bent, RESPONSE, overscan=m, curved=True, backend=backend)[..., :3]
     return out
 
 
@@ -250,7 +254,8 @@ def figures(renders: dict, table: dict) -> None:
 def summarise(table: dict, gopro: dict | None, gentle: dict | None = None) -> str:
     ms = ["gather", "speed layers", "depth layers", "depth rank as layer IDs",
           "depth layers, bent path", "depth layers + clean plate", "render layers",
-          "render layers, bent path, overscan", "sharp frame (no blur)"]
+          "render layers, bent path, overscan", "render layers, curved path, overscan",
+          "sharp frame (no blur)"]
 
     def cell(row, key, m):
         v = row[key].get(m)
