@@ -214,6 +214,15 @@ def region_mask(v: np.ndarray, anchor: float, tile: int = TILE,
     return out
 
 
+def _where_present(field: np.ndarray, pick: tuple, there: np.ndarray,
+                   rigid: bool) -> np.ndarray:
+    """A layer's field (vectors or curvature) at the ``pick`` pixels where it is ``there``,
+    n x 2; for a rigid layer, whose field is one value wherever it is present, that value
+    once (1 x 2)."""
+    f = field[pick]
+    return f[np.unravel_index(np.argmax(there), there.shape)][None] if rigid else f[there]
+
+
 def counts(layers: Layers, samples: int | None,
            at: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Samples per pixel: ``samples``, or ``ceil(max |v|) + 1`` over the pixel's own vector
@@ -230,11 +239,12 @@ def counts(layers: Layers, samples: int | None,
         # it is present: far fewer pixels than the crop times the layers)
         there = there[pick]
         if there.any():
-            dk = d[pick][there]
+            rigid = not layers.warped[k]
+            dk = _where_present(d, pick, there, rigid)
             if layers.curvature is None:
                 n[there] = np.maximum(n[there], sample_counts(dk[:, 0], dk[:, 1]))
             else:  # a curved path: |D_k| + |C_k| / 2 bounds its length (module Conventions)
-                ck = layers.curvature[k][pick][there].astype(np.float64)
+                ck = _where_present(layers.curvature[k], pick, there, rigid).astype(np.float64)
                 length = np.hypot(dk[:, 0], dk[:, 1]) + 0.5 * np.hypot(ck[:, 0], ck[:, 1])
                 n[there] = np.maximum(n[there], sample_counts(length, 0.0 * length))
     return n

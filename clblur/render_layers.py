@@ -90,7 +90,6 @@ def layers_for(linear: Sequence[np.ndarray], flows: Sequence[np.ndarray], anchor
     present = np.zeros((k, h, w), bool)
     warped = np.zeros(k, bool)
     curves = None if curvature is None else np.zeros((k, h, w, 2), np.float32)
-    at = np.nonzero(region)
     span = max(anchor, 1.0 - anchor)
     for i, (lin, flow) in enumerate(zip(linear, flows, strict=True)):
         planes[i, ..., :cp] = lin
@@ -116,13 +115,15 @@ def layers_for(linear: Sequence[np.ndarray], flows: Sequence[np.ndarray], anchor
             if curves is not None:
                 curves[i] = curvature[i][nearest[0], nearest[1]]
             warped[i] = True
-        dist = distance_to(covered)
-        d = vectors[i][at]
-        farthest = np.hypot(d[:, 0], d[:, 1]) * span
+        # how far the layer's samples reach from a pixel: one value for a rigid layer
+        pick = (Ellipsis,) if warped[i] else (slice(0, 1), slice(0, 1))
+        d = vectors[i][pick]
+        farthest = np.hypot(d[..., 0], d[..., 1]) * span
         if curves is not None:
-            c = curves[i][at]
-            farthest += np.hypot(c[:, 0], c[:, 1]) * span * span
-        present[i][at] = dist[at] <= farthest + 1.5  # a bilinear footprint reaches sqrt(2) px
+            c = curves[i][pick]
+            farthest += np.hypot(c[..., 0], c[..., 1]) * span * span
+        # a bilinear footprint reaches sqrt(2) px
+        present[i] = (distance_to(covered) <= farthest + 1.5) & region
     return Layers(origin=(0, 0), planes=planes, vectors=vectors,
                   flow=np.zeros((h, w, 2), np.float32), linear=np.zeros((h, w, cp), dtype),
                   region=region, present=present, warped=warped, curvature=curves)
