@@ -8,6 +8,7 @@ from clblur.cli.options import (
     add_blur_options,
     add_memory_option,
     add_motion_options,
+    add_vector_options,
     blur_options,
     check_device,
     check_response,
@@ -27,13 +28,7 @@ def register(sub) -> None:
     add_motion_options(p, required=True)
     add_blur_options(p)
     add_memory_option(p, "bound memory use")
-    p.add_argument("--vectors", choices=["clblur", "blender", "nuke"], default="clblur",
-                   help="convention of --flow: clblur (displacement over the exposure, "
-                        "default), blender (Vector pass X,Y,Z,W) or nuke (forward/backward "
-                        "u,v); see docs/model.md")
-    p.add_argument("--vector-shutter", type=float, default=0.5, metavar="FRAMES",
-                   help="with --vectors blender|nuke: centred shutter in frames (default 0.5, "
-                        "i.e. 180 degrees)")
+    add_vector_options(p, "--flow")
     p.add_argument("--depth", default=None, metavar="FILE",
                    help="occlusion order, H x W .npy or EXR depth (FILE.exr[:CHANNEL]; smaller "
                         "= nearer; integers: layer IDs): layered exposure, moving objects "

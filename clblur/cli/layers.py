@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import argparse
 
-from clblur.cli.options import add_blur_options, blur_options, check_device, check_response
+from clblur.cli.options import (
+    add_blur_options,
+    add_vector_options,
+    blur_options,
+    check_device,
+    check_response,
+)
 from clblur.errors import InputError
 
 __all__ = ["register", "run"]
@@ -24,10 +30,7 @@ def register(sub) -> None:
                         "(without alpha: opaque, e.g. the background) and its vectors (.npy "
                         "H x W x 2, .flo or EXR, in the --vectors convention)")
     add_blur_options(p)
-    p.add_argument("--vectors", choices=["clblur", "blender", "nuke"], default="clblur",
-                   help="convention of the vector files (default clblur; see docs/model.md)")
-    p.add_argument("--vector-shutter", type=float, default=0.5, metavar="FRAMES",
-                   help="with --vectors blender|nuke: centred shutter in frames (default 0.5)")
+    add_vector_options(p, "the layers' vector files")
     p.add_argument("--path", choices=["straight", "bent", "curved"], default="straight",
                    help="with --vectors blender|nuke: the exposure chord (straight, default), "
                         "the two halves about the frame time (bent), or the parabola through "

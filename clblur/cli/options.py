@@ -13,8 +13,8 @@ from clblur.errors import InputError
 from clblur.motion import ANCHORS
 
 __all__ = ["add_backend_options", "add_blur_options", "add_memory_option",
-           "add_motion_options", "blur_options", "check_device", "check_response",
-           "motion_from_args", "parse_vector"]
+           "add_motion_options", "add_vector_options", "blur_options", "check_device",
+           "check_response", "motion_from_args", "parse_vector"]
 
 
 def parse_vector(text: str, option: str = "--motion") -> tuple[float, float]:
@@ -73,6 +73,17 @@ def add_motion_options(p: argparse.ArgumentParser, required: bool) -> None:
                         "--motion=-5,2)")
     g.add_argument("--flow", metavar="FILE", help="per-pixel motion: .npy (H x W x 2) or .flo")
     g.add_argument("--psf", metavar="FILE", help="blur kernel image or .npy (normalised)")
+
+
+def add_vector_options(p: argparse.ArgumentParser, what: str) -> None:
+    """--vectors and --vector-shutter: the convention of the vector files ``what`` names."""
+    p.add_argument("--vectors", choices=["clblur", "blender", "nuke"], default="clblur",
+                   help=f"convention of {what}: clblur (displacement over the exposure, "
+                        "default), blender (Vector pass X,Y,Z,W) or nuke (forward/backward "
+                        "u,v); see docs/model.md")
+    p.add_argument("--vector-shutter", type=float, default=0.5, metavar="FRAMES",
+                   help="with --vectors blender|nuke: centred shutter in frames (default 0.5, "
+                        "i.e. 180 degrees)")
 
 
 def motion_from_args(args: argparse.Namespace) -> object:
