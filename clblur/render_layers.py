@@ -196,6 +196,9 @@ def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "cente
         raise InputError("time weights apply to a straight path, not to a bent one")
     if curved and not bent:
         raise InputError("curved=True needs a bent path: give each layer (first, second)")
+    if bent and anchor != "center":
+        raise InputError(f"anchor={anchor!r} applies to a straight path; a bent path is "
+                         "anchored at its bend (the frame time)")
     first_image = np.asarray(layers[0][0])
     shape, dtype = first_image.shape, first_image.dtype
     for i, (image, _) in enumerate(layers):
@@ -217,6 +220,11 @@ def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "cente
                         anchor=a, **common)
               for image, motion in layers] for a, part in halves]
     linear = [linearise(p) for p in plans[0]]
+    for i, lin in enumerate(linear):
+        cover = lin[..., -1]
+        if cover.min() < 0.0 or cover.max() > 1.0:
+            raise InputError(f"layer {i}: coverage (the last channel) must lie in [0, 1], got "
+                             f"{cover.min():.4g} to {cover.max():.4g}")
     h, w = shape[:2]
     region = np.zeros((h, w), bool)
     region[overscan:h - overscan, overscan:w - overscan] = True

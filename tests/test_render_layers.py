@@ -121,6 +121,12 @@ def test_bad_layers_are_one_line_errors(rng):
         clblur.blur_layers([(image, flow)], "srgb", overscan=-1, backend="numpy")
     with pytest.raises(InputError, match="bent"):
         clblur.blur_layers([(image, (flow, flow))], "srgb", weights=[1, 2, 1], backend="numpy")
+    with pytest.raises(InputError, match="anchored at its bend"):
+        clblur.blur_layers([(image, (flow, flow))], "srgb", anchor="start", backend="numpy")
+    over = image.copy()
+    over[0, 0, 3] = 1.5
+    with pytest.raises(InputError, match=re.escape("in [0, 1]")):
+        clblur.blur_layers([(over, flow)], "srgb", backend="numpy")
     with pytest.raises(ValueError, match="NaN"):
         clblur.blur_layers([(image, np.full_like(flow, np.nan))], "srgb", backend="numpy")
 

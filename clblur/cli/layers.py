@@ -82,10 +82,7 @@ def run(args: argparse.Namespace) -> int:
     if layers[0][0].dtype.kind == "f" and not args.output.lower().endswith(
             (".tif", ".tiff", ".exr")):
         raise InputError(f"{args.output} cannot hold float images; write .tif, .tiff or .exr")
-    options = blur_options(args)
-    if bent:
-        options.pop("anchor")  # a bent path is anchored at its bend
-    out = clblur.blur_layers(layers, **options, overscan=args.overscan,
+    out = clblur.blur_layers(layers, **blur_options(args), overscan=args.overscan,
                              curved=args.path == "curved")
     write_image(args.output, out)
     print(f"wrote {args.output}")
