@@ -9,6 +9,11 @@
 * ``opencv_box``: the all-OpenCV box pipeline for the exp response:
   ``cv2.LUT`` (to ``-k E``) -> ``cv2.blur`` on float32 -> ``cv2.exp`` ->
   ``cv2.convertScaleAbs(alpha=-255, beta=255)``, i.e. ``rint(255 (1 - exp(-k mean E)))``.
+* ``layers_apart_then_over``: the compositor's way with a multi-layer render and no
+  per-sample occlusion: every layer blurred alone (``clblur.blur(..., alpha=True)`` in linear
+  light, its vectors extended from the pixels it covers at least half, as
+  ``clblur.render_layers`` extends them, so its streak leaves its silhouette), then merged
+  front to back with ``over``; the peer of ``clblur.blur_layers`` (``bench_render_layers.py``).
 Each peer that is not installed is skipped (``available`` says why).
 """
 
@@ -23,7 +28,8 @@ from clblur.motion import sample_counts
 from clblur.pixels import linearisation_table
 from clblur.responses import Exp, response
 
-__all__ = ["available", "best_time", "numba_field", "opencv_box", "torch_cuda_field", "torch_field"]
+__all__ = ["available", "best_time", "layers_apart_then_over", "numba_field", "opencv_box",
+           "torch_cuda_field", "torch_field"]
 
 
 def available(name: str) -> str | None:
@@ -194,3 +200,29 @@ def best_time(fn, repeats: int):
         fn()
         best = min(best, time.perf_counter() - t)
     return best
+
+
+def layers_apart_then_over(layers, spec: str = "srgb", backend: str = "auto") -> np.ndarray:
+    """``layers`` as ``clblur.blur_layers`` takes them (nearest first, ``(image, flow)``
+    straight): each blurred alone, then ``over`` front to back in linear light; the result in
+    the layers' dtype and alpha convention."""
+    from scipy.ndimage import distance_transform_edt
+
+    import clblur
+    from clblur.reference import finish, linearise
+    from clblur.request import make_plan
+
+    acc = plan = None
+    for image, flow in layers:
+        plan = make_plan(image, flow, spec, alpha=True)
+        lin = linearise(plan).astype(np.float32)  # premultiplied linear light, coverage
+        solid = lin[..., -1] >= 0.5
+        if not solid.any():
+            solid = lin[..., -1] > 0
+        flow = np.asarray(flow, np.float32)
+        if solid.any():
+            idx = distance_transform_edt(~solid, return_indices=True, return_distances=False)
+            flow = flow[idx[0], idx[1]]
+        out = clblur.blur(lin, flow, "linear", alpha=True, backend=backend).astype(np.float64)
+        acc = out if acc is None else acc + (1.0 - acc[..., -1:]) * out
+    return finish(acc, plan)

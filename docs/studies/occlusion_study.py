@@ -52,6 +52,17 @@ def plate_supported() -> bool:
     return "background" in inspect.signature(clblur.blur).parameters
 
 
+def bench_peers():
+    """``bench/peers.py`` (the peers of the benchmarks), loaded by path."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[2] / "bench" / "peers.py"
+    spec = importlib.util.spec_from_file_location("clblur_bench_peers", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def methods_for(r: scenes.Render, backend: str, scene: scenes.Scene | None = None,
                 spp: int = 2) -> dict[str, np.ndarray]:
     """Every method's blur of the sharp frame along the renderer's vectors; with ``scene``,
@@ -89,8 +100,12 @@ def methods_for(r: scenes.Render, backend: str, scene: scenes.Scene | None = Non
         # then the background alone (scenes.object_layers), so nothing hidden at the frame
         # time is guessed; uint8 sRGB with straight alpha, as the sharp frame is
         layers = scenes.object_layers(scene, RESPONSE, np.uint8, spp=spp)
-        out["render layers"] = clblur.blur_layers(
-            [(image, flow) for image, flow, _, _ in layers], RESPONSE, backend=backend)[..., :3]
+        straight = [(image, flow) for image, flow, _, _ in layers]
+        out["render layers"] = clblur.blur_layers(straight, RESPONSE, backend=backend)[..., :3]
+        # the compositor's way without per-sample occlusion: each layer blurred alone, then
+        # merged with `over` (bench/peers.py)
+        out["render layers blurred apart, then over"] = bench_peers().layers_apart_then_over(
+            straight, RESPONSE, backend=backend)[..., :3]
         # the same with the two halves and an overscan that holds whatever can enter the
         # frame during the shutter: a bent half anchored at one end reaches its whole length,
         # the parabola through the halves' points |D| / 2 + |C| / 4 (D = f + s, C = 2 (s - f))
@@ -253,7 +268,8 @@ def figures(renders: dict, table: dict) -> None:
 
 def summarise(table: dict, gopro: dict | None, gentle: dict | None = None) -> str:
     ms = ["gather", "speed layers", "depth layers", "depth rank as layer IDs",
-          "depth layers, bent path", "depth layers + clean plate", "render layers",
+          "depth layers, bent path", "depth layers + clean plate",
+          "render layers blurred apart, then over", "render layers",
           "render layers, bent path, overscan", "render layers, curved path, overscan",
           "sharp frame (no blur)"]
 
