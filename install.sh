@@ -16,6 +16,10 @@ if [ ! -e /etc/OpenCL/vendors/pocl.icd ]; then
     pocl-opencl-icd ocl-icd-libopencl1 clinfo >/dev/null
 fi
 
+# pyproject.toml's [build-system] requires, in this environment as well: the packaging test
+# (tests/test_opencl_host_paths.py) builds a wheel without build isolation, and a fresh
+# machine's setuptools may be older than 68 and lack `wheel`
+python3 -m pip install -q --disable-pip-version-check "setuptools>=68" wheel
 python3 -m pip install -q --disable-pip-version-check ".[all]"
 python3 -c "from clblur import opencl; ok, why = opencl.usable(None); \
 print('OpenCL device:', opencl.current_device() if ok else 'NONE (' + why + ')')"

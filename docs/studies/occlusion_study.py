@@ -251,8 +251,12 @@ def figures(renders: dict, table: dict) -> None:
     n = "crossing_fast_behind"
     r, got = renders[n]
     ms = [m for m in got if m != "sharp frame (no blur)"]
-    fig, axes = plt.subplots(1, len(ms) + 1, figsize=(3.6 * (len(ms) + 1), 2.8),
-                             layout="constrained")
+    cols = -(-(len(ms) + 1) // 2)  # two rows
+    fig, grid = plt.subplots(2, cols, figsize=(3.6 * cols, 5.6), layout="constrained")
+    axes = list(grid.ravel())
+    for ax in axes[len(ms) + 1:]:
+        ax.axis("off")
+    axes = axes[:len(ms)] + [axes[len(ms)]]
     for ax, m in zip(axes, ms, strict=False):
         err = np.abs(got[m].astype(np.int16) - r.image).mean(axis=2)
         im = ax.imshow(err, cmap="magma", vmin=0, vmax=40)
@@ -261,7 +265,7 @@ def figures(renders: dict, table: dict) -> None:
     axes[-1].imshow(r.hidden, cmap="gray", vmin=0, vmax=1)
     axes[-1].set_title("light the sharp frame hides\n(fraction of the shutter)", fontsize=9)
     axes[-1].axis("off")
-    fig.colorbar(im, ax=axes[:-1], shrink=0.9, label="code values (mean over RGB)")
+    fig.colorbar(im, ax=axes[:-1], shrink=0.6, label="code values (mean over RGB)")
     fig.savefig(FIG / "crossing_error.png", dpi=80)
     plt.close(fig)
 
