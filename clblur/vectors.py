@@ -159,12 +159,14 @@ def blur_bent(image: np.ndarray, first: np.ndarray, second: np.ndarray, response
     return blur_frame(image, -2 * f, 2 * s, response, shutter=360, **options)
 
 
-def read_vectors(path: str | os.PathLike, convention: str) -> dict[str, np.ndarray]:
+def read_vectors(path: str | os.PathLike, convention: str,
+                 layer: str | None = None) -> dict[str, np.ndarray]:
     """A renderer's vector pass from a file: ``.npy`` (H x W x 4 for Blender, H x W x 2 or
     H x W x 4 = forward u, v, backward u, v for Nuke) or ``.exr`` (Blender
     ``[<layer>.]Vector.X/Y/Z/W``; Nuke ``forward.u/v``, ``backward.u/v``; or RGBA holding the
     vector pass, as a Blender File Output node saves it).  Returns ``{"pass": ...}`` (Blender)
-    or ``{"forward": ..., "backward": ...}`` (Nuke, either may be absent)."""
+    or ``{"forward": ..., "backward": ...}`` (Nuke, either may be absent).  ``layer``: a
+    Blender view layer of a multilayer EXR, ``<layer>.Vector.X/Y/Z/W``."""
     from pathlib import Path
 
     if convention not in ("blender", "nuke"):
@@ -185,6 +187,13 @@ def read_vectors(path: str | os.PathLike, convention: str) -> dict[str, np.ndarr
     from clblur.io import exr
 
     chans = exr.read_channels(path)
+    if layer is not None:  # one view layer of a multilayer file: <layer>.Vector.X/Y/Z/W
+        names = [f"{layer}.Vector.{c}" for c in "XYZW"]
+        if convention != "blender" or not all(n in chans for n in names):
+            raise ValueError(f"{path} has no Blender vector pass {layer}.Vector.X/Y/Z/W "
+                             f"(a named layer is a Blender view layer); channels: "
+                             f"{', '.join(chans)}")
+        return {"pass": np.stack([chans[n] for n in names], axis=-1)}
     if convention == "blender":
         groups = [n[:-1] for n in chans if n.endswith("Vector.X")] + [""]
         for pre in groups:  # "Vector.", "<layer>.Vector.", then plain RGBA
@@ -204,22 +213,26 @@ def read_vectors(path: str | os.PathLike, convention: str) -> dict[str, np.ndarr
 
 
 def load_flow(path: str | os.PathLike, convention: str = "clblur",
-              shutter: float = 0.5, *, bent: bool = False):
+              shutter: float = 0.5, *, bent: bool = False, layer: str | None = None):
     """clblur's straight flow (anchor ``center``) from a file in ``convention``
     (``clblur``: ``.npy``/``.flo``/``.exr`` flow as is; ``blender``/``nuke``: a vector pass
     and a centred shutter of ``shutter`` frames).  ``bent=True`` (a renderer's pass only):
-    the two halves ``(first, second)`` of the bent path instead."""
+    the two halves ``(first, second)`` of the bent path instead.  ``layer``: a Blender view
+    layer of a multilayer EXR (:func:`read_vectors`)."""
     if convention not in CONVENTIONS:
         raise ValueError(f"unknown vector convention {convention!r}; use one of "
                          f"{', '.join(CONVENTIONS)}")
     if convention == "clblur":
+        if layer is not None:
+            raise ValueError(f"{path}:{layer}: a layer names a renderer's vector pass; give "
+                             "--vectors blender (clblur flows are flow.x / flow.y)")
         if bent:
             raise ValueError("a bent path needs a renderer's vector pass (blender or nuke): "
                              "a clblur flow is one straight vector per pixel")
         from clblur.io import read_flow
 
         return read_flow(path)
-    v = read_vectors(path, convention)
+    v = read_vectors(path, convention, layer)
     if convention == "blender":
         return from_blender(v["pass"], shutter, bent=bent)
     return from_nuke(v.get("forward"), v.get("backward"), shutter, bent=bent)

@@ -74,6 +74,13 @@ def make_inputs(root: Path) -> Path:
         exr.write_channels(work / "vectors.exr", {f"Vector.{c}": v for c in "XYZW"})
         exr.write_channels(work / "motion.exr", {f"{layer}.{c}": v for layer in
                                                  ("forward", "backward") for c in "uv"})
+        views = {}  # a Blender multilayer EXR with two view layers
+        for name, alpha in (("Ball", cover[..., 0]), ("Background", np.ones((24, 32)))):
+            for i, c in enumerate("RGB"):
+                views[f"{name}.Combined.{c}"] = lin[..., i] * alpha
+            views[f"{name}.Combined.A"] = alpha.astype(np.float32)
+            views.update({f"{name}.Vector.{c}": v for c in "XYZW"})
+        exr.write_channels(work / "render.exr", views)
     (work / "photos").mkdir()
     for i in range(2):
         write_image(work / "photos" / f"p{i}.png", img[:, i:])

@@ -237,3 +237,43 @@ def test_opencl_curved_layouts_agree_bit_for_bit(opencl):
     np.testing.assert_array_equal(lanes, one)
     ref = layered_exposure.composite(stack, 0.5, None, None, shape)[region]
     np.testing.assert_allclose(one, ref, atol=2e-5, rtol=1e-5)
+
+
+def test_command_line_reads_view_layers_of_a_multilayer_exr(tmp_path, capsys):
+    """Blender's multilayer EXR: each view layer's RGBA (``<layer>.Combined.R/G/B/A``) and
+    Vector pass (``<layer>.Vector.X/Y/Z/W``) named by ``FILE.exr:PREFIX``."""
+    pytest.importorskip("OpenEXR")
+    from clblur.cli import main
+    from clblur.io import exr
+    from clblur.vectors import from_blender, to_blender
+
+    scene = example_scenes(96, 64)["crossing_fast_behind"]
+    layers = object_layers(scene, "linear", np.float32)
+    names = ["Slow", "Fast", "Background"]
+    channels = {}
+    for name, (image, _, first, second) in zip(names, layers, strict=True):
+        for c, plane in zip("RGBA", np.moveaxis(image, 2, 0), strict=True):
+            channels[f"{name}.Combined.{c}"] = plane
+        # a 360-degree shutter (one frame): the halves are the per-frame displacements
+        vector_pass = to_blender(2 * first, 2 * second)
+        for c, plane in zip("XYZW", np.moveaxis(vector_pass, 2, 0), strict=True):
+            channels[f"{name}.Vector.{c}"] = plane
+    exr.write_channels(tmp_path / "render.exr", channels)
+    argv = ["blur-layers", str(tmp_path / "out.exr"), "--response", "linear", "--backend",
+            "numpy", "--vectors", "blender", "--vector-shutter", "1", "--path", "curved"]
+    for name in names:
+        argv += ["--layer", f"{tmp_path / 'render.exr'}:{name}.Combined",
+                 f"{tmp_path / 'render.exr'}:{name}"]
+    assert main(argv) == 0
+    for _, _, first, second in layers:  # the pass holds the renderer's halves
+        got = from_blender(to_blender(2 * first, 2 * second), 1.0, bent=True)
+        np.testing.assert_allclose(got[0], first, atol=1e-5)
+        np.testing.assert_allclose(got[1], second, atol=1e-5)
+    want = clblur.blur_layers([(image, (first, second)) for image, _, first, second in layers],
+                              "linear", curved=True, backend="numpy")
+    np.testing.assert_allclose(exr.read_image(tmp_path / "out.exr"), want, atol=1e-6)
+    capsys.readouterr()
+    argv[-1] = f"{tmp_path / 'render.exr'}:Nowhere"
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "Nowhere.Vector" in err and len(err.strip().splitlines()) == 1

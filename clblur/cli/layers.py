@@ -28,7 +28,9 @@ def register(sub) -> None:
                    metavar=("IMAGE", "VECTORS"),
                    help="one layer, nearest first (repeat the option): an image with alpha "
                         "(without alpha: opaque, e.g. the background) and its vectors (.npy "
-                        "H x W x 2, .flo or EXR, in the --vectors convention)")
+                        "H x W x 2, .flo or EXR, in the --vectors convention); in a multilayer "
+                        "EXR, FILE.exr:PREFIX names a layer (image: PREFIX.R/G/B/A, e.g. "
+                        "Ball.Combined; vectors: PREFIX.Vector.X/Y/Z/W with --vectors blender)")
     add_blur_options(p)
     add_vector_options(p, "the layers' vector files")
     p.add_argument("--path", choices=["straight", "bent", "curved"], default="straight",
@@ -55,8 +57,9 @@ def _opaque(image):
 def run(args: argparse.Namespace) -> int:
     import clblur
     from clblur.io import IMAGE_FORMATS, check_output, read_flow, read_image, write_image
+    from clblur.io.flows import depth_source as exr_part
 
-    paths = [p for pair in args.layer for p in pair]
+    paths = [exr_part(p)[0] for pair in args.layer for p in pair]
     check_output(args.output, *paths, suffixes=tuple(IMAGE_FORMATS))
     check_response(args.response)
     check_device(args)
@@ -66,18 +69,26 @@ def run(args: argparse.Namespace) -> int:
                          "blender or nuke")
     layers = []
     for image_path, vector_path in args.layer:
-        image = read_image(image_path)
+        image_file, image_layer = exr_part(image_path)
+        if image_layer is None:
+            image = read_image(image_file)
+        else:  # one layer of a multilayer EXR, e.g. render.exr:Ball.Combined
+            from clblur.io import exr
+
+            image = exr.read_image(image_file, image_layer)
         if image.ndim == 2 or image.shape[2] in (1, 3):
             image = _opaque(image)  # grey or RGB: a layer that covers every pixel
         elif image.shape[2] not in (2, 4):
             raise InputError(f"layer {image_path}: expected grey or RGB, with or without "
                              f"alpha, got {image.shape[2]} channels")
-        if args.vectors == "clblur":
-            flow = read_flow(vector_path)
+        vector_file, vector_layer = exr_part(vector_path)
+        if args.vectors == "clblur" and vector_layer is None:
+            flow = read_flow(vector_file)
         else:
             from clblur.vectors import load_flow
 
-            flow = load_flow(vector_path, args.vectors, args.vector_shutter, bent=bent)
+            flow = load_flow(vector_file, args.vectors, args.vector_shutter, bent=bent,
+                             layer=vector_layer)
         layers.append((image, flow))
     if layers[0][0].dtype.kind == "f" and not args.output.lower().endswith(
             (".tif", ".tiff", ".exr")):

@@ -131,8 +131,9 @@ def read_psf(path: str | os.PathLike) -> np.ndarray:
 
 
 def depth_source(spec: str | os.PathLike) -> tuple[str, str | None]:
-    """``(file, EXR channel or None)`` of a depth spec: ``FILE.npy``, ``FILE.exr`` or
-    ``FILE.exr:CHANNEL`` (the one parser for readers and output checks)."""
+    """``(file, EXR name or None)`` of a file spec: ``FILE``, or ``FILE.exr:NAME`` naming a
+    channel (a depth spec: ``FILE.exr:CHANNEL``) or a layer prefix (``clblur blur-layers``:
+    ``render.exr:Ball.Combined``).  The one parser for readers and output checks."""
     spec = os.fspath(spec)
     head, sep, channel = spec.rpartition(":")
     if sep and head.lower().endswith(".exr"):
