@@ -19,10 +19,11 @@
  *   a + f (b - a) (exact where the corners are equal; clblur/reference.py lerp_at).
  * - warped: K flags; vectors of a warped layer cover the whole crop, those of a rigid one
  *   the listed pixels only.
- * - Curved paths (curved != 0): curvature is K x h x w x 2, C_k laid out as vectors; the
- *   path is D_k t + C_k t^2, read at q = p - D_k(q) t - C_k(q) t^2 (t^2 formed as
- *   (num * num) / (den * den)); C_k is read where D_k is, in the same way.  curved == 0:
- *   curvature is a placeholder and never read.
+ * - Curved paths (build option -DCURVED=1; the argument curved repeats it): curvature is
+ *   K x h x w x 2, C_k laid out as vectors; the path is D_k t + C_k t^2, read at
+ *   q = p - D_k(q) t - C_k(q) t^2 (t^2 formed as (num * num) / (den * den)); C_k is read
+ *   where D_k is, in the same way.  CURVED=0: curvature is a placeholder, never read, and
+ *   the straight kernels carry no curvature registers or branches (a separate build).
  * - Floating-point contraction is off: every a*b+c is rounded as written; the float4 path
  *   does per component exactly what the scalar path does.
  * - Once the layers in front leave no transmittance (T = 0 exactly: an opaque layer), the
@@ -37,6 +38,9 @@
 #define CHANNELS 3
 #endif
 /* MAXK (layers a work-item holds) comes from clblur.opencl.constants as a -D option. */
+#ifndef CURVED
+#define CURVED 0
+#endif
 #define CP (CHANNELS + 1)
 
 /* Bilinear taps at full-image (x, y), clamped to the image, then to the crop. */
@@ -114,11 +118,11 @@ static float2 inverse_motion(__global const float *vec, __global const float *cu
         float2 d = sample_vector(vec, at);
         x = px - (d.x * num) / den;
         y = py - (d.y * num) / den;
-        if (curved) {
-            float2 c = sample_vector(curv, at);
-            x = x - c.x * tt;
-            y = y - c.y * tt;
-        }
+#if CURVED
+        float2 c = sample_vector(curv, at);
+        x = x - c.x * tt;
+        y = y - c.y * tt;
+#endif
     }
     return (float2)(x, y);
 }
@@ -144,7 +148,10 @@ __kernel void composite_layers(__global const float *planes, __global const floa
     size_t at = (size_t)row * w + col;
     /* the layers that can reach this pixel, front to back, with their vectors */
     int use[MAXK];
-    float vx[MAXK], vy[MAXK], cx[MAXK], cy[MAXK];
+    float vx[MAXK], vy[MAXK];
+#if CURVED
+    float cx[MAXK], cy[MAXK];
+#endif
     int m = 0;
     for (int k = 0; k < layers; ++k) {
         if (!present[(size_t)k * h * w + at])
@@ -152,8 +159,10 @@ __kernel void composite_layers(__global const float *planes, __global const floa
         use[m] = k;
         vx[m] = vectors[((size_t)k * h * w + at) * 2];
         vy[m] = vectors[((size_t)k * h * w + at) * 2 + 1];
-        cx[m] = curved ? curvature[((size_t)k * h * w + at) * 2] : 0.0f;
-        cy[m] = curved ? curvature[((size_t)k * h * w + at) * 2 + 1] : 0.0f;
+#if CURVED
+        cx[m] = curvature[((size_t)k * h * w + at) * 2];
+        cy[m] = curvature[((size_t)k * h * w + at) * 2 + 1];
+#endif
         ++m;
     }
     float fx = flow[2 * at], fy = flow[2 * at + 1];
@@ -162,20 +171,24 @@ __kernel void composite_layers(__global const float *planes, __global const floa
         acc[c] = 0.0f;
     for (int j = 0; j < N; ++j) {
         float num = (float)j - anchor * (float)(N - 1);
+#if CURVED
         float tt = (num * num) / (den * den);
+#else
+        float tt = 0.0f;  /* unread */
+#endif
         float left = 1.0f;
         for (int c = 0; c < channels; ++c)
             e[c] = 0.0f;
         for (int q = 0; q < m && left != 0.0f; ++q) {
             float x = px - (vx[q] * num) / den;
             float y = py - (vy[q] * num) / den;
-            if (curved) {
-                x = x - cx[q] * tt;
-                y = y - cy[q] * tt;
-            }
+#if CURVED
+            x = x - cx[q] * tt;
+            y = y - cy[q] * tt;
+#endif
             if (warped[use[q]]) {
                 size_t field = (size_t)use[q] * h * w * 2;
-                float2 at_q = inverse_motion(vectors + field, curvature + (curved ? field : 0),
+                float2 at_q = inverse_motion(vectors + field, curvature + (CURVED ? field : 0),
                                              curved, h, w, r0, c0, fh, fw, px, py, num, den,
                                              tt, x, y);
                 x = at_q.x;
@@ -316,12 +329,17 @@ __kernel void composite_lanes(__global const float *planes, __global const float
     float8 fx = vload8(0, fxs), fy = vload8(0, fys);
     /* the layers that can reach any lane, front to back, with their vectors and lane masks */
     int use[MAXK];
-    float8 vx[MAXK], vy[MAXK], cx[MAXK], cy[MAXK];
+    float8 vx[MAXK], vy[MAXK];
+#if CURVED
+    float8 cx[MAXK], cy[MAXK];
+#endif
     int8 there[MAXK];
     int m = 0;
     for (int k = 0; k < layers; ++k) {
         int flags[LANES];
+#if CURVED
         float cxs[LANES], cys[LANES];
+#endif
         int any = 0;
         for (int l = 0; l < LANES; ++l) {
             size_t at = (size_t)k * h * w + ats[l];
@@ -329,16 +347,20 @@ __kernel void composite_lanes(__global const float *planes, __global const float
             any |= flags[l];
             vxs[l] = vectors[2 * at];
             vys[l] = vectors[2 * at + 1];
-            cxs[l] = curved ? curvature[2 * at] : 0.0f;
-            cys[l] = curved ? curvature[2 * at + 1] : 0.0f;
+#if CURVED
+            cxs[l] = curvature[2 * at];
+            cys[l] = curvature[2 * at + 1];
+#endif
         }
         if (!any)
             continue;
         use[m] = k;
         vx[m] = vload8(0, vxs);
         vy[m] = vload8(0, vys);
+#if CURVED
         cx[m] = vload8(0, cxs);
         cy[m] = vload8(0, cys);
+#endif
         there[m] = vload8(0, flags);
         ++m;
     }
@@ -353,8 +375,10 @@ __kernel void composite_lanes(__global const float *planes, __global const float
     bool still[MAXK];
     float16 still_lo[MAXK], still_hi[MAXK];
     for (int q = 0; q < m; ++q) {
-        still[q] = all(vx[q] == 0.0f) && all(vy[q] == 0.0f) && all(cx[q] == 0.0f) &&
-                   all(cy[q] == 0.0f);
+        still[q] = all(vx[q] == 0.0f) && all(vy[q] == 0.0f);
+#if CURVED
+        still[q] = still[q] && all(cx[q] == 0.0f) && all(cy[q] == 0.0f);
+#endif
         if (still[q]) {
             sample8(planes + use[q] * plane, h, w, r0, c0, fh, fw, px, py, &still_lo[q],
                     &still_hi[q]);
@@ -369,7 +393,11 @@ __kernel void composite_lanes(__global const float *planes, __global const float
     float16 acc_lo = 0.0f, acc_hi = 0.0f;
     for (int j = 0; j < nmax; ++j) {
         float8 num = (float8)((float)j) - anchor * n1;
+#if CURVED
         float8 tt = (num * num) / (den * den);
+#else
+        float8 tt = 0.0f;  /* unread */
+#endif
         float8 left = 1.0f;
         float16 e_lo = 0.0f, e_hi = 0.0f, s_lo, s_hi;
         for (int q = 0; q < m; ++q) {
@@ -379,13 +407,13 @@ __kernel void composite_lanes(__global const float *planes, __global const float
             } else {
                 float8 x = px - (vx[q] * num) / den;
                 float8 y = py - (vy[q] * num) / den;
-                if (curved) {
-                    x = x - cx[q] * tt;
-                    y = y - cy[q] * tt;
-                }
+#if CURVED
+                x = x - cx[q] * tt;
+                y = y - cy[q] * tt;
+#endif
                 if (warped[use[q]]) {
                     size_t field = (size_t)use[q] * h * w * 2;
-                    inverse_motion8(vectors + field, curvature + (curved ? field : 0), curved,
+                    inverse_motion8(vectors + field, curvature + (CURVED ? field : 0), curved,
                                     h, w, r0, c0, fh, fw, px, py, num, den, tt, &x, &y);
                 }
                 sample8(planes + use[q] * plane, h, w, r0, c0, fh, fw, x, y, &s_lo, &s_hi);

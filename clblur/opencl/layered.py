@@ -36,10 +36,11 @@ GROUP = 64
 LANE_GROUP = 16  # work-items (of LANES pixels each) per group of the CPU kernel
 
 
-def _program(rt, channels: int) -> Program:
-    """The compositing program for ``channels`` light channels, built once per runtime and
-    channel count (kept in the runtime's program cache, keyed by its build options)."""
-    options = (*build_defines(), f"-DCHANNELS={channels}")
+def _program(rt, channels: int, curved: bool = False) -> Program:
+    """The compositing program for ``channels`` light channels, straight or curved paths,
+    built once per runtime, channel count and path form (kept in the runtime's program
+    cache, keyed by its build options)."""
+    options = (*build_defines(), f"-DCHANNELS={channels}", f"-DCURVED={int(curved)}")
     key = ("layered.cl", *options)
     if key not in rt.programs:
         source = resources.files("clblur.opencl").joinpath("layered.cl").read_text()
@@ -118,7 +119,7 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
         return cl.Buffer(rt.context, mf.READ_ONLY | mf.COPY_HOST_PTR,
                          hostbuf=np.ascontiguousarray(a))
     with rt.lock:
-        program = _program(rt, channels)
+        program = _program(rt, channels, layers.curvature is not None)
         fh, fw = full_shape
         r0, c0 = layers.origin
         args = dict(planes=buf(layers.planes.astype(np.float32)),
