@@ -41,6 +41,13 @@
 #ifndef CURVED
 #define CURVED 0
 #endif
+/* The curved term of a reading position, x - C_k t^2 (scalar or float8 alike; nothing in a
+ * straight build).  cx, cy, tt: the kernel's curvature of the q-th used layer and t^2. */
+#if CURVED
+#define BEND(x, y, q) do { (x) = (x) - cx[q] * tt; (y) = (y) - cy[q] * tt; } while (0)
+#else
+#define BEND(x, y, q) do { } while (0)
+#endif
 #define CP (CHANNELS + 1)
 
 /* Bilinear taps at full-image (x, y), clamped to the image, then to the crop. */
@@ -182,10 +189,7 @@ __kernel void composite_layers(__global const float *planes, __global const floa
         for (int q = 0; q < m && left != 0.0f; ++q) {
             float x = px - (vx[q] * num) / den;
             float y = py - (vy[q] * num) / den;
-#if CURVED
-            x = x - cx[q] * tt;
-            y = y - cy[q] * tt;
-#endif
+            BEND(x, y, q);
             if (warped[use[q]]) {
                 size_t field = (size_t)use[q] * h * w * 2;
                 float2 at_q = inverse_motion(vectors + field, curvature + (CURVED ? field : 0),
@@ -407,10 +411,7 @@ __kernel void composite_lanes(__global const float *planes, __global const float
             } else {
                 float8 x = px - (vx[q] * num) / den;
                 float8 y = py - (vy[q] * num) / den;
-#if CURVED
-                x = x - cx[q] * tt;
-                y = y - cy[q] * tt;
-#endif
+                BEND(x, y, q);
                 if (warped[use[q]]) {
                     size_t field = (size_t)use[q] * h * w * 2;
                     inverse_motion8(vectors + field, curvature + (CURVED ? field : 0), curved,
