@@ -176,7 +176,9 @@ def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "cente
     Raises
     ------
     clblur.errors.InputError
-        No layers, layers that differ in shape, dtype or form of motion, or a bad overscan.
+        No layers, layers that differ in shape, dtype or form of motion, coverage outside
+        [0, 1], an anchor other than the bend or time weights with a bent path, ``curved``
+        without one, or a bad overscan.
     """
     from clblur.blur import resolve_backend
     from clblur.reference import finish, linearise
@@ -211,7 +213,7 @@ def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "cente
         raise InputError(f"layers of shape {shape} leave no output inside an overscan of "
                          f"{overscan} px" if len(shape) == 3 else
                          f"layer images must be H x W x (C + 1), got shape {shape}")
-    ran = resolve_backend(backend)
+    ran = resolve_backend(backend, device)
     common = dict(samples=samples, weights=weights, saturation=saturation, alpha=True,
                   check_flow=True)
     # one plan per layer and half: make_plan validates every image and field
@@ -230,7 +232,7 @@ def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "cente
     region[overscan:h - overscan, overscan:w - overscan] = True
     acc = 0.0
     planes = np.float64 if ran == "numpy" else np.float32  # what each backend composites in
-    if curved:
+    if curved:  # one parabola through the halves' three points
         from dataclasses import replace
 
         first, second = ([_field_of(p).astype(np.float64) for p in half] for half in plans)
@@ -238,9 +240,10 @@ def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "cente
         bend = [(2.0 * (s - f)).astype(np.float32) for f, s in zip(first, second, strict=True)]
         stack = layers_for(linear, chord, 0.5, region, curvature=bend, dtype=planes)
         acc = _composite(stack, replace(plans[0][0], anchor=0.5), ran, device)
-    for half in [] if curved else plans:
-        flows = [_field_of(p) for p in half]
-        stack = layers_for(linear, flows, half[0].anchor, region, dtype=planes)
-        acc = acc + _composite(stack, half[0], ran, device) / len(plans)
+    else:  # one straight path, or two halves whose exposures are averaged
+        for half in plans:
+            flows = [_field_of(p) for p in half]
+            stack = layers_for(linear, flows, half[0].anchor, region, dtype=planes)
+            acc = acc + _composite(stack, half[0], ran, device) / len(plans)
     inner = (slice(overscan, h - overscan), slice(overscan, w - overscan))
     return finish(np.asarray(acc)[inner], plans[0][0])
