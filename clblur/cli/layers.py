@@ -56,8 +56,9 @@ def _opaque(image):
 
 def run(args: argparse.Namespace) -> int:
     import clblur
-    from clblur.io import IMAGE_FORMATS, check_output, read_flow, read_image, write_image
+    from clblur.io import IMAGE_FORMATS, check_output, read_image, write_image
     from clblur.io.flows import depth_source as exr_part
+    from clblur.vectors import load_flow
 
     paths = [exr_part(p)[0] for pair in args.layer for p in pair]
     check_output(args.output, *paths, suffixes=tuple(IMAGE_FORMATS))
@@ -82,13 +83,8 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"layer {image_path}: expected grey or RGB, with or without "
                              f"alpha, got {image.shape[2]} channels")
         vector_file, vector_layer = exr_part(vector_path)
-        if args.vectors == "clblur" and vector_layer is None:
-            flow = read_flow(vector_file)
-        else:
-            from clblur.vectors import load_flow
-
-            flow = load_flow(vector_file, args.vectors, args.vector_shutter, bent=bent,
-                             layer=vector_layer)
+        flow = load_flow(vector_file, args.vectors, args.vector_shutter, bent=bent,
+                         layer=vector_layer)
         layers.append((image, flow))
     if layers[0][0].dtype.kind == "f" and not args.output.lower().endswith(
             (".tif", ".tiff", ".exr")):

@@ -19,7 +19,7 @@
  *   a + f (b - a) (exact where the corners are equal; clblur/reference.py lerp_at).
  * - warped: K flags; vectors of a warped layer cover the whole crop, those of a rigid one
  *   the listed pixels only.
- * - Curved paths (build option -DCURVED=1; the argument curved repeats it): curvature is
+ * - Curved paths (build option -DCURVED=1): curvature is
  *   K x h x w x 2, C_k laid out as vectors; the path is D_k t + C_k t^2, read at
  *   q = p - D_k(q) t - C_k(q) t^2 (t^2 formed as (num * num) / (den * den)); C_k is read
  *   where D_k is, in the same way.  CURVED=0: curvature is a placeholder, never read, and
@@ -114,9 +114,9 @@ static float2 sample_vector(__global const float *vec, taps t)
 }
 
 /* Where layer point at (px, py) at sample offset num / den was at the anchor time: the
- * fixed-point steps of the conventions, from the first guess (x, y); curv (when curved) is
+ * fixed-point steps of the conventions, from the first guess (x, y); curv (CURVED builds) is
  * the layer's C_k and tt the sample's t^2. */
-static float2 inverse_motion(__global const float *vec, __global const float *curv, int curved,
+static float2 inverse_motion(__global const float *vec, __global const float *curv,
                              int h, int w, int r0, int c0, int fh, int fw, float px, float py,
                              float num, float den, float tt, float x, float y)
 {
@@ -137,7 +137,7 @@ static float2 inverse_motion(__global const float *vec, __global const float *cu
 __kernel void composite_layers(__global const float *planes, __global const float *vectors,
                                __global const float *flow, __global const float *linear,
                                __global const uchar *present, __global const uchar *warped,
-                               __global const float *curvature, int curved,
+                               __global const float *curvature,
                                __global const int *pix, __global const int *counts,
                                __global const float *weights, int weighted, int n,
                                int layers, int h, int w, int r0, int c0,
@@ -193,8 +193,7 @@ __kernel void composite_layers(__global const float *planes, __global const floa
             if (warped[use[q]]) {
                 size_t field = (size_t)use[q] * h * w * 2;
                 float2 at_q = inverse_motion(vectors + field, curvature + (CURVED ? field : 0),
-                                             curved, h, w, r0, c0, fh, fw, px, py, num, den,
-                                             tt, x, y);
+                                             h, w, r0, c0, fh, fw, px, py, num, den, tt, x, y);
                 x = at_q.x;
                 y = at_q.y;
             }
@@ -284,8 +283,7 @@ static void sample8(__global const float *img, int h, int w, int r0, int c0, int
 }
 
 /* inverse_motion per lane (the same float operations, so the layouts agree bit for bit). */
-static void inverse_motion8(__global const float *vec, __global const float *curv, int curved,
-                            int h, int w, int r0, int c0, int fh, int fw, float8 px, float8 py,
+static void inverse_motion8(__global const float *vec, __global const float *curv, int h, int w, int r0, int c0, int fh, int fw, float8 px, float8 py,
                             float8 num, float8 den, float8 tt, float8 *x, float8 *y)
 {
     float pxs[LANES], pys[LANES], nums[LANES], dens[LANES], tts[LANES], xs[LANES], ys[LANES];
@@ -297,7 +295,7 @@ static void inverse_motion8(__global const float *vec, __global const float *cur
     vstore8(*x, 0, xs);
     vstore8(*y, 0, ys);
     for (int l = 0; l < LANES; ++l) {
-        float2 q = inverse_motion(vec, curv, curved, h, w, r0, c0, fh, fw, pxs[l], pys[l],
+        float2 q = inverse_motion(vec, curv, h, w, r0, c0, fh, fw, pxs[l], pys[l],
                                   nums[l], dens[l], tts[l], xs[l], ys[l]);
         xs[l] = q.x;
         ys[l] = q.y;
@@ -309,7 +307,7 @@ static void inverse_motion8(__global const float *vec, __global const float *cur
 __kernel void composite_lanes(__global const float *planes, __global const float *vectors,
                               __global const float *flow, __global const float *linear,
                               __global const uchar *present, __global const uchar *warped,
-                              __global const float *curvature, int curved,
+                              __global const float *curvature,
                               __global const int *chunks,
                               __global const int *counts, __global const float *weights,
                               int weighted, int n, int layers, int h, int w, int r0, int c0,
@@ -414,8 +412,8 @@ __kernel void composite_lanes(__global const float *planes, __global const float
                 BEND(x, y, q);
                 if (warped[use[q]]) {
                     size_t field = (size_t)use[q] * h * w * 2;
-                    inverse_motion8(vectors + field, curvature + (CURVED ? field : 0), curved,
-                                    h, w, r0, c0, fh, fw, px, py, num, den, tt, &x, &y);
+                    inverse_motion8(vectors + field, curvature + (CURVED ? field : 0), h, w,
+                                    r0, c0, fh, fw, px, py, num, den, tt, &x, &y);
                 }
                 sample8(planes + use[q] * plane, h, w, r0, c0, fh, fw, x, y, &s_lo, &s_hi);
                 s_lo = select((float16)(0.0f), s_lo, SPREAD_LO(there[q]));

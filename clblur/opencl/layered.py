@@ -129,7 +129,6 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
                     warped=buf(np.ascontiguousarray(layers.warped, bool).view(np.uint8)),
                     curvature=buf(np.zeros(2, np.float32) if layers.curvature is None
                                   else layers.curvature.astype(np.float32, copy=False)),
-                    curved=int(layers.curvature is not None),
                     weights=buf(wts),
                     weighted=weighted, layers=k, h=h, w=w, r0=r0, c0=c0, fh=fh, fw=fw,
                     anchor=anchor)
