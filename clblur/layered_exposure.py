@@ -45,7 +45,11 @@ Conventions
   rigid guess, ``D_k`` read bilinearly (``clblur.reference.lerp_at``, exact where it does not
   vary).  ``p - D_k(p) t`` follows ``p``'s own point instead, which for a body that moves
   while it turns is off by about ``turn * |v| * t^2`` (the gather's error inside a spinning
-  object).
+  object).  The steps are safeguarded: where the map does not contract (estimated flow that
+  jumps within a layer, ``|t| |grad D_k| > 1``) a step can move the reading position away
+  from the solution, so the last iterate is kept only where its step (the residual
+  ``|q + D_k(q) t - p|`` of the iterate before it) is the smallest so far; elsewhere the
+  iterate with the smallest residual is read.
 * **Curved paths** (``Layers.curvature``, built by ``clblur.render_layers`` from a bent
   path's two halves): layer ``k`` moves along ``D_k t + C_k t^2``, ``t = (s_j - a)``, read at
   the solution of ``q = p - D_k(q) t - C_k(q) t^2`` (the same fixed-point steps, ``C_k`` read
@@ -250,13 +254,43 @@ def counts(layers: Layers, samples: int | None,
     return n
 
 
+def _inverse_motion(d: np.ndarray, c: np.ndarray | None, x: np.ndarray, y: np.ndarray,
+                    xx: np.ndarray, yy: np.ndarray, num: np.ndarray, den: np.ndarray,
+                    tt: np.ndarray, origin: tuple[int, int], full_shape: tuple[int, int]
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Where a warped layer is read (module Conventions, inverse motion): ``INVERSE_STEPS``
+    fixed-point steps ``q <- p - D_k(q) t (- C_k(q) t^2)`` from the guess ``(x, y)``,
+    safeguarded: the last iterate where its step was the smallest so far, else the iterate
+    whose step (its residual ``|q + D_k(q) t - p|``, the larger of x and y) was smallest."""
+    from clblur.reference import lerp_at
+
+    best_x, best_y = x, y
+    best_r = np.full(np.shape(x), np.inf)
+    r = best_r
+    for _ in range(INVERSE_STEPS):
+        dq = lerp_at(d, x, y, origin, full_shape)
+        nx = xx - (dq[..., 0] * num) / den
+        ny = yy - (dq[..., 1] * num) / den
+        if c is not None:
+            cq = lerp_at(c, x, y, origin, full_shape)
+            nx = nx - cq[..., 0] * tt
+            ny = ny - cq[..., 1] * tt
+        r = np.maximum(abs(nx - x), abs(ny - y))  # the residual of the iterate (x, y)
+        better = r < best_r
+        best_x, best_y = np.where(better, x, best_x), np.where(better, y, best_y)
+        best_r = np.where(better, r, best_r)
+        x, y = nx, ny
+    last = r <= best_r  # still contracting at the last step: take it
+    return np.where(last, x, best_x), np.where(last, y, best_y)
+
+
 def composite(layers: Layers, anchor: float, samples: int | None, weights: np.ndarray | None,
               full_shape: tuple[int, int]) -> np.ndarray:
     """Front-to-back composite of every shutter sample, float64 (the numpy reference).
 
     Returns the exposure of every crop pixel (h x w x C); only ``layers.region`` is used.
     """
-    from clblur.reference import bilinear_at, lerp_at
+    from clblur.reference import bilinear_at
 
     h, w = layers.region.shape
     r0, c0 = layers.origin
@@ -282,17 +316,8 @@ def composite(layers: Layers, anchor: float, samples: int | None, weights: np.nd
                 x = x - c[..., 0] * tt
                 y = y - c[..., 1] * tt
             if warped:
-                # inverse motion (module Conventions): the layer point at p at this sample
-                # is q = p - D_k(q) t (- C_k(q) t^2); fixed-point steps from the guess at p
-                for _ in range(INVERSE_STEPS):
-                    dq = lerp_at(d, x, y, layers.origin, full_shape)
-                    if c is not None:
-                        cq = lerp_at(c, x, y, layers.origin, full_shape)
-                    x = xx - (dq[..., 0] * num) / den
-                    y = yy - (dq[..., 1] * num) / den
-                    if c is not None:
-                        x = x - cq[..., 0] * tt
-                        y = y - cq[..., 1] * tt
+                x, y = _inverse_motion(d, c, x, y, xx, yy, num, den, tt, layers.origin,
+                                       full_shape)
             s = bilinear_at(plane, x, y, layers.origin, full_shape) * there[..., None]
             e += left * s[..., :channels]
             left = left * (1.0 - s[..., channels:])

@@ -98,6 +98,45 @@ def test_a_turning_layer_is_read_along_its_inverse_motion(spinning, monkeypatch)
     assert turned > own_vector + 8.0
 
 
+def test_inverse_motion_is_safeguarded_where_the_map_does_not_contract():
+    """q <- p - D(q) t with D_x = g (x - 32): the steps contract for |g t| < 1 and are taken;
+    for |g t| > 1 each step moves further from the solution, and the first guess (the
+    iterate of least residual) is read instead."""
+    h, w = 4, 64
+    xx = np.broadcast_to(np.arange(w, dtype=np.float64), (h, w))
+    yy = np.broadcast_to(np.arange(h, dtype=np.float64)[:, None], (h, w))
+    num, den, tt = np.full((h, w), 1.0), np.full((h, w), 2.0), np.zeros((h, w))  # t = 1/2
+    for g, expected in ((0.5, 38.375), (3.0, 28.0)):
+        d = np.zeros((h, w, 2))
+        d[..., 0] = g * (xx - 32.0)
+        x0 = xx - d[..., 0] * 0.5  # the rigid guess
+        x, y = layered._inverse_motion(d, None, x0, yy, xx, yy, num, den, tt, (0, 0), (h, w))
+        # p = 40: g = 0.5 steps 38 -> 38.5 -> 38.375 (residuals 0.5, 0.125: contracting);
+        # g = 3 steps 28 -> 46 -> 19 (residuals 18, 27): 28 is kept
+        assert x[1, 40] == pytest.approx(expected)
+        np.testing.assert_array_equal(y, yy)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.float32])
+def test_opencl_safeguarded_inverse_motion_matches_the_reference(opencl, dtype):
+    """A layer whose vectors change faster than the steps contract (|t| |grad D| > 1, as
+    estimated flow can): the device picks the reference's iterates."""
+    rng = np.random.default_rng(5)
+    h, w = 48, 96
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    lin = rng.uniform(0.05, 0.9, (h, w, 3))
+    inside = np.hypot(xx - 48, yy - 24) < 14
+    flow = np.zeros((h, w, 2), np.float32)
+    flow[..., 0] = np.where(inside, 12.0 + 3.0 * (xx - 48), 0.0)  # grad 3: expands
+    flow[..., 1] = np.where(inside, 2.0 * np.sin(xx / 2.0), 0.0)
+    depth = np.where(inside, 1.0, 10.0)
+    img = SRGB.forward(lin)
+    img = np.rint(img * 255).astype(np.uint8) if dtype == np.uint8 else img.astype(dtype)
+    ref = clblur.blur(img, flow, "srgb", backend="numpy", depth=depth)
+    got = clblur.blur(img, flow, "srgb", backend="opencl", depth=depth)
+    agree(ref, got)
+
+
 def test_region_takes_the_inside_of_a_turning_object(rng):
     """Far from any motion edge, a body that turns while it moves still departs from the
     gather: those pixels take the layered path (else a seam where the region ends).  Flow

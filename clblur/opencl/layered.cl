@@ -16,7 +16,9 @@
  * - Sample j of a pixel p reads each layer k at q = p - D_k(q) t, t = (j - a (N-1)) /
  *   max(N-1, 1): q = p - D_k(p) t for a rigid layer (warped[k] = 0), and INVERSE_STEPS
  *   fixed-point steps from there for a warped one, D_k read bilinearly in the form
- *   a + f (b - a) (exact where the corners are equal; clblur/reference.py lerp_at).
+ *   a + f (b - a) (exact where the corners are equal; clblur/reference.py lerp_at),
+ *   safeguarded as clblur/layered_exposure.py _inverse_motion: the last iterate where its
+ *   step is the smallest so far, else the iterate of the smallest step.
  * - warped: K flags; vectors of a warped layer cover the whole crop, those of a rigid one
  *   the listed pixels only.
  * - Curved paths (build option -DCURVED=1): curvature is
@@ -120,16 +122,29 @@ static float2 inverse_motion(__global const float *vec, __global const float *cu
                              int h, int w, int r0, int c0, int fh, int fw, float px, float py,
                              float num, float den, float tt, float x, float y)
 {
+    float bx = x, by = y, br = INFINITY, r = INFINITY;
     for (int it = 0; it < INVERSE_STEPS; ++it) {
         taps at = locate(h, w, r0, c0, fh, fw, x, y);
         float2 d = sample_vector(vec, at);
-        x = px - (d.x * num) / den;
-        y = py - (d.y * num) / den;
+        float nx = px - (d.x * num) / den;
+        float ny = py - (d.y * num) / den;
 #if CURVED
         float2 c = sample_vector(curv, at);
-        x = x - c.x * tt;
-        y = y - c.y * tt;
+        nx = nx - c.x * tt;
+        ny = ny - c.y * tt;
 #endif
+        r = fmax(fabs(nx - x), fabs(ny - y));  /* the residual of the iterate (x, y) */
+        if (r < br) {
+            bx = x;
+            by = y;
+            br = r;
+        }
+        x = nx;
+        y = ny;
+    }
+    if (!(r <= br)) {  /* not contracting at the last step: the iterate of least residual */
+        x = bx;
+        y = by;
     }
     return (float2)(x, y);
 }
