@@ -89,32 +89,48 @@ def distance_to(inside: np.ndarray,
     return np.sqrt(np.rint(d * d))
 
 
+def _nearest_transform(outside: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``scipy.ndimage.distance_transform_edt(outside, return_indices=True)`` with the
+    indices as flat (row-major) indices into the image: (distance, flat index), H x W each.
+
+    Why flat: gathering an image at them with ``np.take`` is several times faster than
+    fancy indexing with the two index planes (the same values, copied)."""
+    from scipy.ndimage import distance_transform_edt
+
+    dist, idx = distance_transform_edt(outside, return_indices=True)
+    return dist, idx[0] * outside.shape[1] + idx[1]
+
+
+def _at(a: np.ndarray, flat: np.ndarray) -> np.ndarray:
+    """``a`` (H x W [x C]) at the flat indices ``flat`` (any shape): ``a[rows, cols]``."""
+    return np.take(a.reshape((-1,) + a.shape[2:]), flat, axis=0)
+
+
 def _inpaint(lin: np.ndarray, known: np.ndarray, depth: float,
-             nearest: tuple[np.ndarray, tuple[np.ndarray, np.ndarray]] | None = None,
+             nearest: tuple[np.ndarray, np.ndarray] | None = None,
              needed: np.ndarray | None = None,
              window: tuple[slice, slice] = (slice(None), slice(None))) -> np.ndarray:
     """``lin`` with the pixels outside ``known`` reconstructed from the known ones
     (Navier-Stokes inpainting, Bertalmio et al. 2001, as ``cv2.inpaint``; per channel) up to
     ``depth`` pixels from them; deeper pixels, which no sample reads, take their nearest known
     pixel (so the inpainting only walks the band that can be uncovered).  ``nearest``: the
-    distance transform of ``~known`` with its indices, if already computed; ``needed``: the
+    distance transform of ``~known`` with its flat indices (:func:`_nearest_transform`), if
+    already computed; ``needed``: the
     pixels any sample can read (others take their nearest known pixel too), and the
     inpainting runs only on the bounding box of the hole they leave, plus a margin.
     Returns the result on ``window`` only (the part the caller reads)."""
     import cv2
-    from scipy.ndimage import distance_transform_edt
 
     if not known.any():
         return lin[window].copy()
-    dist, idx = nearest if nearest is not None else \
-        distance_transform_edt(~known, return_indices=True)
+    dist, flat = nearest if nearest is not None else _nearest_transform(~known)
     deep = dist > depth + INPAINT_RADIUS + 1
     if needed is not None:
         deep |= ~needed
     hole = ~known & ~deep
     # known pixels are their own nearest known pixel: everywhere but in the hole, the
     # nearest known pixel's light is the result (the hole's is inpainting's first guess)
-    out = lin[idx[0][window], idx[1][window]]
+    out = _at(lin, flat[window])
     if not hole.any():
         return out
     # cv2.inpaint marches over the whole array it is given: give it only the hole's box
@@ -125,7 +141,7 @@ def _inpaint(lin: np.ndarray, known: np.ndarray, depth: float,
            slice(max(cols[0] - m, 0), cols[-1] + m + 1))
     # inpainting's input (float32): as the result outside the hole, and in it too where
     # there is anything deep (else the image itself, as the fill has always been given)
-    base = (lin[idx[0][box], idx[1][box]] if deep.any() else lin[box]).astype(np.float32)
+    base = (_at(lin, flat[box]) if deep.any() else lin[box]).astype(np.float32)
     hole8 = hole[box].astype(np.uint8)
     # the box's part of the window, in window and in box coordinates
     h, w = known.shape
@@ -200,15 +216,18 @@ def split_coverage(light: np.ndarray, front: np.ndarray, behind: np.ndarray) -> 
 
 def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
             region: np.ndarray, background: np.ndarray | None = None,
-            split_edges: bool = True, rule: str = "depth") -> Layers | None:
+            split_edges: bool = True, rule: str = "depth",
+            dtype: type = np.float64) -> Layers | None:
     """Build the layers around ``region`` (H x W bool) from the linear image, the vectors and
     the ordering signal; ``background``: the linear clean plate, if known.  Host-side, shared
     by both backends.  ``lin``: the linear image, or a function that returns the linear image
     of a crop ``(row slice, col slice)`` (so only the crop is linearised).  None when the
     ordering gives one layer there: a single surface is what the gather integrates.
-    ``rule``: how a float ``order`` becomes layers (:func:`layer_labels`)."""
+    ``rule``: how a float ``order`` becomes layers (:func:`layer_labels`); ``dtype``: of
+    the planes (a device backend takes float32: the same values as float64 planes rounded,
+    built without the float64 copy)."""
     import cv2
-    from scipy.ndimage import distance_transform_edt, maximum_filter, minimum_filter
+    from scipy.ndimage import maximum_filter, minimum_filter
 
     h, w = region.shape
     r = reach(v, anchor)
@@ -278,10 +297,10 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
             out |= near_mixed & (from_region <= reach_at_or_behind[k - 1] + pad)
         return out
 
-    def behind_edt(k: int) -> tuple:
-        """Distance to, and index of, the nearest pixel at or behind layer ``k``."""
+    def behind_edt(k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Distance to, and flat index of, the nearest pixel at or behind layer ``k``."""
         if k not in nearest_at_or_behind:
-            nearest_at_or_behind[k] = distance_transform_edt(labels < k, return_indices=True)
+            nearest_at_or_behind[k] = _nearest_transform(labels < k)
         return nearest_at_or_behind[k]
 
     def fill(k: int) -> np.ndarray:
@@ -305,7 +324,7 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     at = np.nonzero(reg)
     lab_w, split_w, lin_w, v_w = labels[win], split[win], lin_c[win], v_c[win]
     hw, ch = reg.shape, lin_c.shape[2]
-    planes = np.empty((last + 1,) + hw + (ch + 1,), lin_c.dtype)
+    planes = np.empty((last + 1,) + hw + (ch + 1,), dtype)
     vectors = np.zeros((last + 1,) + hw + (2,), np.float32)
     present = np.zeros((last + 1,) + hw, bool)
     warped = np.zeros(last + 1, bool)
@@ -322,14 +341,14 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
             if k == 0:
                 ext_w, colour_w, vec_w = lab_w == 0, lin_w, v_w
             else:
-                dist, idx = behind_edt(k)
+                dist, flat = behind_edt(k)
                 # nearest pixel at or behind layer k (itself there)
-                sy, sx = idx[0][win], idx[1][win]
+                nearest_w = flat[win]
                 # only the rearmost layer is assumed to continue far under what hides it
-                ext_w = (labels[sy, sx] == k) & (dist[win] <= (band if k == last
-                                                               else MID_EXTEND_PX))
+                ext_w = (_at(labels, nearest_w) == k) & (dist[win] <= (band if k == last
+                                                                       else MID_EXTEND_PX))
                 colour_w = fill(k)
-                vec_w = v_c[sy, sx]
+                vec_w = _at(v_c, nearest_w)
             mine_w = split_w & (lab_w == k)
         if not ext_w.any():
             continue  # no sample of the region reads this layer
@@ -339,7 +358,7 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
                         else fill(k + 1))
             cover_w[mine_w] = split_coverage(lin_w[mine_w], pure[win][mine_w],
                                              behind_w[mine_w])
-        m = (ext_w * cover_w).astype(lin_c.dtype)
+        m = ext_w * cover_w
         plane = planes[kept]
         np.multiply(colour_w, m[..., None], out=plane[..., :ch])
         plane[..., ch] = m
@@ -361,9 +380,9 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
             d_at = np.broadcast_to(first.astype(np.float32), (at[0].size, 2))
             vectors[kept][at] = d_at
         else:
-            dist, nearest = distance_transform_edt(~ext_w, return_indices=True)
+            dist, nearest = _nearest_transform(~ext_w)
             dist_at = dist[at]
-            vectors[kept] = vec_w[nearest[0], nearest[1]]
+            vectors[kept] = _at(vec_w, nearest)
             d_at = vectors[kept][at]
             warped[kept] = True
         farthest = np.hypot(d_at[:, 0], d_at[:, 1]) * max(anchor, 1.0 - anchor)

@@ -122,7 +122,7 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
         program = _program(rt, channels, layers.curvature is not None)
         fh, fw = full_shape
         r0, c0 = layers.origin
-        args = dict(planes=buf(layers.planes.astype(np.float32)),
+        args = dict(planes=buf(layers.planes.astype(np.float32, copy=False)),
                     vectors=buf(layers.vectors.astype(np.float32, copy=False)),
                     flow=buf(layers.flow.astype(np.float32, copy=False)), linear=buf(linear),
                     present=buf(np.ascontiguousarray(layers.present, bool).view(np.uint8)),
@@ -176,7 +176,8 @@ def integrator(device: str | None = None):
         def crop_linear(crop):  # linearise only the crop the layers need
             return reference.linearise(replace(plan, image=plan.image[crop], background=None))
         layers = layered.prepare(crop_linear, v, order, plan.anchor, region,
-                                 layered.background_linear(plan), rule=rule)
+                                 layered.background_linear(plan), rule=rule,
+                                 dtype=np.float32)
         if layers is None:
             return None
         values = composite(layers, plan.anchor, plan.samples, plan.weights, plan.full_shape,
