@@ -118,13 +118,19 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
     def buf(a):
         return cl.Buffer(rt.context, mf.READ_ONLY | mf.COPY_HOST_PTR,
                          hostbuf=np.ascontiguousarray(a))
+
+    def large(role: str, a: np.ndarray):
+        # the planes and fields: read in place on a device that shares host memory (a CPU:
+        # copying tens of MB per call was a tenth of a real-flow frame), else uploaded
+        # into a buffer kept for the role
+        return rt.share("layered." + role, a.astype(np.float32, copy=False))
     with rt.lock:
         program = _program(rt, channels, layers.curvature is not None)
         fh, fw = full_shape
         r0, c0 = layers.origin
-        args = dict(planes=buf(layers.planes.astype(np.float32, copy=False)),
-                    vectors=buf(layers.vectors.astype(np.float32, copy=False)),
-                    flow=buf(layers.flow.astype(np.float32, copy=False)), linear=buf(linear),
+        args = dict(planes=large("planes", layers.planes),
+                    vectors=large("vectors", layers.vectors),
+                    flow=large("flow", layers.flow), linear=large("linear", linear),
                     present=buf(np.ascontiguousarray(layers.present, bool).view(np.uint8)),
                     warped=buf(np.ascontiguousarray(layers.warped, bool).view(np.uint8)),
                     curvature=buf(np.zeros(2, np.float32) if layers.curvature is None
