@@ -40,7 +40,10 @@ class Layers:
     layer ``k``'s vectors vary (not a rigid translation).  ``curvature``: None (straight
     paths), or K x h x w x 2 float32 ``C_k``, the quadratic term of a curved path
     (``clblur.layered_exposure``, curved paths; only ``clblur.render_layers`` builds it; a
-    layer is ``warped`` when its ``D_k`` or its ``C_k`` vary).  ``present`` holds values at the
+    layer is ``warped`` when its ``D_k`` or its ``C_k`` vary).  ``inverse_steps``: fixed-point
+    steps of a warped layer's inverse motion (``clblur.layered_exposure``); None is
+    ``INVERSE_STEPS``, the count for estimated flow; ``clblur.render_layers`` sets its own for
+    a renderer's exact vectors.  ``present`` holds values at the
     region's pixels only (False elsewhere: nothing reads it), and so do the ``vectors`` of a
     rigid layer; a warped layer's ``vectors`` cover the whole crop, because the composite
     reads them where its samples land (``clblur.layered_exposure``, inverse motion).
@@ -55,6 +58,7 @@ class Layers:
     present: np.ndarray
     warped: np.ndarray
     curvature: np.ndarray | None = None
+    inverse_steps: int | None = None
 
 
 # cv2's exact transform returns float32 distances; squared, they round back to the exact

@@ -41,7 +41,8 @@ Conventions
   from the image along ``p``'s own vector (the gather).
 * **Inverse motion.**  A layer whose vectors vary (it turns, scales or bends: ``warped``) is
   read where the layer point that is at ``p`` at that sample was at the anchor time, the
-  solution of ``q = p - D_k(q) (s_j - a)``: ``INVERSE_STEPS`` fixed-point steps from the
+  solution of ``q = p - D_k(q) (s_j - a)``: ``INVERSE_STEPS`` fixed-point steps (the count
+  for estimated flow; ``Layers.inverse_steps`` overrides it, ``clblur.render_layers``) from the
   rigid guess, ``D_k`` read bilinearly (``clblur.reference.lerp_at``, exact where it does not
   vary).  ``p - D_k(p) t`` follows ``p``'s own point instead, which for a body that moves
   while it turns is off by about ``turn * |v| * t^2`` (the gather's error inside a spinning
@@ -95,7 +96,7 @@ __all__ = ["DEPTH_TAU", "GAP_FRACTION", "INVERSE_STEPS", "MAX_LAYERS", "SPLIT_PR
            "SPREAD_PX", "TILE", "Layers",
            "boundary_mask", "depth_components", "order_components", "region_mask",
            "integrate", "integrator", "layer_labels", "layered_half", "prepare",
-           "speed_order", "split_coverage", "composite"]
+           "speed_order", "split_coverage", "steps_of", "composite"]
 
 SPREAD_PX = 1.0
 TILE = 16
@@ -254,11 +255,16 @@ def counts(layers: Layers, samples: int | None,
     return n
 
 
+def steps_of(layers: Layers) -> int:
+    """The fixed-point steps of the inverse motion of ``layers``' warped layers."""
+    return INVERSE_STEPS if layers.inverse_steps is None else int(layers.inverse_steps)
+
+
 def _inverse_motion(d: np.ndarray, c: np.ndarray | None, x: np.ndarray, y: np.ndarray,
                     xx: np.ndarray, yy: np.ndarray, num: np.ndarray, den: np.ndarray,
-                    tt: np.ndarray, origin: tuple[int, int], full_shape: tuple[int, int]
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Where a warped layer is read (module Conventions, inverse motion): ``INVERSE_STEPS``
+                    tt: np.ndarray, origin: tuple[int, int], full_shape: tuple[int, int],
+                    steps: int = INVERSE_STEPS) -> tuple[np.ndarray, np.ndarray]:
+    """Where a warped layer is read (module Conventions, inverse motion): ``steps``
     fixed-point steps ``q <- p - D_k(q) t (- C_k(q) t^2)`` from the guess ``(x, y)``,
     safeguarded: the last iterate where its step was the smallest so far, else the iterate
     whose step (its residual ``|q + D_k(q) t - p|``, the larger of x and y) was smallest."""
@@ -267,7 +273,7 @@ def _inverse_motion(d: np.ndarray, c: np.ndarray | None, x: np.ndarray, y: np.nd
     best_x, best_y = x, y
     best_r = np.full(np.shape(x), np.inf)
     r = best_r
-    for _ in range(INVERSE_STEPS):
+    for _ in range(steps):
         dq = lerp_at(d, x, y, origin, full_shape)
         nx = xx - (dq[..., 0] * num) / den
         ny = yy - (dq[..., 1] * num) / den
@@ -300,6 +306,7 @@ def composite(layers: Layers, anchor: float, samples: int | None, weights: np.nd
     channels = layers.linear.shape[2]
     acc = np.zeros((h, w, channels))
     vectors = [d.astype(np.float64) for d in layers.vectors]  # once, not per sample
+    steps = steps_of(layers)
     curves = [None] * len(vectors) if layers.curvature is None else \
         [c.astype(np.float64) for c in layers.curvature]
     for j in range(int(n.max())):
@@ -317,7 +324,7 @@ def composite(layers: Layers, anchor: float, samples: int | None, weights: np.nd
                 y = y - c[..., 1] * tt
             if warped:
                 x, y = _inverse_motion(d, c, x, y, xx, yy, num, den, tt, layers.origin,
-                                       full_shape)
+                                       full_shape, steps)
             s = bilinear_at(plane, x, y, layers.origin, full_shape) * there[..., None]
             e += left * s[..., :channels]
             left = left * (1.0 - s[..., channels:])

@@ -27,6 +27,12 @@ Conventions
   is premultiplied colour and coverage ``1 - prod(1 - W_k)`` and goes out in the input's alpha
   convention.  Nothing is reconstructed: light that no layer holds is not there (an opaque
   rearmost layer, a background plate, leaves none).
+* A renderer's vectors are exact, so a warped layer's inverse motion is solved to
+  convergence: ``RENDER_INVERSE_STEPS`` safeguarded fixed-point steps, where estimated flow
+  takes ``clblur.layered_exposure.INVERSE_STEPS`` (whose fixed point an estimate's errors
+  move: on the GoPro frames a third step loses 0.1 - 0.25 dB, ``bench/results_occlusion.md``).
+  On the study's turning scenes 3, 4, 6 and 8 steps agree within 0.1 dB
+  (``docs/studies/occlusion.md``); 4 is where they stop moving.
 * ``overscan``: the layers extend ``overscan`` pixels beyond the output on every side (an EXR
   data window larger than its display window), so what enters the frame during the shutter
   is known; the output is the inner H - 2 m x W - 2 m.
@@ -42,7 +48,9 @@ from clblur.errors import InputError
 from clblur.layer_planes import Layers
 from clblur.request import BlurPlan, make_plan
 
-__all__ = ["blur_layers", "layers_for"]
+__all__ = ["RENDER_INVERSE_STEPS", "blur_layers", "layers_for"]
+
+RENDER_INVERSE_STEPS = 4  # module Conventions: a renderer's exact vectors, solved to convergence
 
 
 def _motion_form(motion, index: int):
@@ -126,7 +134,8 @@ def layers_for(linear: Sequence[np.ndarray], flows: Sequence[np.ndarray], anchor
         present[i] = (distance_to(covered) <= farthest + 1.5) & region
     return Layers(origin=(0, 0), planes=planes, vectors=vectors,
                   flow=np.zeros((h, w, 2), np.float32), linear=np.zeros((h, w, cp), dtype),
-                  region=region, present=present, warped=warped, curvature=curves)
+                  region=region, present=present, warped=warped, curvature=curves,
+                  inverse_steps=RENDER_INVERSE_STEPS)
 
 
 def _composite(layers: Layers, plan: BlurPlan, backend: str, device: str | None) -> np.ndarray:

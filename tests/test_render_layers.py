@@ -277,3 +277,22 @@ def test_command_line_reads_view_layers_of_a_multilayer_exr(tmp_path, capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert "Nowhere.Vector" in err and len(err.strip().splitlines()) == 1
+
+
+def test_render_layers_solve_the_inverse_motion_to_convergence(monkeypatch):
+    """A renderer's vectors are exact: RENDER_INVERSE_STEPS steps score as many more do, and
+    above the count kept for estimated flow (INVERSE_STEPS) on the turning star."""
+    from clblur import layered_exposure, render_layers
+
+    scene = example_scenes(160, 112)["star_leaving"]
+    truth = render(scene, "srgb", np.uint8, samples=48)
+    layers = bent(object_layers(scene, "srgb", overscan=24))
+
+    def score(steps: int) -> float:
+        monkeypatch.setattr(render_layers, "RENDER_INVERSE_STEPS", steps)
+        out = clblur.blur_layers(layers, "srgb", overscan=24, curved=True, backend="numpy")
+        return psnr(out[..., :3], truth.image, truth.swept)
+
+    kept = score(render_layers.RENDER_INVERSE_STEPS)
+    assert abs(kept - score(8)) < 0.1
+    assert kept > score(layered_exposure.INVERSE_STEPS) + 0.2

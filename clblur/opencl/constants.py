@@ -17,15 +17,12 @@ Conventions
   searches there; clblur/opencl/quantisation.py ``quantisation_grid``).
 * Input kinds (what the image buffer holds) and output kinds (what the store writes).
 * ``FLOW_LIMIT`` (``clblur.motion``): the largest flow component the kernels accept.
-* ``INVERSE_STEPS`` (``clblur.layered_exposure``): fixed-point steps of a warped layer's
-  inverse motion in the layered compositor.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from clblur import layered_exposure
 from clblur.motion import FLOW_LIMIT
 from clblur.responses import KIND_CODES
 
@@ -56,9 +53,6 @@ def build_defines() -> tuple[str, ...]:
     values = {"LANES": LANES, "FIELD_LANES": FIELD_LANES, "GROUP": GROUP,
               "RESP_STRIDE": RESP_STRIDE, "QHEAD": QHEAD,
               "MAXK": LAYERED_MAXK, "GRID_SEARCH": GRID_SEARCH,
-              # read when a program is built, so that setting it on layered_exposure (a
-              # test, an experiment) reaches the kernels too; programs are cached by options
-              "INVERSE_STEPS": layered_exposure.INVERSE_STEPS,
               "IN_U8": IN_U8, "IN_U16": IN_U16, "IN_F32": IN_F32,
               "OUT_U8": OUT_U8, "OUT_U16": OUT_U16, "OUT_F32": OUT_F32}
     values.update({f"KIND_{name.upper()}": code for name, code in KIND_CODES.items()})

@@ -36,11 +36,13 @@ GROUP = 64
 LANE_GROUP = 16  # work-items (of LANES pixels each) per group of the CPU kernel
 
 
-def _program(rt, channels: int, curved: bool = False) -> Program:
-    """The compositing program for ``channels`` light channels, straight or curved paths,
-    built once per runtime, channel count and path form (kept in the runtime's program
-    cache, keyed by its build options)."""
-    options = (*build_defines(), f"-DCHANNELS={channels}", f"-DCURVED={int(curved)}")
+def _program(rt, channels: int, curved: bool = False,
+             steps: int = layered.INVERSE_STEPS) -> Program:
+    """The compositing program for ``channels`` light channels, straight or curved paths and
+    ``steps`` fixed-point steps of the inverse motion, built once per runtime and options
+    (kept in the runtime's program cache, keyed by its build options)."""
+    options = (*build_defines(), f"-DCHANNELS={channels}", f"-DCURVED={int(curved)}",
+               f"-DINVERSE_STEPS={int(steps)}")
     key = ("layered.cl", *options)
     if key not in rt.programs:
         source = resources.files("clblur.opencl").joinpath("layered.cl").read_text()
@@ -125,7 +127,7 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
         # into a buffer kept for the role
         return rt.share("layered." + role, a.astype(np.float32, copy=False))
     with rt.lock:
-        program = _program(rt, channels, layers.curvature is not None)
+        program = _program(rt, channels, layers.curvature is not None, layered.steps_of(layers))
         fh, fw = full_shape
         r0, c0 = layers.origin
         args = dict(planes=large("planes", layers.planes),
