@@ -15,7 +15,8 @@
  *   count N; weights: N time weights when weighted != 0, else 1/N each.
  * - Sample j of a pixel p reads each layer k at q = p - D_k(q) t, t = (j - a (N-1)) /
  *   max(N-1, 1): q = p - D_k(p) t for a rigid layer (warped[k] = 0), and INVERSE_STEPS
- *   fixed-point steps from there for a warped one, D_k read bilinearly in the form
+ *   (a build option: Layers.inverse_steps) fixed-point steps from there for a warped one,
+ *   D_k read bilinearly in the form
  *   a + f (b - a) (exact where the corners are equal; clblur/reference.py lerp_at),
  *   safeguarded as clblur/layered_exposure.py _inverse_motion: the last iterate where its
  *   step is the smallest so far, else the iterate of the smallest step.
