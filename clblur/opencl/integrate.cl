@@ -286,33 +286,25 @@ static int16 floor_int16(float16 v)
     right##C = fma(tr, w_tr, right##C);                                                   \
     right##C = fma(br, w_br, right##C);
 
-#define CONTIG(C)                                                                         \
+/* The four taps' loads of channel C for the lanes, LOAD(p, o) reading offset o (0, 1, ws,
+ * ws + 1) from the channel's plane p, then PLANE_ACC. */
+#define TAPS_FROM(C, LOAD)                                                                \
     {                                                                                     \
         __global const STORE_T *p = lin + (size_t)(C) * plane_size;                       \
-        float16 tl = PLOAD16(p, b), tr = PLOAD16(p, b + 1);                               \
-        float16 bl = PLOAD16(p, b + ws), br = PLOAD16(p, b + ws + 1);                     \
+        float16 tl = LOAD(p, 0), tr = LOAD(p, 1);                                         \
+        float16 bl = LOAD(p, ws), br = LOAD(p, ws + 1);                                   \
         PLANE_ACC(C)                                                                      \
     }
 
+#define LOAD_CONTIG(p, o) PLOAD16(p, b + (o))
 /* Lanes at two offsets (d = base - lane is d.s0 in the lanes `first`, d.sf in the others: a
  * smooth flow whose integer offset steps once across the 16 pixels). */
-#define TWO(C)                                                                            \
-    {                                                                                     \
-        __global const STORE_T *p = lin + (size_t)(C) * plane_size;                       \
-        float16 tl = select(PLOAD16(p, bf), PLOAD16(p, b), first);                        \
-        float16 tr = select(PLOAD16(p, bf + 1), PLOAD16(p, b + 1), first);                \
-        float16 bl = select(PLOAD16(p, bf + ws), PLOAD16(p, b + ws), first);              \
-        float16 br = select(PLOAD16(p, bf + ws + 1), PLOAD16(p, b + ws + 1), first);      \
-        PLANE_ACC(C)                                                                      \
-    }
+#define LOAD_TWO(p, o) select(PLOAD16(p, bf + (o)), PLOAD16(p, b + (o)), first)
+#define LOAD_GATHER(p, o) PGATHER16(p, base + (o))
 
-#define GATHER(C)                                                                         \
-    {                                                                                     \
-        __global const STORE_T *p = lin + (size_t)(C) * plane_size;                       \
-        float16 tl = PGATHER16(p, base), tr = PGATHER16(p, base + 1);                     \
-        float16 bl = PGATHER16(p, base + ws), br = PGATHER16(p, base + ws + 1);           \
-        PLANE_ACC(C)                                                                      \
-    }
+#define CONTIG(C) TAPS_FROM(C, LOAD_CONTIG)
+#define TWO(C) TAPS_FROM(C, LOAD_TWO)
+#define GATHER(C) TAPS_FROM(C, LOAD_GATHER)
 
 /* One tap of the CPU field kernel for its lanes and CG channels (a constant), given base,
  * fx, upper and lower. */
