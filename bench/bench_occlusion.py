@@ -11,7 +11,8 @@ depth map; median wall time and median process CPU time (all threads) of ``clblu
 with and without ``depth`` on the chosen backend (PoCL here).
 
 Run:  python bench/bench_occlusion.py [--backend opencl] [--k 64] [--repeat 5]
-Prints two tables and writes bench/results_occlusion.md.
+Prints two tables and writes them at the top of bench/results_occlusion.md (the notes below
+its marker line, written by hand, are kept).
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 RESULTS = Path(__file__).resolve().parent / "results_occlusion.md"
 
 
@@ -121,6 +123,8 @@ def main() -> None:
     ap.add_argument("--k", type=int, default=64, help="sub-frames of the truth (default 64)")
     ap.add_argument("--repeat", type=int, default=5)
     args = ap.parse_args()
+    from results_file import write_results
+
     acc = accuracy(args.k)
     spd = timing(args.backend, args.repeat)
     load = os.getloadavg()[0]
@@ -138,7 +142,7 @@ def main() -> None:
         *acc, "",
         "Cost against the plain gather (median wall time and median process CPU time of "
         "`clblur.blur`, per-pixel flow, response srgb):", "", *spd, ""])
-    RESULTS.write_text(text)
+    write_results(RESULTS, text)
     print(f"wrote {RESULTS}")
 
 

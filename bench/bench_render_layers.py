@@ -11,7 +11,8 @@ of output per CPU-second.  ``blur_layers`` composites every pixel (no culling: e
 cover any of them), so its cost is the layered kernel's over the whole frame.
 
 Run:  python bench/bench_render_layers.py [--backend opencl] [--repeat 5]
-Prints a table and writes bench/results_render_layers.md.
+Prints a table and writes it at the top of bench/results_render_layers.md (the notes
+below its marker line, written by hand, are kept).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import sys
 import time
 from pathlib import Path
 
@@ -91,13 +93,16 @@ def main() -> None:
     table = "\n".join(rows)
     print(table)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    RESULTS.write_text(
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from results_file import write_results
+
+    write_results(RESULTS, (
         "# Multi-layer renders: cost against the plain gather\n\n"
         f"`python bench/bench_render_layers.py --backend {args.backend} --repeat "
         f"{args.repeat}`\n\n"
         f"Machine: {platform.node()}, {platform.machine()}, {os.cpu_count()} logical CPUs, "
         f"load average {load:.1f} at the end; {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}."
-        "\n\n1280 x 720 RGB(A) uint8, srgb, best of the runs:\n\n" + table + "\n")
+        "\n\n1280 x 720 RGB(A) uint8, srgb, best of the runs:\n\n" + table + "\n"))
 
 
 if __name__ == "__main__":
