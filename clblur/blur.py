@@ -47,7 +47,9 @@ def blur(image: np.ndarray, motion, response="exp", *, anchor: str = "center",
         or integer layer IDs (smaller = nearer).  With it, a per-pixel flow is integrated as
         layered exposure (``clblur.layered_exposure``): every shutter sample composites the
         layers front to back, so moving objects smear over what lies behind them.
-        ``"speed"``: faster is nearer.  Default None: the gather.
+        ``"speed"``: faster is nearer; ``"departure"``: what moves against the flow's
+        dominant (median) motion is nearer (a camera panning over or tracking across a static
+        scene; ``clblur.layering.departure_order``).  Default None: the gather.
     background : with ``depth``, what lies behind every layer (a clean plate; the input's shape
         and dtype).  Without it, what a moving object uncovers is reconstructed from its
         neighbours (``clblur.layered_exposure``).

@@ -9,8 +9,10 @@ the linear domain, for scenes made of layers that each move along their own vect
 Conventions
 -----------
 * Ordering signal, H x W: a float **depth** (smaller = nearer), integer **layer IDs** (smaller =
-  nearer), or **speed** (``depth="speed"``: faster = nearer, the default of
-  ``clblur video --layers``).  Each distinct integer ID is its own layer.  A float depth is
+  nearer), **speed** (``depth="speed"``: faster = nearer, the default of
+  ``clblur video --layers``) or **departure** (``depth="departure"``: what moves against the
+  dominant motion is nearer, a float depth, ``clblur.layering.departure_order``).  Each
+  distinct integer ID is its own layer.  A float depth is
   a distance (``> 0``; ``+inf`` is the sky; NaN, ``-inf`` and ``<= 0`` are refused) and is
   cut into continuous surfaces at depth discontinuities between neighbouring pixels: a jump in
   inverse depth beyond ``DEPTH_TAU`` of the smaller one, after the step a slanted plane's

@@ -13,8 +13,11 @@ import math
 
 import numpy as np
 
-__all__ = ["DEPTH_TAU", "GAP_FRACTION", "MAX_LAYERS", "depth_components", "layer_labels",
-           "order_components", "speed_order"]
+__all__ = ["DEPTH_TAU", "GAP_FRACTION", "MAX_LAYERS", "NAMED_ORDERS", "departure_order",
+           "depth_components", "layer_labels", "order_components", "speed_order"]
+
+# the orderings computed from the motion itself (``clblur.blur``'s ``depth="speed"`` etc.)
+NAMED_ORDERS = ("speed", "departure")
 
 MAX_LAYERS = 4  # the OpenCL kernels hold LAYERED_MAXK = 8 (clblur.opencl.constants)
 GAP_FRACTION = 0.05  # speed ordering: a layer boundary is a gap of 5 % of the speed range
@@ -29,6 +32,20 @@ DEPTH_TAU = 0.05
 def speed_order(v: np.ndarray) -> np.ndarray:
     """The speed ordering signal: ``-|v|`` as a depth (faster = nearer)."""
     return -np.hypot(v[..., 0].astype(np.float64), v[..., 1].astype(np.float64))
+
+
+def departure_order(v: np.ndarray) -> np.ndarray:
+    """The departure ordering signal, a float depth: ``1 / (1 + |v - median v|)`` (px).
+
+    What moves against the image's dominant (median) motion is nearer.  Assumption: the
+    dominant motion is the background's, as when the camera pans over or tracks across a
+    static scene and objects move against it (then speed orders wrongly: a tracked subject
+    is slow and the background fast).  Wrong when a moving object fills most of the frame.
+    A float depth (> 0, cut into continuous surfaces like any other, :func:`layer_labels`):
+    motion that departs smoothly stays one surface."""
+    v = np.asarray(v, np.float64)
+    dominant = np.median(v.reshape(-1, 2), axis=0)
+    return 1.0 / (1.0 + np.hypot(v[..., 0] - dominant[0], v[..., 1] - dominant[1]))
 
 
 def layer_labels(order: np.ndarray, max_layers: int = MAX_LAYERS,

@@ -105,7 +105,7 @@ def make_plan(image, motion, response="exp", *, anchor: str = "center",
                     responses=tuple(per_channel(response, c)), anchor=a,
                     samples=n, weights=wts, saturation=validate_saturation(saturation),
                     alpha=bool(alpha), speed_order=_is_speed(depth),
-                    depth=check_depth(_speed(depth, parsed), (h, w), speed=_is_speed(depth)),
+                    depth=check_depth(_named(depth, parsed), (h, w), speed=_is_speed(depth)),
                     background=_check_background(background, image, depth),
                     **where)
 
@@ -152,14 +152,21 @@ def _is_speed(depth) -> bool:
     return isinstance(depth, str) and depth == "speed"
 
 
-def _speed(depth, motion):
-    """``depth="speed"``: order by speed, faster = nearer (``-|v|``); no order for uniform
-    motion or a PSF, where nothing moves relative to anything else."""
-    if not (isinstance(depth, str) and depth == "speed"):
+def _named(depth, motion):
+    """An ordering named by a string, computed from the motion (``clblur.layering``):
+    ``"speed"`` (faster = nearer, ``-|v|``) or ``"departure"`` (what moves against the
+    dominant motion is nearer); no order for uniform motion or a PSF, where nothing moves
+    relative to anything else.  Anything else is returned as it is."""
+    if not isinstance(depth, str):
         return depth
+    from clblur.layering import NAMED_ORDERS, departure_order, speed_order
+
+    if depth not in NAMED_ORDERS:
+        raise ValueError(f"unknown depth ordering {depth!r}; use an H x W array or one of "
+                         f"{', '.join(map(repr, NAMED_ORDERS))}")
     if not isinstance(motion, Field):
         return None
-    return -np.hypot(motion.flow[..., 0].astype(np.float64), motion.flow[..., 1])
+    return speed_order(motion.flow) if depth == "speed" else departure_order(motion.flow)
 
 
 def check_depth(depth, shape: tuple[int, int], speed: bool = False) -> np.ndarray | None:
@@ -171,7 +178,8 @@ def check_depth(depth, shape: tuple[int, int], speed: bool = False) -> np.ndarra
         return None
     d = np.asarray(depth)
     if d.dtype == object or not np.issubdtype(d.dtype, np.number):
-        raise TypeError(f"depth must be a numeric H x W array or 'speed', got {depth!r:.40}")
+        raise TypeError("depth must be a numeric H x W array, 'speed' or 'departure', got "
+                        f"{depth!r:.40}")
     if d.ndim == 3 and d.shape[2] == 1:
         d = d[..., 0]
     if d.shape != tuple(shape):

@@ -100,16 +100,20 @@ def blur_frame(frame: np.ndarray, backward: np.ndarray | None, forward: np.ndarr
                response=DEFAULT_RESPONSE, *, shutter: float = DEFAULT_SHUTTER,
                samples: int | None = None, backend: str = "auto", saturation: float = 1.0,
                device: str | None = None, layers: bool = False,
-               depth: np.ndarray | None = None) -> np.ndarray:
+               depth: np.ndarray | str | None = None) -> np.ndarray:
     """Blur one frame along the bent path given by its backward and forward flows.
 
     ``layers``: integrate each half as layered exposure (``clblur.layered_exposure``), so
-    moving objects smear over what lies behind them, ordered by ``depth`` (H x W, smaller =
-    nearer) or, without it, by speed (faster = nearer); without ``layers`` every pixel
+    moving objects smear over what lies behind them, ordered by ``depth``: H x W (smaller =
+    nearer), ``"departure"`` (what moves against the frame's dominant motion is nearer,
+    ``clblur.layering.departure_order`` of the whole shutter's vectors) or ``"speed"`` /
+    None (faster = nearer, each half by its own speed); without ``layers`` every pixel
     gathers along its own vector only.
     Returns an array with the frame's dtype and shape (see the module Conventions).
     """
     first, second = half_paths(backward, forward, shutter, check_image(frame).shape[:2])
+    if isinstance(depth, str):  # computed only for the layers that use it
+        depth = _named_order(depth, first, second) if layers else _named_order(depth)
     # The plan carries the frame, responses and saturation; the motion is the bent path the
     # integrator below closes over (the plan's own motion is not used).
     plan = make_plan(frame, (0.0, 0.0), response, saturation=saturation)
@@ -122,6 +126,20 @@ def blur_frame(frame: np.ndarray, backward: np.ndarray | None, forward: np.ndarr
     integrate = bent_path(first, second, samples=samples, backend=backend, device=device,
                           layers=layers, depth=depth)
     return run_numpy(plan, integrate)
+
+
+def _named_order(name: str, first: np.ndarray | None = None,
+                 second: np.ndarray | None = None) -> np.ndarray | None:
+    """The ordering ``name`` of a bent path (checked): None for speed (each half orders by
+    its own) or without the halves, else the departure of the whole shutter's vectors
+    ``first + second``."""
+    from clblur.layering import NAMED_ORDERS, departure_order
+
+    if name not in NAMED_ORDERS:
+        raise ValueError(f"unknown layer order {name!r}; use one of {', '.join(NAMED_ORDERS)}")
+    if name == "speed" or first is None or second is None:
+        return None
+    return departure_order(first.astype(np.float64) + second)
 
 
 def bent_path(first: np.ndarray, second: np.ndarray, *, samples: int | None = None,
@@ -189,18 +207,21 @@ def blur_video(src: str | os.PathLike, dst: str | os.PathLike, *,
                saturation: float = 1.0, device: str | None = None, fps: float | None = None,
                codec: str | None = None, crf: int = DEFAULT_CRF,
                save_flows_to: str | os.PathLike | None = None, layers: bool = False,
-               progress: bool = False) -> VideoResult:
+               order: str = "speed", progress: bool = False) -> VideoResult:
     """Blur every frame of a video file or image folder ``src`` into ``dst``.
 
     The output keeps the input's frame rate and timestamps (``fps`` sets it for an image
     sequence) and copies the audio.  On unreadable or truncated input the frames decoded so
     far are blurred, written and finalised, then ``VideoReadError`` says how many.
+    ``layers``: layered exposure, ordered by ``order`` (``"speed"`` or ``"departure"``,
+    :func:`blur_frame`'s ``depth``).
     """
     from tqdm import tqdm
 
     refuse_overwrite(dst, src)
     shutter_fraction(shutter)
     per_channel(response, 1)  # fail on a bad response before decoding anything
+    _named_order(order)  # and on a bad layer order
     flows = _Flows(flow, save_flows_to)
     source = open_source(src, fps)
     if fps is not None and not isinstance(source, ImageSequenceSource):
@@ -220,7 +241,7 @@ def blur_video(src: str | os.PathLike, dst: str | os.PathLike, *,
         t0 = time.perf_counter()
         out = blur_frame(frame.image, backward, forward, response, shutter=shutter,
                          samples=samples, backend=backend, saturation=saturation, device=device,
-                         layers=layers)
+                         layers=layers, depth=order)
         t1 = time.perf_counter()
         sink.write(frame, out)
         timer["blur"] += t1 - t0

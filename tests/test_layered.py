@@ -137,6 +137,37 @@ def test_opencl_safeguarded_inverse_motion_matches_the_reference(opencl, dtype):
     agree(ref, got)
 
 
+def test_departure_orders_a_tracked_subject_in_front():
+    """A camera tracks a subject (2 px) across a background that pans 24 px: speed puts the
+    background in front and does worse than the gather; departure from the dominant motion
+    (the background's) orders it as the renderer's depth does."""
+    from clblur import scenes as rendered
+    from clblur.layering import departure_order
+    from clblur.scenes import Background, Scene, SceneObject, wave_texture
+    from clblur.scenes import Disc as RoundShape
+
+    w, h = 160, 112
+    bg = Background(wave_texture(1, (0.16, 0.14, 0.10), 0.6), velocity=(-24.0, 0.0))
+    ball = wave_texture(2, (0.62, 0.35, 0.18), 0.5, periods=(5.0, 16.0))
+    scene = Scene(w, h, bg, (SceneObject(RoundShape(18), ball, (w / 2, h / 2), (2.0, 0.0),
+                                         1.0),), "tracked", "a tracked subject")
+    r = rendered.render(scene, "srgb", np.uint8, samples=32, spp=2)
+
+    def score(depth) -> float:
+        out = clblur.blur(r.sharp, r.flow, "srgb", backend="numpy", depth=depth)
+        return rendered.psnr(out, r.image, r.swept)
+
+    departure, speed, gather = score("departure"), score("speed"), score(None)
+    # measured (K = 64): departure 48.7 (the true depth's score), speed 33.2, gather 34.7
+    assert departure > gather + 10.0 and departure > speed + 10.0
+    assert departure == pytest.approx(score(r.depth), abs=0.05)
+    np.testing.assert_array_equal(
+        clblur.blur(r.sharp, r.flow, "srgb", backend="numpy", depth="departure"),
+        clblur.blur(r.sharp, r.flow, "srgb", backend="numpy", depth=departure_order(r.flow)))
+    with pytest.raises(ValueError, match="unknown depth ordering"):
+        clblur.blur(r.sharp, r.flow, "srgb", backend="numpy", depth="nearest")
+
+
 def test_region_takes_the_inside_of_a_turning_object(rng):
     """Far from any motion edge, a body that turns while it moves still departs from the
     gather: those pixels take the layered path (else a seam where the region ends).  Flow
@@ -466,6 +497,12 @@ def test_command_line_depth_and_alpha(tmp_path, capsys):
     np.testing.assert_array_equal(
         read_image(tmp_path / "out.png"),
         clblur.blur(img, flow, "srgb", backend="numpy", depth=depth))
+    for name in ("speed", "departure"):  # orderings computed from the flow, not files
+        assert main(["blur", str(tmp_path / "in.png"), str(tmp_path / f"{name}.png"), *common,
+                     "--depth", name]) == 0
+        np.testing.assert_array_equal(
+            read_image(tmp_path / f"{name}.png"),
+            clblur.blur(img, flow, "srgb", backend="numpy", depth=name))
     rgba = np.dstack([img, np.full(img.shape[:2], 255, np.uint8)])
     rgba[:20, :, 3] = 0
     write_image(tmp_path / "rgba.png", rgba)

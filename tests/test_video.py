@@ -451,6 +451,41 @@ def test_gopro_frames_blur_towards_the_long_exposure(shared_data):
     assert mse < 0.5 * mse_sharp
 
 
+def test_departure_order_of_a_bent_path():
+    """``depth="departure"``: the departure of the whole shutter's vectors, computed once for
+    both halves; ``clblur video --order departure`` runs it (and implies --layers)."""
+    from clblur.layering import departure_order
+
+    lin, ball = ball_over_stripes(40.0)
+    frame = quantise(np.repeat(response("srgb").forward(lin)[..., None], 3, axis=2), np.uint8)
+    back = np.zeros((*lin.shape, 2), np.float32) + np.float32([-6.0, 0.0])  # the camera pans
+    fwd = -back
+    back[ball], fwd[ball] = (-1.0, 0.0), (1.0, 0.0)  # a tracked subject
+    first, second = half_paths(back, fwd, 360, lin.shape)
+    opts = dict(shutter=360, backend="numpy", layers=True)
+    np.testing.assert_array_equal(
+        blur_frame(frame, back, fwd, "srgb", depth="departure", **opts),
+        blur_frame(frame, back, fwd, "srgb",
+                   depth=departure_order(first.astype(np.float64) + second), **opts))
+    np.testing.assert_array_equal(blur_frame(frame, back, fwd, "srgb", depth="speed", **opts),
+                                  blur_frame(frame, back, fwd, "srgb", **opts))
+    with pytest.raises(ValueError, match="unknown layer order"):
+        blur_frame(frame, back, fwd, "srgb", depth="nearest", **opts)
+
+
+def test_command_line_video_order_departure(tmp_path):
+    from clblur.cli import main
+
+    src = tmp_path / "seq"
+    src.mkdir()
+    for i, f in enumerate(moving_frames(4)):
+        write_image(src / f"{i:03d}.png", f)
+    assert main(["video", str(src), str(tmp_path / "v"), "--order", "departure",
+                 "--backend", "numpy", "--quiet"]) == 0
+    assert len(list((tmp_path / "v").glob("*.png"))) == 4
+    assert main(["video", str(src), str(tmp_path / "w"), "--order", "nearest"]) == 2
+
+
 def test_clblur_main_reports_bad_video_with_exit_code_2(tmp_path, capsys):
     from clblur.cli import main
 

@@ -29,10 +29,12 @@ def register(sub) -> None:
     add_blur_options(p)
     add_memory_option(p, "bound memory use")
     add_vector_options(p, "--flow")
-    p.add_argument("--depth", default=None, metavar="FILE",
+    p.add_argument("--depth", default=None, metavar="FILE|speed|departure",
                    help="occlusion order, H x W .npy or EXR depth (FILE.exr[:CHANNEL]; smaller "
-                        "= nearer; integers: layer IDs): layered exposure, moving objects "
-                        "smear over what is behind them")
+                        "= nearer; integers: layer IDs), or one computed from the flow: speed "
+                        "(faster = nearer) or departure (what moves against the dominant "
+                        "motion is nearer): layered exposure, moving objects smear over what "
+                        "is behind them")
     p.add_argument("--alpha", choices=("auto", "yes", "no"), default="auto",
                    help="the last channel is coverage, blurred linearly with colour "
                         "premultiplied in linear light (auto: 2- and 4-channel images)")
@@ -42,9 +44,11 @@ def register(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     from clblur.io import IMAGE_FORMATS, check_output, probe_image
     from clblur.io.flows import depth_source
+    from clblur.layering import NAMED_ORDERS
     from clblur.tiling import blur_file, parse_size
 
-    depth_file = None if args.depth is None else depth_source(args.depth)[0]
+    named = args.depth in NAMED_ORDERS  # an ordering computed from the flow, not a file
+    depth_file = None if args.depth is None or named else depth_source(args.depth)[0]
     check_output(args.output, args.input, args.flow, args.psf, depth_file,
                  suffixes=tuple(IMAGE_FORMATS))
     parse_size(args.memory_budget)
@@ -65,12 +69,15 @@ def _blur_whole(args: argparse.Namespace, alpha: bool) -> None:
     """Layered exposure and alpha: the whole image in memory, written atomically."""
     import clblur
     from clblur.io import read_depth, read_flow, read_image, write_image
+    from clblur.layering import NAMED_ORDERS
+    from clblur.tiling import parse_size
 
     motion = motion_from_args(args)
     if isinstance(motion, str):
         motion = read_flow(motion)
-    depth = read_depth(args.depth) if args.depth is not None else None
-    from clblur.tiling import parse_size
+    depth = args.depth  # None, a named ordering (computed from the flow) or a file
+    if depth is not None and depth not in NAMED_ORDERS:
+        depth = read_depth(depth)
 
     image = read_image(args.input, max_bytes=parse_size(args.memory_budget))
     if image.dtype.kind == "f" and not args.output.lower().endswith((".tif", ".tiff", ".exr")):

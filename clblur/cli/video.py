@@ -47,9 +47,13 @@ def register(subparsers) -> None:
     p.add_argument("--crf", type=int, default=DEFAULT_CRF,
                    help=f"encoder quality, lower is better (default {DEFAULT_CRF})")
     p.add_argument("--layers", action="store_true",
-                   help="layered exposure ordered by speed (faster = nearer): moving objects "
-                        "smear over what is behind them (slower); default: gather along each "
-                        "pixel's own vector")
+                   help="layered exposure: moving objects smear over what is behind them "
+                        "(ordered by --order); default: gather along each pixel's own vector")
+    p.add_argument("--order", choices=("speed", "departure"), default=None,
+                   help="what is nearer, for --layers (given alone, it implies --layers): "
+                        "speed, faster = nearer (default); departure, what moves against the "
+                        "frame's dominant motion (a camera that pans or tracks over a static "
+                        "scene)")
     p.add_argument("--save-flows", default=None, metavar="DIR",
                    help="also write the flows used, in the --flow DIR layout")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -69,7 +73,8 @@ def run(args: argparse.Namespace) -> int:
                         flow=args.flow, samples=args.samples, backend=args.backend,
                         saturation=args.saturation, device=args.device, fps=args.fps,
                         codec=args.codec, crf=args.crf, save_flows_to=args.save_flows,
-                        layers=args.layers, progress=not args.quiet)
+                        layers=args.layers or args.order is not None,
+                        order=args.order or "speed", progress=not args.quiet)
     audio = {"copied": ", audio copied", "dropped": ", audio dropped (image sequence output)",
              "none": ""}[result.audio]
     print(f"wrote {result.frames} frame(s) at {float(result.fps):g} fps to {result.output}"

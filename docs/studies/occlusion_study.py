@@ -188,26 +188,29 @@ def gopro_part(args) -> dict | None:
 
 
 def depth_proxy(first: np.ndarray, second: np.ndarray) -> np.ndarray:
-    """Depth proxy (smaller = nearer) from motion alone: ``1 / (1 + |v - median v|)`` with
-    ``v`` the whole-shutter displacement.  Assumption: the camera tracks a static scene, so
-    the dominant motion is the background's and what moves against it is in front.  It is a
-    guess, stated as such; a renderer's Z pass or a depth estimator replaces it."""
-    v = first.astype(np.float64) + second
-    dev = np.hypot(*(v - np.median(v.reshape(-1, 2), axis=0)).transpose(2, 0, 1))
-    return (1.0 / (1.0 + dev)).astype(np.float32)
+    """Depth proxy (smaller = nearer) from motion alone: ``clblur.layering.departure_order``
+    of the whole-shutter displacement ``first + second``, ``1 / (1 + |v - median v|)``.
+    Assumption: the camera tracks a static scene, so the dominant motion is the background's
+    and what moves against it is in front.  It is a guess, stated as such; a renderer's Z
+    pass or a depth estimator replaces it."""
+    from clblur.layering import departure_order
+
+    return departure_order(first.astype(np.float64) + second)
 
 
 def depth_blur_frame(frame: np.ndarray, bwd: np.ndarray, fwd: np.ndarray,
                      backend: str, ids: bool = False) -> np.ndarray:
     """``clblur.video.blur_frame``'s bent path with layered exposure ordered by the depth
-    proxy (each half integrated as layers, the halves' exposures averaged, the response
-    applied once).  ``ids``: two integer layers instead, foreground (0) where the motion
-    departs from the dominant one by more than ``FOREGROUND_PX`` over the shutter."""
+    proxy (``depth="departure"``, what ``clblur video --order departure`` runs: each half
+    integrated as layers, the halves' exposures averaged, the response applied once).
+    ``ids``: two integer layers instead, foreground (0) where the motion departs from the
+    dominant one by more than ``FOREGROUND_PX`` over the shutter."""
     from clblur import video
 
-    first, second = video.half_paths(bwd, fwd, 360, frame.shape[:2])
-    proxy = depth_proxy(first, second)
-    order = (proxy >= 1.0 / (1.0 + FOREGROUND_PX)).astype(np.int32) if ids else proxy
+    order = "departure"
+    if ids:
+        first, second = video.half_paths(bwd, fwd, 360, frame.shape[:2])
+        order = (depth_proxy(first, second) >= 1.0 / (1.0 + FOREGROUND_PX)).astype(np.int32)
     return video.blur_frame(frame, bwd, fwd, RESPONSE, shutter=360, backend=backend,
                             layers=True, depth=order)
 
