@@ -307,6 +307,14 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
             nearest_at_or_behind[k] = _nearest_transform(labels < k)
         return nearest_at_or_behind[k]
 
+    # every layer behind the first reads its transform below (the rearmost one not when a
+    # plate stands for it); scipy releases the interpreter lock, so they run side by side
+    wanted = [k for k in range(1, last + 1) if not (k == last and background is not None)]
+    if len(wanted) > 1 and (os.cpu_count() or 1) > 1:
+        with ThreadPoolExecutor(min(len(wanted), os.cpu_count() or 1)) as pool:
+            found = list(pool.map(lambda k: _nearest_transform(labels < k), wanted))
+        nearest_at_or_behind.update(zip(wanted, found, strict=True))
+
     def fill(k: int) -> np.ndarray:
         """The linear image with everything nearer than layer ``k`` reconstructed (on the
         window ``win``)."""
