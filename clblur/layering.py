@@ -14,7 +14,8 @@ import math
 import numpy as np
 
 __all__ = ["DEPTH_TAU", "GAP_FRACTION", "MAX_LAYERS", "NAMED_ORDERS", "departure_order",
-           "depth_components", "layer_labels", "order_components", "speed_order"]
+           "depth_components", "layer_labels", "named_order", "order_components",
+           "speed_order"]
 
 # the orderings computed from the motion itself (``clblur.blur``'s ``depth="speed"`` etc.)
 NAMED_ORDERS = ("speed", "departure")
@@ -46,6 +47,17 @@ def departure_order(v: np.ndarray) -> np.ndarray:
     v = np.asarray(v, np.float64)
     dominant = np.median(v.reshape(-1, 2), axis=0)
     return 1.0 / (1.0 + np.hypot(v[..., 0] - dominant[0], v[..., 1] - dominant[1]))
+
+
+def named_order(name: str, v: np.ndarray | None = None) -> np.ndarray | None:
+    """The ordering ``name`` (one of ``NAMED_ORDERS``, checked) computed from the vectors
+    ``v``: :func:`speed_order` or :func:`departure_order`; None without ``v``."""
+    if name not in NAMED_ORDERS:
+        raise ValueError(f"unknown depth ordering {name!r}; use an H x W array or one of "
+                         f"{', '.join(map(repr, NAMED_ORDERS))}")
+    if v is None:
+        return None
+    return speed_order(v) if name == "speed" else departure_order(v)
 
 
 def layer_labels(order: np.ndarray, max_layers: int = MAX_LAYERS,

@@ -153,20 +153,15 @@ def _is_speed(depth) -> bool:
 
 
 def _named(depth, motion):
-    """An ordering named by a string, computed from the motion (``clblur.layering``):
-    ``"speed"`` (faster = nearer, ``-|v|``) or ``"departure"`` (what moves against the
-    dominant motion is nearer); no order for uniform motion or a PSF, where nothing moves
-    relative to anything else.  Anything else is returned as it is."""
-    if not isinstance(depth, str):
-        return depth
-    from clblur.layering import NAMED_ORDERS, departure_order, speed_order
+    """An ordering named by a string (``clblur.layering.named_order``), computed from the
+    motion; no order for uniform motion or a PSF, where nothing moves relative to anything
+    else.  Anything else is returned as it is (``check_depth`` refuses other strings)."""
+    from clblur.layering import NAMED_ORDERS, named_order
 
-    if depth not in NAMED_ORDERS:
-        raise ValueError(f"unknown depth ordering {depth!r}; use an H x W array or one of "
-                         f"{', '.join(map(repr, NAMED_ORDERS))}")
-    if not isinstance(motion, Field):
-        return None
-    return speed_order(motion.flow) if depth == "speed" else departure_order(motion.flow)
+    if not isinstance(depth, str) or depth not in NAMED_ORDERS:
+        return depth
+
+    return named_order(depth, motion.flow if isinstance(motion, Field) else None)
 
 
 def check_depth(depth, shape: tuple[int, int], speed: bool = False) -> np.ndarray | None:

@@ -44,6 +44,7 @@ from clblur.io.video import (
     open_source,
 )
 from clblur.layered_exposure import layered_half
+from clblur.layering import departure_order, named_order
 from clblur.pipeline import run_numpy
 from clblur.request import check_image, make_plan
 from clblur.responses import per_channel
@@ -112,8 +113,10 @@ def blur_frame(frame: np.ndarray, backward: np.ndarray | None, forward: np.ndarr
     Returns an array with the frame's dtype and shape (see the module Conventions).
     """
     first, second = half_paths(backward, forward, shutter, check_image(frame).shape[:2])
-    if isinstance(depth, str):  # computed only for the layers that use it
-        depth = _named_order(depth, first, second) if layers else _named_order(depth)
+    if isinstance(depth, str):
+        named_order(depth)  # checked; speed: each half orders by its own vectors (None)
+        depth = departure_order(first.astype(np.float64) + second) \
+            if layers and depth == "departure" else None
     # The plan carries the frame, responses and saturation; the motion is the bent path the
     # integrator below closes over (the plan's own motion is not used).
     plan = make_plan(frame, (0.0, 0.0), response, saturation=saturation)
@@ -126,20 +129,6 @@ def blur_frame(frame: np.ndarray, backward: np.ndarray | None, forward: np.ndarr
     integrate = bent_path(first, second, samples=samples, backend=backend, device=device,
                           layers=layers, depth=depth)
     return run_numpy(plan, integrate)
-
-
-def _named_order(name: str, first: np.ndarray | None = None,
-                 second: np.ndarray | None = None) -> np.ndarray | None:
-    """The ordering ``name`` of a bent path (checked): None for speed (each half orders by
-    its own) or without the halves, else the departure of the whole shutter's vectors
-    ``first + second``."""
-    from clblur.layering import NAMED_ORDERS, departure_order
-
-    if name not in NAMED_ORDERS:
-        raise ValueError(f"unknown layer order {name!r}; use one of {', '.join(NAMED_ORDERS)}")
-    if name == "speed" or first is None or second is None:
-        return None
-    return departure_order(first.astype(np.float64) + second)
 
 
 def bent_path(first: np.ndarray, second: np.ndarray, *, samples: int | None = None,
@@ -221,7 +210,7 @@ def blur_video(src: str | os.PathLike, dst: str | os.PathLike, *,
     refuse_overwrite(dst, src)
     shutter_fraction(shutter)
     per_channel(response, 1)  # fail on a bad response before decoding anything
-    _named_order(order)  # and on a bad layer order
+    named_order(order)  # and on a bad layer order
     flows = _Flows(flow, save_flows_to)
     source = open_source(src, fps)
     if fps is not None and not isinstance(source, ImageSequenceSource):

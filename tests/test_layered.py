@@ -164,7 +164,7 @@ def test_departure_orders_a_tracked_subject_in_front():
     np.testing.assert_array_equal(
         clblur.blur(r.sharp, r.flow, "srgb", backend="numpy", depth="departure"),
         clblur.blur(r.sharp, r.flow, "srgb", backend="numpy", depth=departure_order(r.flow)))
-    with pytest.raises(ValueError, match="unknown depth ordering"):
+    with pytest.raises(TypeError, match="depth must be .* 'speed' or 'departure'"):
         clblur.blur(r.sharp, r.flow, "srgb", backend="numpy", depth="nearest")
 
 

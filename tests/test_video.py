@@ -469,7 +469,7 @@ def test_departure_order_of_a_bent_path():
                    depth=departure_order(first.astype(np.float64) + second), **opts))
     np.testing.assert_array_equal(blur_frame(frame, back, fwd, "srgb", depth="speed", **opts),
                                   blur_frame(frame, back, fwd, "srgb", **opts))
-    with pytest.raises(ValueError, match="unknown layer order"):
+    with pytest.raises(ValueError, match="unknown depth ordering"):
         blur_frame(frame, back, fwd, "srgb", depth="nearest", **opts)
 
 

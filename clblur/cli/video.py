@@ -9,6 +9,7 @@ import numpy as np
 from clblur.cli.options import add_backend_options, check_device, check_response
 from clblur.errors import InputError
 from clblur.io.video import DEFAULT_CRF
+from clblur.layering import NAMED_ORDERS
 from clblur.video import DEFAULT_RESPONSE, DEFAULT_SHUTTER
 
 __all__ = ["register", "run"]
@@ -49,7 +50,7 @@ def register(subparsers) -> None:
     p.add_argument("--layers", action="store_true",
                    help="layered exposure: moving objects smear over what is behind them "
                         "(ordered by --order); default: gather along each pixel's own vector")
-    p.add_argument("--order", choices=("speed", "departure"), default=None,
+    p.add_argument("--order", choices=NAMED_ORDERS, default=None,
                    help="what is nearer, for --layers (given alone, it implies --layers): "
                         "speed, faster = nearer (default); departure, what moves against the "
                         "frame's dominant motion (a camera that pans or tracks over a static "
