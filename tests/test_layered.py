@@ -135,6 +135,14 @@ def test_opencl_safeguarded_inverse_motion_matches_the_reference(opencl, dtype):
     ref = clblur.blur(img, flow, "srgb", backend="numpy", depth=depth)
     got = clblur.blur(img, flow, "srgb", backend="opencl", depth=depth)
     agree(ref, got)
+    # and the CPU layout (eight lanes as vectors) is the one-pixel kernel, bit for bit
+    from clblur.layer_planes import prepare
+    from clblur.opencl.layered import composite
+
+    layers = prepare(lin, flow, depth, 0.5, layered.region_mask(flow, 0.5))
+    assert layers.warped.any()
+    np.testing.assert_array_equal(composite(layers, 0.5, None, None, (h, w), lanes=True),
+                                  composite(layers, 0.5, None, None, (h, w), lanes=False))
 
 
 def test_departure_orders_a_tracked_subject_in_front():

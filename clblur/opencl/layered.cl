@@ -298,26 +298,65 @@ static void sample8(__global const float *img, int h, int w, int r0, int c0, int
     *hi = top_hi * (1.0f - fy_hi) + bot_hi * fy_hi;
 }
 
-/* inverse_motion per lane (the same float operations, so the layouts agree bit for bit). */
-static void inverse_motion8(__global const float *vec, __global const float *curv, int h, int w, int r0, int c0, int fh, int fw, float8 px, float8 py,
+/* A vector field (h x w x 2) at 8 lanes' full-image (x, y), as sample_vector() at locate()'s
+ * taps per lane: the same float operations, component by component. */
+static void vector8(__global const float *vec, int h, int w, int r0, int c0, int fh, int fw,
+                    float8 x, float8 y, float8 *vx, float8 *vy)
+{
+    x = clamp(x, 0.0f, (float)(fw - 1));
+    y = clamp(y, 0.0f, (float)(fh - 1));
+    float8 fx0 = floor(x), fy0 = floor(y);
+    int8 x0 = convert_int8(fx0), y0 = convert_int8(fy0);
+    int8 x1 = min(x0 + 1, fw - 1), y1 = min(y0 + 1, fh - 1);
+    float8 fx = x - fx0, fy = y - fy0;
+    x0 = clamp(x0 - c0, 0, w - 1);
+    x1 = clamp(x1 - c0, 0, w - 1);
+    y0 = clamp(y0 - r0, 0, h - 1);
+    y1 = clamp(y1 - r0, 0, h - 1);
+    int8 a = (y0 * w + x0) * 2, b = (y0 * w + x1) * 2, c = (y1 * w + x0) * 2,
+         d = (y1 * w + x1) * 2;
+#define FIELD8(t, k) (float8)(vec[t.s0 + k], vec[t.s1 + k], vec[t.s2 + k], vec[t.s3 + k],       \
+                              vec[t.s4 + k], vec[t.s5 + k], vec[t.s6 + k], vec[t.s7 + k])
+    float8 ax = FIELD8(a, 0), bx = FIELD8(b, 0), cx = FIELD8(c, 0), dx = FIELD8(d, 0);
+    float8 ay = FIELD8(a, 1), by = FIELD8(b, 1), cy = FIELD8(c, 1), dy = FIELD8(d, 1);
+#undef FIELD8
+    float8 top = ax + fx * (bx - ax), bottom = cx + fx * (dx - cx);
+    *vx = top + fy * (bottom - top);
+    top = ay + fx * (by - ay);
+    bottom = cy + fx * (dy - cy);
+    *vy = top + fy * (bottom - top);
+}
+
+/* inverse_motion() for 8 lanes as vectors: the same float operations and the same
+ * safeguard per lane, so the layouts agree bit for bit. */
+static void inverse_motion8(__global const float *vec, __global const float *curv, int h,
+                            int w, int r0, int c0, int fh, int fw, float8 px, float8 py,
                             float8 num, float8 den, float8 tt, float8 *x, float8 *y)
 {
-    float pxs[LANES], pys[LANES], nums[LANES], dens[LANES], tts[LANES], xs[LANES], ys[LANES];
-    vstore8(px, 0, pxs);
-    vstore8(py, 0, pys);
-    vstore8(num, 0, nums);
-    vstore8(den, 0, dens);
-    vstore8(tt, 0, tts);
-    vstore8(*x, 0, xs);
-    vstore8(*y, 0, ys);
-    for (int l = 0; l < LANES; ++l) {
-        float2 q = inverse_motion(vec, curv, h, w, r0, c0, fh, fw, pxs[l], pys[l],
-                                  nums[l], dens[l], tts[l], xs[l], ys[l]);
-        xs[l] = q.x;
-        ys[l] = q.y;
+    float8 qx = *x, qy = *y, bx = *x, by = *y;
+    float8 br = (float8)(INFINITY), r = (float8)(INFINITY);
+    for (int it = 0; it < INVERSE_STEPS; ++it) {
+        float8 dx, dy;
+        vector8(vec, h, w, r0, c0, fh, fw, qx, qy, &dx, &dy);
+        float8 nx = px - (dx * num) / den;
+        float8 ny = py - (dy * num) / den;
+#if CURVED
+        float8 cx, cy;
+        vector8(curv, h, w, r0, c0, fh, fw, qx, qy, &cx, &cy);
+        nx = nx - cx * tt;
+        ny = ny - cy * tt;
+#endif
+        r = fmax(fabs(nx - qx), fabs(ny - qy));  /* the residual of the iterate (qx, qy) */
+        int8 better = isless(r, br);
+        bx = select(bx, qx, better);
+        by = select(by, qy, better);
+        br = select(br, r, better);
+        qx = nx;
+        qy = ny;
     }
-    *x = vload8(0, xs);
-    *y = vload8(0, ys);
+    int8 last = islessequal(r, br);  /* still contracting at the last step */
+    *x = select(bx, qx, last);
+    *y = select(by, qy, last);
 }
 
 __kernel void composite_lanes(__global const float *planes, __global const float *vectors,
