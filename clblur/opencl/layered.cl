@@ -251,23 +251,42 @@ __kernel void composite_layers(__global const float *planes, __global const floa
 #define SPREAD_HI(v) shuffle((v), (uint16)(4, 4, 4, 4, 5, 5, 5, 5, 6, 6, 6, 6, 7, 7, 7, 7))
 #define COVER(lo, hi) ((float8)((lo).s37bf, (hi).s37bf))
 
+/* locate() for 8 lanes: the four taps' pixel indices in the crop and the fractions. */
+typedef struct {
+    int8 a, b, c, d;
+    float8 fx, fy;
+} taps8;
+
+static taps8 locate8(int h, int w, int r0, int c0, int fh, int fw, float8 x, float8 y)
+{
+    taps8 t;
+    x = clamp(x, 0.0f, (float)(fw - 1));
+    y = clamp(y, 0.0f, (float)(fh - 1));
+    float8 fx0 = floor(x), fy0 = floor(y);
+    int8 x0 = convert_int8(fx0), y0 = convert_int8(fy0);
+    int8 x1 = min(x0 + 1, fw - 1), y1 = min(y0 + 1, fh - 1);
+    t.fx = x - fx0;
+    t.fy = y - fy0;
+    x0 = clamp(x0 - c0, 0, w - 1);
+    x1 = clamp(x1 - c0, 0, w - 1);
+    y0 = clamp(y0 - r0, 0, h - 1);
+    y1 = clamp(y1 - r0, 0, h - 1);
+    t.a = y0 * w + x0;
+    t.b = y0 * w + x1;
+    t.c = y1 * w + x0;
+    t.d = y1 * w + x1;
+    return t;
+}
+
 /* Bilinear sample of 8 lanes at full-image (x, y): the per-lane taps of locate(), and
  * sample() done per channel; 8 contiguous pixels per corner when the lanes' taps are. */
 static void sample8(__global const float *img, int h, int w, int r0, int c0, int fh, int fw,
                     float8 x, float8 y, float16 *lo, float16 *hi)
 {
     const int8 lane = (int8)(0, 1, 2, 3, 4, 5, 6, 7);
-    x = clamp(x, 0.0f, (float)(fw - 1));
-    y = clamp(y, 0.0f, (float)(fh - 1));
-    float8 fx0 = floor(x), fy0 = floor(y);
-    int8 x0 = convert_int8(fx0), y0 = convert_int8(fy0);
-    int8 x1 = min(x0 + 1, fw - 1), y1 = min(y0 + 1, fh - 1);
-    float8 tx = x - fx0, ty = y - fy0;
-    x0 = clamp(x0 - c0, 0, w - 1);
-    x1 = clamp(x1 - c0, 0, w - 1);
-    y0 = clamp(y0 - r0, 0, h - 1);
-    y1 = clamp(y1 - r0, 0, h - 1);
-    int8 a = y0 * w + x0, b = y0 * w + x1, c = y1 * w + x0, d = y1 * w + x1;
+    taps8 t = locate8(h, w, r0, c0, fh, fw, x, y);
+    int8 a = t.a, b = t.b, c = t.c, d = t.d;
+    float8 tx = t.fx, ty = t.fy;
     float16 a_lo, a_hi, b_lo, b_hi, c_lo, c_hi, d_lo, d_hi;
     if (all(a == (int8)(a.s0) + lane) && all(b == a + 1) && all(c == (int8)(c.s0) + lane) &&
         all(d == c + 1)) {
@@ -303,18 +322,9 @@ static void sample8(__global const float *img, int h, int w, int r0, int c0, int
 static void vector8(__global const float *vec, int h, int w, int r0, int c0, int fh, int fw,
                     float8 x, float8 y, float8 *vx, float8 *vy)
 {
-    x = clamp(x, 0.0f, (float)(fw - 1));
-    y = clamp(y, 0.0f, (float)(fh - 1));
-    float8 fx0 = floor(x), fy0 = floor(y);
-    int8 x0 = convert_int8(fx0), y0 = convert_int8(fy0);
-    int8 x1 = min(x0 + 1, fw - 1), y1 = min(y0 + 1, fh - 1);
-    float8 fx = x - fx0, fy = y - fy0;
-    x0 = clamp(x0 - c0, 0, w - 1);
-    x1 = clamp(x1 - c0, 0, w - 1);
-    y0 = clamp(y0 - r0, 0, h - 1);
-    y1 = clamp(y1 - r0, 0, h - 1);
-    int8 a = (y0 * w + x0) * 2, b = (y0 * w + x1) * 2, c = (y1 * w + x0) * 2,
-         d = (y1 * w + x1) * 2;
+    taps8 t = locate8(h, w, r0, c0, fh, fw, x, y);
+    int8 a = t.a * 2, b = t.b * 2, c = t.c * 2, d = t.d * 2;  /* two floats per pixel */
+    float8 fx = t.fx, fy = t.fy;
 #define FIELD8(t, k) (float8)(vec[t.s0 + k], vec[t.s1 + k], vec[t.s2 + k], vec[t.s3 + k],       \
                               vec[t.s4 + k], vec[t.s5 + k], vec[t.s6 + k], vec[t.s7 + k])
     float8 ax = FIELD8(a, 0), bx = FIELD8(b, 0), cx = FIELD8(c, 0), dx = FIELD8(d, 0);
