@@ -317,12 +317,10 @@ static void sample8(__global const float *img, int h, int w, int r0, int c0, int
     *hi = top_hi * (1.0f - fy_hi) + bot_hi * fy_hi;
 }
 
-/* A vector field (h x w x 2) at 8 lanes' full-image (x, y), as sample_vector() at locate()'s
- * taps per lane: the same float operations, component by component. */
-static void vector8(__global const float *vec, int h, int w, int r0, int c0, int fh, int fw,
-                    float8 x, float8 y, float8 *vx, float8 *vy)
+/* A vector field (h x w x 2) at 8 lanes' taps t (locate8), as sample_vector() per lane: the
+ * same float operations, component by component. */
+static void vector8(__global const float *vec, taps8 t, float8 *vx, float8 *vy)
 {
-    taps8 t = locate8(h, w, r0, c0, fh, fw, x, y);
     int8 a = t.a * 2, b = t.b * 2, c = t.c * 2, d = t.d * 2;  /* two floats per pixel */
     float8 fx = t.fx, fy = t.fy;
 #define FIELD8(t, k) (float8)(vec[t.s0 + k], vec[t.s1 + k], vec[t.s2 + k], vec[t.s3 + k],       \
@@ -346,13 +344,14 @@ static void inverse_motion8(__global const float *vec, __global const float *cur
     float8 qx = *x, qy = *y, bx = *x, by = *y;
     float8 br = (float8)(INFINITY), r = (float8)(INFINITY);
     for (int it = 0; it < INVERSE_STEPS; ++it) {
+        taps8 at = locate8(h, w, r0, c0, fh, fw, qx, qy);  /* once per step, as the scalar */
         float8 dx, dy;
-        vector8(vec, h, w, r0, c0, fh, fw, qx, qy, &dx, &dy);
+        vector8(vec, at, &dx, &dy);
         float8 nx = px - (dx * num) / den;
         float8 ny = py - (dy * num) / den;
 #if CURVED
         float8 cx, cy;
-        vector8(curv, h, w, r0, c0, fh, fw, qx, qy, &cx, &cy);
+        vector8(curv, at, &cx, &cy);
         nx = nx - cx * tt;
         ny = ny - cy * tt;
 #endif
