@@ -137,7 +137,13 @@ def _lock_is_stale(path: Path) -> bool:
     except FileNotFoundError:
         return False  # released meanwhile: try to claim again
     except (OSError, ValueError):
-        return True  # unreadable: a crash while writing it
+        # unreadable: its creator opened it and has not written it yet (a concurrent batch
+        # reading in that instant must not take it over: both would blur the image), or a
+        # crash while writing it: stale once older than a heartbeat
+        try:
+            return time.time() - path.stat().st_mtime > HEARTBEAT_S
+        except FileNotFoundError:
+            return False
     if info.get("host") == socket.gethostname():
         try:
             os.kill(int(info["pid"]), 0)

@@ -302,6 +302,15 @@ def test_claims_are_exclusive_and_stale_ones_are_taken_over(folder, monkeypatch)
     held = batch_state.claim(job)
     assert held is not None
     held.release()
+    # an empty lock is one whose creator has not written it yet (a concurrent batch taking it
+    # over would blur the image twice), or a crash's: stale only once older than a heartbeat
+    batch_state.lock_path(job).write_text("")
+    assert batch_state.claim(job) is None
+    old = time.time() - batch_state.HEARTBEAT_S - 5
+    os.utime(batch_state.lock_path(job), (old, old))
+    held = batch_state.claim(job)
+    assert held is not None
+    held.release()
 
 
 def test_two_concurrent_batches_do_not_duplicate_work(folder):
