@@ -227,13 +227,14 @@ def test_estimates_stay_physically_possible():
     assert physical_bounds([g])["black"][1] == pytest.approx(dark / 255.0)
 
 
-@pytest.mark.xfail(strict=True, reason="known limit of forward selection: on this small "
-                   "noise-free synthetic stack response_shape joins first with rho = 0.21 and, "
-                   "with exposure_gain, mimics the -0.5 offset (0.293 codes RMSE); on the real "
-                   "GoPro stacks quantisation wins (test_gopro_stack_gamma_truncated)")
 def test_truncated_long_exposure_is_quantisation_not_gain():
     # a gamma-2.2 frame stack whose long exposure was truncated: the bias of -0.5 codes is
-    # named quantisation, and the response is found (the GoPro case of issue 9)
+    # named quantisation, and the response is found (the GoPro case of issue 9).  Seen
+    # through the paper's response, a gain of 0.995 explains the bias a little better than
+    # the offset (0.184 against 0.176 nats), so forward selection takes exposure_gain first;
+    # the exchange step puts quantisation in its place once the response has joined.
+    # On these 6 small frames the shape is loosely determined: the full likelihood differs by
+    # 1e-4 nats per value between effective gammas 1.99 and 2.11, hence the 0.25
     from clblur.study.synthetic import null_stack
 
     sc = null_stack(np.random.default_rng(12), gamma=2.2, storage="floor")
@@ -244,7 +245,10 @@ def test_truncated_long_exposure_is_quantisation_not_gain():
     assert est["quantisation"]["estimate"]["offset_codes"] == pytest.approx(-0.5, abs=0.1)
     lo, hi = est["quantisation"]["interval"]["offset_codes"]
     assert lo <= est["quantisation"]["estimate"]["offset_codes"] <= hi
-    assert est["response_shape"]["estimate"]["gamma"] == pytest.approx(2.2, abs=0.15)
+    assert est["response_shape"]["estimate"]["gamma"] == pytest.approx(2.2, abs=0.25)
+    assert "exposure_gain" in est["quantisation"]["explanation"]
+    assert "replaced by quantisation" in next(
+        f["explanation"] for f in r["findings"] if f["effect"] == "exposure_gain")
 
 
 def _gopro_window(shared_data, tmp_path, how, storage, start=0):

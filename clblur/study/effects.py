@@ -187,11 +187,23 @@ def channel_gains(p: dict[str, float], channels: int) -> list[float]:
 
 
 def explain(effect: str, estimate: dict, significant: bool, gain_nll: float,
-            too_small: bool = False) -> str:
-    """A sentence for the report: cause, size, and whether the data support it."""
+            too_small: bool = False, replaced: str | None = None,
+            replaced_by: str | None = None) -> str:
+    """A sentence for the report: cause, size, and whether the data support it.
+
+    ``replaced``: the effect this one took the place of (``select``'s exchange step), whose
+    model it beats on the held-out fit by ``gain_nll``; ``replaced_by``: the effect that
+    took this one's place."""
     e = EFFECTS[effect]
     size = ", ".join(f"{k}={_fmt(v)}" for k, v in estimate.items())
-    if significant:
+    if significant and replaced:
+        verdict = (f"significant: in place of {replaced} (which joined first, explaining the "
+                   "same deviation), it improves the held-out fit by a further "
+                   f"{gain_nll:.3g} nats per pixel value")
+    elif replaced_by:
+        verdict = (f"joined the model, then was replaced by {replaced_by}, which explains "
+                   "the same deviation and predicts the held-out data significantly better")
+    elif significant:
         verdict = ("significant: adding it improves the held-out fit by "
                    f"{gain_nll:.3g} nats per pixel value")
     elif too_small:
