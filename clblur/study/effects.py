@@ -191,18 +191,19 @@ def explain(effect: str, estimate: dict, significant: bool, gain_nll: float,
             replaced_by: str | None = None) -> str:
     """A sentence for the report: cause, size, and whether the data support it.
 
-    ``replaced``: the effect this one took the place of (``select``'s exchange step), whose
-    model it beats on the held-out fit by ``gain_nll``; ``replaced_by``: the effect that
-    took this one's place."""
+    ``replaced``: the effect this one took the place of (``select``'s exchange step), with
+    ``gain_nll`` the held-out gain of the exchange; ``replaced_by``: the effect that took
+    this one's place."""
     e = EFFECTS[effect]
     size = ", ".join(f"{k}={_fmt(v)}" for k, v in estimate.items())
     if significant and replaced:
-        verdict = (f"significant: in place of {replaced} (which joined first, explaining the "
-                   "same deviation), it improves the held-out fit by a further "
-                   f"{gain_nll:.3g} nats per pixel value")
+        verdict = (f"significant: it took the place of {replaced}, which joined first and "
+                   "explains the same deviation; the held-out fit changed by "
+                   f"{gain_nll:+.3g} nats per pixel value with it instead")
     elif replaced_by:
         verdict = (f"joined the model, then was replaced by {replaced_by}, which explains "
-                   "the same deviation and predicts the held-out data significantly better")
+                   "the same deviation significantly better on the held-out data, or as "
+                   "well with fewer parameters")
     elif significant:
         verdict = ("significant: adding it improves the held-out fit by "
                    f"{gain_nll:.3g} nats per pixel value")

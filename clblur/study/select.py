@@ -31,7 +31,8 @@ Conventions
   Findings are ranked by the order they joined, then by statistic.
 * Exchange: when none joins, a joined effect is replaced by a rival (significant in the
   round it joined) whose model predicts the held-out blocks significantly better in its
-  place (``_best_swap``); forward selection then goes on.  Greedy selection alone keeps the
+  place, or that has fewer parameters and predicts not significantly worse
+  (``_best_swap``); forward selection then goes on.  Greedy selection alone keeps the
   first of two near-equal explanations even when later effects favour the other.
 """
 
@@ -249,15 +250,24 @@ def _best_swap(folds: Folds, current: frozenset, order: list[str],
 
     Forward selection commits to the larger held-out gain even when two effects explain
     the same deviation almost equally well at that round (a gain of 1.005 and a -0.5 code
-    offset, both seen through the paper's wrong response); the effects that join later
-    can then favour the other.  So, once no effect joins, each joined effect ``e`` is
-    tested against each rival ``c`` (significant in the round ``e`` joined): the model with
-    ``c`` in place of ``e`` is fitted from the rival's own earlier fit (and the response
-    shape's starts) and compared with the current one on the held-out blocks, by the same
-    block-robust test as an addition (``_weighted_gain``), at ``alpha`` over the number of
-    exchanges tried and with the same least gain.  The best significant exchange is
-    returned as ``(out, into, params, statistic, p, gain)``.  A model once left is never
-    entered again, so the search ends.
+    offset, both seen through the paper's wrong response; a free response shape and an
+    offset on top of a gain); the effects that join later can then favour the other, or
+    show that the two are interchangeable.  So, once no effect joins, each joined effect
+    ``e`` is tried against each rival ``c`` (significant in the round ``e`` joined): the
+    model with ``c`` in place of ``e`` is fitted from the rival's own earlier fit (and the
+    response shape's starts) and compared with the current one on the held-out blocks, by
+    the block-robust test of an addition (``_weighted_gain``), at ``alpha`` over the number
+    of exchanges tried, with the same least gain.  The exchange is made
+
+    * when ``c`` predicts significantly better (an *improvement*), or
+    * when ``c`` has fewer parameters and ``e`` does not predict significantly better
+      (a *simplification*: of two interchangeable explanations the simpler one, as
+      ``_sufficient`` prefers ``response_imax`` to ``response_shape``).
+
+    Improvements go first (the largest gain), then simplifications (the fewest parameters).
+    Returns ``(out, into, params, statistic, p, gain)`` with the statistic, p-value and
+    held-out gain of ``c``'s model over ``e``'s.  A model once left is never entered again,
+    so the search ends.
     """
     channels = folds.part[0][0].channels
     null = null_params()
@@ -270,7 +280,7 @@ def _best_swap(folds: Folds, current: frozenset, order: list[str],
     nuisance = frozenset({"noise"}) if "noise" in candidates else frozenset()
     base = folds.fit(current | nuisance, cur_params, channels)
     nvalid = max(sum(folds.nvalid), 1)
-    best = None
+    improve, simplify = [], []
     for e, c in pairs:
         model = (current - {e}) | {c} | nuisance
         start = [{**q, **{n: null[n] for n in EFFECTS[e].params(channels)},
@@ -279,9 +289,19 @@ def _best_swap(folds: Folds, current: frozenset, order: list[str],
         p = folds.fit(model, start, channels, shape_search="response_shape" in model)
         d, t, pv = _weighted_gain(folds, base, p, used)
         gain = float(d.sum()) / nvalid
-        if pv < level and gain >= min_gain and (best is None or gain > best[5]):
-            best = (e, c, p, t, pv, gain)
-    return best
+        if pv < level and gain >= min_gain:
+            improve.append((e, c, p, t, pv, gain))
+            continue
+        size = len(EFFECTS[c].params(channels))
+        if size < len(EFFECTS[e].params(channels)):
+            d_back, _, pv_back = _weighted_gain(folds, p, base, used)
+            if not (pv_back < level and float(d_back.sum()) / nvalid >= min_gain):
+                simplify.append((size, (e, c, p, t, pv, gain)))
+    if improve:
+        return max(improve, key=lambda r: r[5])
+    if simplify:
+        return min(simplify, key=lambda r: r[0])[1]
+    return None
 
 
 def _weighted_gain(folds: Folds, base: list[dict], ext: list[dict],
