@@ -187,19 +187,20 @@ def channel_gains(p: dict[str, float], channels: int) -> list[float]:
 
 
 def explain(effect: str, estimate: dict, significant: bool, gain_nll: float,
-            too_small: bool = False, replaced: str | None = None,
+            too_small: bool = False, replaced: tuple[str, float] | None = None,
             replaced_by: str | None = None) -> str:
     """A sentence for the report: cause, size, and whether the data support it.
 
-    ``replaced``: the effect this one took the place of (``select``'s exchange step), with
-    ``gain_nll`` the held-out gain of the exchange; ``replaced_by``: the effect that took
-    this one's place."""
+    ``replaced``: ``(effect, gain)`` when this one took that effect's place in
+    ``select``'s exchange step, ``gain`` the held-out change of the exchange;
+    ``replaced_by``: the effect that took this one's place."""
     e = EFFECTS[effect]
     size = ", ".join(f"{k}={_fmt(v)}" for k, v in estimate.items())
     if significant and replaced:
-        verdict = (f"significant: it took the place of {replaced}, which joined first and "
-                   "explains the same deviation; the held-out fit changed by "
-                   f"{gain_nll:+.3g} nats per pixel value with it instead")
+        verdict = ("significant: adding it improved the held-out fit by "
+                   f"{gain_nll:.3g} nats per pixel value in its round; it then took the "
+                   f"place of {replaced[0]}, which joined in that round and explains the same "
+                   f"deviation (held-out change of the exchange {replaced[1]:+.3g})")
     elif replaced_by:
         verdict = (f"joined the model, then was replaced by {replaced_by}, which explains "
                    "the same deviation significantly better on the held-out data, or as "

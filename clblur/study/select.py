@@ -122,7 +122,7 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
     rnd = 0
 
     earlier: dict[str, list[dict]] = {}
-    replaced: dict[str, str] = {}  # effect -> the joined effect it replaced (exchange step)
+    replaced: dict[str, tuple] = {}  # effect -> (the effect it replaced, the exchange's gain)
     replaced_by: dict[str, str] = {}  # the inverse
 
     def test(model: frozenset, effect: str, start: list[dict]):
@@ -151,7 +151,9 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
         return effect, pv, gain, p_e
 
     cur_params = folds.fit(current, [null, null], channels)
-    rivals: dict[str, list[str]] = {}  # the other winners of the round each effect joined
+    # the other winners of the round each effect joined, with their test in that round
+    # (statistic, p, gain, round): an exchange reports the rival's own evidence
+    rivals: dict[str, dict[str, tuple]] = {}
     visited = {current}
     while True:
         while candidates:
@@ -178,8 +180,9 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
                 break
             # strongest = largest held-out likelihood gain among the significant effects
             e, pv, gain, _ = max(winners, key=lambda r: r[2])
-            rivals[e] = [r[0] for r in winners_all if r[0] != e and r[0] != "noise"
-                         and not _nested(r[0], e, channels)]
+            rivals[e] = {c: (findings[c].statistic, findings[c].p_value, findings[c].nll_gain,
+                             rnd) for c, *_ in winners_all
+                         if c not in (e, "noise") and not _nested(c, e, channels)}
             findings[e].significant = True
             findings[e].explanation = explain(e, findings[e].estimate, True, gain)
             order.append(e)
@@ -199,7 +202,7 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
                           alpha, min_gain, used, earlier)
         if swap is None:
             break
-        out, into, p_swap, t_swap, p_value, gain = swap
+        out, into, p_swap, _, _, gain = swap
         current = (current - {out}) | {into}
         visited.add(current)
         quiet = {n: null[n] for n in EFFECTS["noise"].params(channels)}
@@ -209,8 +212,9 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
         candidates.remove(into)
         candidates.append(out)  # it may still join, on top of its replacement
         f = findings[into]
-        f.significant, f.statistic, f.p_value, f.nll_gain = True, t_swap, p_value, gain
-        replaced[into] = out
+        f.significant = True
+        f.statistic, f.p_value, f.nll_gain, f.round = rivals[out][into]
+        replaced[into] = (out, gain)
         replaced_by[out] = into
         findings[out].significant = False
         findings[out].explanation = explain(out, findings[out].estimate, False,
@@ -243,7 +247,8 @@ _NO_SWAP = CONDITIONAL | {"psf_orientation", "noise"}
 
 
 def _best_swap(folds: Folds, current: frozenset, order: list[str],
-               rivals: dict[str, list[str]], candidates: list[str], cur_params: list[dict],
+               rivals: dict[str, dict[str, tuple]], candidates: list[str],
+               cur_params: list[dict],
                visited: set, alpha: float, min_gain: float, used: np.ndarray,
                earlier: dict[str, list[dict]]) -> tuple | None:
     """The best exchange of a joined effect for one of its rivals, or ``None``.
