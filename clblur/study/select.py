@@ -155,6 +155,7 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
     # (statistic, p, gain, round): an exchange reports the rival's own evidence
     rivals: dict[str, dict[str, tuple]] = {}
     visited = {current}
+    contained: set[str] = set()  # left out because another joined with their parameters
     while True:
         while candidates:
             rnd += 1
@@ -194,10 +195,12 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
             have = set(free_params(current, channels))
             for c in [c for c in candidates if set(EFFECTS[c].params(channels)) <= have]:
                 candidates.remove(c)
+                contained.add(c)
                 findings[c].explanation = (f"{c}: {EFFECTS[c].what}. Contained in {e}, which "
                                            "joined the model with its parameters.")
-        # a swap: a rival of a joined effect (significant in the same round, lower gain) that
-        # predicts the held-out blocks significantly better in its place, given the rest
+        # an exchange: a rival of a joined effect (significant in the round it joined) that
+        # predicts the held-out blocks significantly better in its place, or as well with
+        # fewer parameters
         swap = _best_swap(folds, current, order, rivals, candidates, cur_params, visited,
                           alpha, min_gain, used, earlier)
         if swap is None:
@@ -211,6 +214,12 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
         order[order.index(out)] = into
         candidates.remove(into)
         candidates.append(out)  # it may still join, on top of its replacement
+        # effects that were contained in the one that left (response_imax in
+        # response_shape) can add something again
+        have = set(free_params(current, channels))
+        candidates += [c for c in contained
+                       if c not in current and c not in candidates
+                       and not set(EFFECTS[c].params(channels)) <= have]
         f = findings[into]
         f.significant = True
         f.statistic, f.p_value, f.nll_gain, f.round = rivals[out][into]
