@@ -294,23 +294,22 @@ def test_claims_are_exclusive_and_stale_ones_are_taken_over(folder, monkeypatch)
                                                 "pid": 2**22 + 12345, "time": 0}))
     assert batch.run_job(job).ok and batch_state.is_finished(job)
     assert not batch_state.lock_path(job).exists()
+
+    def refused_until_older_than(text: str, age: float) -> None:
+        batch_state.lock_path(job).write_text(text)
+        assert batch_state.claim(job) is None
+        old = time.time() - age - 5
+        os.utime(batch_state.lock_path(job), (old, old))
+        held = batch_state.claim(job)
+        assert held is not None
+        held.release()
+
     # a lock from another host is stale only when its heartbeat stopped
-    batch_state.lock_path(job).write_text(json.dumps({"host": "elsewhere", "pid": 1, "time": 0}))
-    assert batch_state.claim(job) is None
-    old = time.time() - batch_state.STALE_LOCK_S - 5
-    os.utime(batch_state.lock_path(job), (old, old))
-    held = batch_state.claim(job)
-    assert held is not None
-    held.release()
+    refused_until_older_than(json.dumps({"host": "elsewhere", "pid": 1, "time": 0}),
+                             batch_state.STALE_LOCK_S)
     # an empty lock is one whose creator has not written it yet (a concurrent batch taking it
     # over would blur the image twice), or a crash's: stale only once older than a heartbeat
-    batch_state.lock_path(job).write_text("")
-    assert batch_state.claim(job) is None
-    old = time.time() - batch_state.HEARTBEAT_S - 5
-    os.utime(batch_state.lock_path(job), (old, old))
-    held = batch_state.claim(job)
-    assert held is not None
-    held.release()
+    refused_until_older_than("", batch_state.HEARTBEAT_S)
 
 
 def test_two_concurrent_batches_do_not_duplicate_work(folder):
