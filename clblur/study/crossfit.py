@@ -36,6 +36,7 @@ from clblur.study.variants import (
 )
 
 __all__ = ["CONDITIONAL", "assign_blocks", "applicable", "physical_bounds", "fit", "fit_all",
+           "penalised_nll",
            "Folds", "free_params",
            "average_params", "heldout_scores"]
 
@@ -228,12 +229,15 @@ def fit_all(groups: list[Group], free: list[str], fold_params: list[dict], nvali
     The mean alone is not enough: where the two folds settled in different basins of the
     response shape (a power law against Eq. 3 with a warp), their mean lies in neither.
     """
-    def penalised(p: dict) -> float:
-        ridge = WARP_RIDGE * sum(p.get(k, 0.0) ** 2 for k in WARP_KEYS)
-        return sum(float(pixel_nll(g, p).sum()) for g in groups) + ridge
-
     starts = [average_params(fold_params), *fold_params]
-    return min((fit(groups, free, s, nvalid, bounds) for s in starts), key=penalised)
+    return min((fit(groups, free, s, nvalid, bounds) for s in starts),
+               key=lambda p: penalised_nll(groups, p))
+
+
+def penalised_nll(groups: list[Group], p: dict) -> float:
+    """The objective every fit minimises: total NLL plus the warp's ridge."""
+    ridge = WARP_RIDGE * sum(p.get(k, 0.0) ** 2 for k in WARP_KEYS)
+    return sum(float(pixel_nll(g, p).sum()) for g in groups) + ridge
 
 
 def free_params(effects, channels: int) -> list[str]:
@@ -272,13 +276,12 @@ def _fit_continuous(groups: list[Group], free: list[str], start: dict, nvalid: i
         p.update(zip(names, lo + (hi - lo) * z, strict=True))
         if not time_ok(p):
             return 1e3
-        ridge = WARP_RIDGE * sum(p.get(k, 0.0) ** 2 for k in WARP_KEYS)
-        return (sum(float(pixel_nll(g, p).sum()) for g in groups) + ridge) / max(nvalid, 1)
+        return penalised_nll(groups, p) / max(nvalid, 1)
 
-    def run(z0, s0, maxiter):
+    def run(z0, s0):
         return optimize.minimize(objective, z0, args=(s0,), method="L-BFGS-B",
                                  bounds=[(0, 1)] * len(z0),
-                                 options={"maxiter": maxiter, "ftol": 1e-7, "gtol": 1e-5})
+                                 options={"maxiter": 300, "ftol": 1e-7, "gtol": 1e-5})
 
     first = dict(start)
     if warm is not None:  # the better of the two points is the start
@@ -305,7 +308,7 @@ def _fit_continuous(groups: list[Group], free: list[str], start: dict, nvalid: i
     # every start runs to convergence: screening them by a few iterations picked the wrong
     # basin of a truncated gamma-2.2 stack (test_truncated_long_exposure_is_quantisation_
     # not_gain), where the start that converges best is not ahead after ten
-    res, s0 = min(((run(_unit(s0, names, lo, hi), s0, 300), s0) for s0 in starts),
+    res, s0 = min(((run(_unit(s0, names, lo, hi), s0), s0) for s0 in starts),
                   key=lambda r: r[0].fun)
     best = dict(s0)
     best.update(zip(names, lo + (hi - lo) * res.x, strict=True))

@@ -205,7 +205,7 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
                           alpha, min_gain, used, earlier)
         if swap is None:
             break
-        out, into, p_swap, _, _, gain = swap
+        out, into, p_swap, gain = swap
         current = (current - {out}) | {into}
         visited.add(current)
         quiet = {n: null[n] for n in EFFECTS["noise"].params(channels)}
@@ -279,8 +279,8 @@ def _best_swap(folds: Folds, current: frozenset, order: list[str],
       ``_sufficient`` prefers ``response_imax`` to ``response_shape``).
 
     Improvements go first (the largest gain), then simplifications (the fewest parameters).
-    Returns ``(out, into, params, statistic, p, gain)`` with the statistic, p-value and
-    held-out gain of ``c``'s model over ``e``'s.  A model once left is never entered again,
+    Returns ``(out, into, params, gain)``: ``gain`` is the held-out gain of ``c``'s model
+    over ``e``'s.  A model once left is never entered again,
     so the search ends.
     """
     channels = folds.part[0][0].channels
@@ -301,18 +301,18 @@ def _best_swap(folds: Folds, current: frozenset, order: list[str],
                   **{n: earlier[c][f][n] for n in EFFECTS[c].params(channels)}}
                  for f, q in enumerate(base)]
         p = folds.fit(model, start, channels, shape_search="response_shape" in model)
-        d, t, pv = _weighted_gain(folds, base, p, used)
+        d, _, pv = _weighted_gain(folds, base, p, used)
         gain = float(d.sum()) / nvalid
         if pv < level and gain >= min_gain:
-            improve.append((e, c, p, t, pv, gain))
+            improve.append((e, c, p, gain))
             continue
         size = len(EFFECTS[c].params(channels))
         if size < len(EFFECTS[e].params(channels)):
             d_back, _, pv_back = _weighted_gain(folds, p, base, used)
             if not (pv_back < level and float(d_back.sum()) / nvalid >= min_gain):
-                simplify.append((size, (e, c, p, t, pv, gain)))
+                simplify.append((size, (e, c, p, gain)))
     if improve:
-        return max(improve, key=lambda r: r[5])
+        return max(improve, key=lambda r: r[3])
     if simplify:
         return min(simplify, key=lambda r: r[0])[1]
     return None
