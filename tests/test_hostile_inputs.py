@@ -456,6 +456,8 @@ def bad_manifest_cases() -> list[Case]:
                                              "{out}/no/r.json", "--quiet"), match="folder"),
         Case("study:report-is-input", ("study", "{in}/m_kind.json", "--report",
                                        "{in}/m_kind.json", "--quiet"), match="overwrite"),
+        Case("study:splits-zero", ("study", "{in}/m_kind.json", "--report", "{out}/r.json",
+                                   "--splits", "0", "--quiet"), match="--splits"),
     ]
     calib = [("m_series_empty.json", "non-empty"), ("m_series_traversal.json", "outside"),
              ("m_series_negative.json", "positive"), ("m_series_missing.json", "not found"),

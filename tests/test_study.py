@@ -163,6 +163,63 @@ def test_cli_writes_report_markdown_and_figures(tmp_path, rng):
         p.name for p in (tmp_path / "fig").iterdir()}
 
 
+def test_repeated_splits_are_reproducible_balanced_and_new():
+    from clblur.study.crossfit import assign_blocks
+
+    sc = scenario({}, np.random.default_rng(9), shape=(32, 48))
+    first = assign_blocks(sc.groups)
+    blocks = [g.block.copy() for g in sc.groups]
+    checker = [g.fold.copy() for g in sc.groups]
+    for split in (1, 2):
+        assert assign_blocks(sc.groups, split=split) == first
+        folds = [g.fold.copy() for g in sc.groups]
+        assert assign_blocks(sc.groups, split=split) == first
+        for g, b, c, f in zip(sc.groups, blocks, checker, folds, strict=True):
+            np.testing.assert_array_equal(g.block, b)  # the same blocks, split anew
+            np.testing.assert_array_equal(g.fold, f)  # reproducible
+            assert not np.array_equal(f, c)
+            per_block = {int(k): int(v) for k, v in zip(b, f, strict=True)}
+            assert len(set(np.unique(b))) == len(per_block)  # one fold per block
+            share = np.mean(list(per_block.values()))
+            assert abs(share - 0.5) <= 0.5 / len(per_block) + 1e-12  # half of the blocks
+
+
+def test_repeated_splits_report_how_often_each_effect_is_selected(tmp_path, rng):
+    """A clear hidden effect is selected on every split; the report counts it, the markdown
+    and the command line show it, and the first split's findings are the plain study's."""
+    from clblur.cli import study as cli
+
+    m = _manifest(tmp_path, rng)
+    plain = study(m).report
+    parser = argparse.ArgumentParser()
+    cli.register(parser.add_subparsers())
+    args = parser.parse_args(["study", str(m), "--report", str(tmp_path / "r.json"),
+                              "--splits", "3", "--quiet"])
+    assert args.func(args) == 0
+    r = json.loads((tmp_path / "r.json").read_text())
+    assert set(r) == REPORT_KEYS | {"splits"}
+    sp = r["splits"]
+    assert sp["count"] == 3 and len(sp["per_split"]) == 3
+    assert sp["per_split"][0] == plain["extended"]["effects"] == r["extended"]["effects"]
+    assert sp["selected"]["exposure_gain"] == 1.0 and "exposure_gain" in sp["stable"]
+    for e, share in sp["selected"].items():
+        assert share == sum(e in c for c in sp["per_split"]) / 3
+        assert (e in sp["stable"]) == (share > 0.5)
+    assert r["findings"] == plain["findings"]
+    assert "| exposure_gain | 3 of 3 | 1.00 |" in (tmp_path / "r.md").read_text()
+    with pytest.raises(ValueError, match="splits"):
+        study(m, splits=0)
+
+
+def test_split_summary_counts_and_majority():
+    from clblur.study.run import split_summary
+
+    s = split_summary([["a", "b"], ["a"], ["a", "c"], ["b"]])
+    assert s["selected"] == {"a": 0.75, "b": 0.5, "c": 0.25}
+    assert s["stable"] == ["a"]  # b on exactly half: not more than half
+    assert s["count"] == 4 and s["per_split"][3] == ["b"]
+
+
 def test_bad_input_is_named(tmp_path, rng):
     m = _manifest(tmp_path, rng)
     with pytest.raises(ValueError, match="input"):

@@ -1,4 +1,4 @@
-"""``clblur study MANIFEST --report report.json [--figures DIR]``."""
+"""``clblur study MANIFEST --report report.json [--figures DIR] [--splits N]``."""
 
 from __future__ import annotations
 
@@ -23,6 +23,10 @@ def register(subparsers) -> None:
                    help="target pixels used in all (default 60000)")
     p.add_argument("--alpha", type=float, default=0.05,
                    help="false-positive rate on null data for the whole study (default 0.05)")
+    p.add_argument("--splits", type=int, default=1,
+                   help="repeat the diagnosis on N splits of the data into two folds and "
+                        "report how often each effect is selected (default 1; N times the "
+                        "time)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
 
@@ -34,14 +38,22 @@ def run(args: argparse.Namespace) -> int:
     # every output checked before the study runs (it takes minutes)
     check_output(args.report, args.manifest)
     check_output(Path(args.report).with_suffix(".md"), args.manifest)
+    if args.splits < 1:
+        raise InputError(f"--splits must be at least 1, got {args.splits}")
     if args.figures is not None and Path(args.figures).exists() \
             and not Path(args.figures).is_dir():
         raise InputError(f"--figures {args.figures} exists and is not a folder")
     result = study(args.manifest, report=args.report, figures_dir=args.figures,
                    max_pixels=args.max_pixels or DEFAULT_PIXELS, alpha=args.alpha,
-                   progress=not args.quiet)
+                   progress=not args.quiet, splits=args.splits)
     r = result.report
     found = ", ".join(r["extended"]["effects"]) or "none"
     print(f"significant effects: {found}; held-out RMSE {r['baseline']['heldout_rmse']:.3f} "
           f"-> {r['extended']['heldout_rmse']:.3f} codes")
+    if "splits" in r:
+        sp = r["splits"]
+        shares = ", ".join(f"{e} {round(v * sp['count'])}/{sp['count']}"
+                           for e, v in sp["selected"].items()) or "none"
+        print(f"selected over {sp['count']} splits: {shares}; stable: "
+              f"{', '.join(sp['stable']) or 'none'}")
     return 0

@@ -49,19 +49,32 @@ def fold_part(g: Group, f: int) -> Group:
     return cache[f]
 
 
-def assign_blocks(groups: list[Group], blocks_per_group: int = 64) -> int:
-    """Give every target pixel a block id and a fold; returns the number of blocks."""
+def assign_blocks(groups: list[Group], blocks_per_group: int = 64, split: int = 0) -> int:
+    """Give every target pixel a block id and a fold; returns the number of blocks.
+
+    ``split`` 0 is the checkerboard of blocks.  ``split`` s > 0 draws another split of the
+    same blocks: in each group a random half of the blocks that hold its pixels (seeded by
+    ``(s, group)``) forms fold 0, so repeated splits are reproducible and balanced.
+    """
     offset = 0
     for gi, g in enumerate(groups):
         h, w = g.shape
         side = max(4, int(round(math.sqrt(h * w / blocks_per_group))))
         br, bc = g.rows // side, g.cols // side
         ncols = (w + side - 1) // side
+        nblocks = ((h + side - 1) // side) * ncols
         g.block = offset + br * ncols + bc
-        g.fold = ((br + bc + gi) % 2).astype(np.int8)
+        if split == 0:
+            g.fold = ((br + bc + gi) % 2).astype(np.int8)
+        else:
+            local = br * ncols + bc
+            held = np.unique(local)  # blocks with sampled pixels
+            fold = np.zeros(nblocks, np.int8)
+            fold[np.random.default_rng([split, gi]).permutation(held)[held.size // 2:]] = 1
+            g.fold = fold[local]
         g.__dict__.pop("_folds", None)
         g.__dict__["gid"] = gi  # psf_orientation is chosen per group
-        offset += ((h + side - 1) // side) * ncols
+        offset += nblocks
     return offset
 
 

@@ -78,6 +78,15 @@ def markdown(report: dict, title: str = "Study", figures: list[str] | None = Non
         lines.append(f"| {f['effect']} | {'yes' if f['significant'] else 'no'} | {t} | {p} "
                      f"| {est} | {ci} |")
     lines += ["", "Findings:", ""] + [f"- {f['explanation']}" for f in report["findings"]]
+    if "splits" in report:
+        sp = report["splits"]
+        lines += ["", f"Repeated over {sp['count']} splits of the blocks into two folds "
+                  "(the first split's findings are above): selected on", "",
+                  "| effect | splits | share |", "|---|---|---|"]
+        lines += [f"| {e} | {round(v * sp['count'])} of {sp['count']} | {v:.2f} |"
+                  for e, v in sp["selected"].items()]
+        lines += ["", "Stable (selected on more than half of the splits): "
+                  + (", ".join(sp["stable"]) or "none") + "."]
     if figures:
         lines += [""] + [f"![{Path(f).stem}]({f})" for f in figures]
     return "\n".join(lines) + "\n"

@@ -103,9 +103,10 @@ class Selection:
 
 
 def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
-           progress=None) -> Selection:
-    """Run the whole diagnosis (see the module docstring)."""
-    nblocks = assign_blocks(groups)
+           progress=None, split: int = 0) -> Selection:
+    """Run the whole diagnosis (see the module docstring) on the blocks' fold ``split``
+    (``assign_blocks``; 0, the checkerboard, unless the study repeats the split)."""
+    nblocks = assign_blocks(groups, split=split)
     channels = groups[0].channels
     folds = Folds(groups, nblocks)
     used = np.zeros(nblocks, bool)
