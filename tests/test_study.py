@@ -194,19 +194,19 @@ def test_repeated_splits_report_how_often_each_effect_is_selected(tmp_path, rng)
     parser = argparse.ArgumentParser()
     cli.register(parser.add_subparsers())
     args = parser.parse_args(["study", str(m), "--report", str(tmp_path / "r.json"),
-                              "--splits", "3", "--quiet"])
+                              "--splits", "2", "--quiet"])
     assert args.func(args) == 0
     r = json.loads((tmp_path / "r.json").read_text())
     assert set(r) == REPORT_KEYS | {"splits"}
     sp = r["splits"]
-    assert sp["count"] == 3 and len(sp["per_split"]) == 3
+    assert sp["count"] == 2 and len(sp["per_split"]) == 2
     assert sp["per_split"][0] == plain["extended"]["effects"] == r["extended"]["effects"]
     assert sp["selected"]["exposure_gain"] == 1.0 and "exposure_gain" in sp["stable"]
     for e, share in sp["selected"].items():
-        assert share == sum(e in c for c in sp["per_split"]) / 3
+        assert share == sum(e in c for c in sp["per_split"]) / 2
         assert (e in sp["stable"]) == (share > 0.5)
     assert r["findings"] == plain["findings"]
-    assert "| exposure_gain | 3 of 3 | 1.00 |" in (tmp_path / "r.md").read_text()
+    assert "| exposure_gain | 2 of 2 | 1.00 |" in (tmp_path / "r.md").read_text()
     with pytest.raises(ValueError, match="splits"):
         study(m, splits=0)
 
