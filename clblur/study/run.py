@@ -78,8 +78,7 @@ def study_groups(kind: str, groups: list[Group], *, alpha: float = 0.05,
         raise ValueError("nothing to study: no pairs, stacks or exposure steps")
     if not 0 < alpha < 1:
         raise ValueError(f"alpha must be in (0, 1), got {alpha}")
-    if not isinstance(splits, int) or isinstance(splits, bool) or splits < 1:
-        raise ValueError(f"splits must be an integer >= 1, got {splits!r}")
+    _check_splits(splits)
     chosen = []
     for s in reversed(range(splits)):  # the first split last: its folds stay assigned
         with tqdm(desc=f"effect tests, split {s + 1}/{splits}" if splits > 1
@@ -90,6 +89,11 @@ def study_groups(kind: str, groups: list[Group], *, alpha: float = 0.05,
     if splits > 1:
         report["splits"] = split_summary(chosen[::-1])
     return StudyResult(report, sel, groups)
+
+
+def _check_splits(splits: int) -> None:
+    if not isinstance(splits, int) or isinstance(splits, bool) or splits < 1:
+        raise ValueError(f"splits must be an integer >= 1, got {splits!r}")
 
 
 def split_summary(chosen: list[list[str]]) -> dict:
@@ -112,8 +116,7 @@ def study(manifest: str | os.PathLike | Manifest, *, report: str | os.PathLike |
     m = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)
     if not isinstance(max_pixels, int) or max_pixels < 1000:
         raise ValueError(f"max_pixels must be an integer >= 1000, got {max_pixels!r}")
-    if not isinstance(splits, int) or isinstance(splits, bool) or splits < 1:
-        raise ValueError(f"splits must be an integer >= 1, got {splits!r}")
+    _check_splits(splits)
     inputs = [m.path] + [e.path for e in m.images] + [
         q for p in m.pairs for q in (p.static, p.blurred, p.flow, p.psf)] + [
         q for s in m.stacks for q in (*s.frames, s.long)]
