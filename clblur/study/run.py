@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -100,9 +101,8 @@ def split_summary(chosen: list[list[str]]) -> dict:
     """How often each effect was selected over repeated splits (``chosen``: the selected
     effects of each split, the first split first)."""
     n = len(chosen)
-    seen = sorted({e for c in chosen for e in c},
-                  key=lambda e: (-sum(e in c for c in chosen), e))
-    selected = {e: sum(e in c for c in chosen) / n for e in seen}
+    times = Counter(e for c in chosen for e in set(c))
+    selected = {e: times[e] / n for e in sorted(times, key=lambda e: (-times[e], e))}
     return {"count": n, "selected": selected,
             "stable": [e for e, v in selected.items() if v > 0.5],
             "per_split": chosen}
