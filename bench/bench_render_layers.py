@@ -7,8 +7,9 @@ background: four RGBA uint8 layers) through ``clblur.blur_layers``, straight and
 through the peer that blurs each layer alone and merges them with ``over`` afterwards
 (``peers.layers_apart_then_over``: the compositor's way without per-sample occlusion).  Best
 wall time and best process CPU time (all threads) of ``--repeat`` runs each, and megapixels
-of output per CPU-second.  ``blur_layers`` composites every pixel (no culling: each layer can
-cover any of them), so its cost is the layered kernel's over the whole frame.
+of output per CPU-second.  ``blur_layers`` composites only the pixels that a moving layer can
+reach (``clblur.render_layers`` Conventions, culling); the still background elsewhere passes
+through.
 
 Run:  python bench/bench_render_layers.py [--backend opencl] [--repeat 5]
 Prints a table and writes it at the top of bench/results_render_layers.md (the notes

@@ -43,7 +43,10 @@ class Layers:
     layer is ``warped`` when its ``D_k`` or its ``C_k`` vary).  ``inverse_steps``: fixed-point
     steps of a warped layer's inverse motion (``clblur.layered_exposure``); None is
     ``INVERSE_STEPS``, the count for estimated flow; ``clblur.render_layers`` sets its own for
-    a renderer's exact vectors.  ``present`` holds values at the
+    a renderer's exact vectors.  ``reach``: None, or K x h x w bool, the pixels at which
+    layer ``k``'s vectors set the sample count (``clblur.layered_exposure.counts``) where
+    ``present`` is tighter than that (``clblur.render_layers``); None: ``present``.
+    ``present`` holds values at the
     region's pixels only (False elsewhere: nothing reads it), and so do the ``vectors`` of a
     rigid layer; a warped layer's ``vectors`` cover the whole crop, because the composite
     reads them where its samples land (``clblur.layered_exposure``, inverse motion).
@@ -59,6 +62,7 @@ class Layers:
     warped: np.ndarray
     curvature: np.ndarray | None = None
     inverse_steps: int | None = None
+    reach: np.ndarray | None = None
 
 
 # cv2's exact transform returns float32 distances; squared, they round back to the exact

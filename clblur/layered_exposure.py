@@ -233,15 +233,17 @@ def _where_present(field: np.ndarray, pick: tuple, there: np.ndarray,
 def counts(layers: Layers, samples: int | None,
            at: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Samples per pixel: ``samples``, or ``ceil(max |v|) + 1`` over the pixel's own vector
-    and the vectors ``D_k`` of the layers present there (int32, h x w; with ``at``, (rows,
-    cols) of the crop, only at those pixels, as a flat array)."""
+    and the vectors ``D_k`` of the layers that reach it (``Layers.reach``, else ``present``)
+    (int32, h x w; with ``at``, (rows, cols) of the crop, only at those pixels, as a flat
+    array)."""
     shape = layers.region.shape if at is None else at[0].shape
     if samples is not None:
         return np.full(shape, samples, np.int32)
     pick = (Ellipsis,) if at is None else tuple(at)
     flow = layers.flow[pick]
     n = sample_counts(flow[..., 0], flow[..., 1])
-    for k, (d, there) in enumerate(zip(layers.vectors, layers.present, strict=True)):
+    reach = layers.present if layers.reach is None else layers.reach
+    for k, (d, there) in enumerate(zip(layers.vectors, reach, strict=True)):
         # a layer that can reach the pixel: its D_k there (one layer at a time, only where
         # it is present: far fewer pixels than the crop times the layers)
         there = there[pick]

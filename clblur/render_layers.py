@@ -27,6 +27,14 @@ Conventions
   is premultiplied colour and coverage ``1 - prod(1 - W_k)`` and goes out in the input's alpha
   convention.  Nothing is reconstructed: light that no layer holds is not there (an opaque
   rearmost layer, a background plate, leaves none).
+* Culling changes no output code: a rigid layer is visited only where its one path can bring
+  its coverage (:func:`swept`), and a pixel that one still layer alone reaches is that
+  layer's plane (:func:`still_alone`), never composited.  Sample counts keep the disc of
+  each layer's longest vector around its coverage (``Layers.reach``, sample counts below).
+* Sample counts: ``ceil`` of the longest vector among the layers whose coverage lies within
+  that vector's reach of the pixel, plus one.  Counting only the layers whose path the
+  pixel meets samples a slow layer beside a fast one's streak at its own one sample per
+  pixel of path, and lost 0.5 - 2.0 dB on the crossings of ``docs/studies/occlusion.md``.
 * A renderer's vectors are exact, so a warped layer's inverse motion is solved to
   convergence: ``RENDER_INVERSE_STEPS`` safeguarded fixed-point steps, where estimated flow
   takes ``clblur.layered_exposure.INVERSE_STEPS`` (whose fixed point an estimate's errors
@@ -48,7 +56,8 @@ from clblur.errors import InputError
 from clblur.layer_planes import Layers
 from clblur.request import BlurPlan, make_plan
 
-__all__ = ["RENDER_INVERSE_STEPS", "blur_layers", "layers_for"]
+__all__ = ["RENDER_INVERSE_STEPS", "blur_layers", "layers_for", "path_offsets", "still_alone",
+           "swept"]
 
 RENDER_INVERSE_STEPS = 4  # module Conventions: a renderer's exact vectors, solved to convergence
 
@@ -64,6 +73,25 @@ def _motion_form(motion, index: int):
     return "straight", motion
 
 
+def _linear_layer(plan: BlurPlan) -> np.ndarray:
+    """``clblur.reference.linearise(plan)``, evaluated on the box that holds the layer's
+    coverage for an integer image: outside it the straight alpha is 0, so the premultiplied
+    light and the coverage are 0 there.  An object's layer covers a small part of the frame;
+    linearising all of it was a sixth of a call (``bench/results_render_layers.md``).  A float
+    image is premultiplied and may hold light where it has no coverage: all of it."""
+    from dataclasses import replace
+
+    from clblur.reference import linearise
+
+    if plan.dtype.kind != "u":
+        return linearise(plan)
+    out = np.zeros(plan.image.shape, np.float64)
+    box = _box(plan.image[..., -1], 0)
+    if box is not None:
+        out[box] = linearise(replace(plan, image=plan.image[box]))
+    return out
+
+
 def _field_of(plan: BlurPlan) -> np.ndarray:
     """The plan's motion as an H x W x 2 field (a uniform displacement broadcast)."""
     from clblur.motion import Field, Uniform
@@ -74,6 +102,94 @@ def _field_of(plan: BlurPlan) -> np.ndarray:
         return np.full(plan.image.shape[:2] + (2,), (plan.motion.dx, plan.motion.dy),
                        np.float32)
     raise InputError("a layer's motion must be vectors (H x W x 2) or (dx, dy), not a PSF")
+
+
+def path_offsets(d: np.ndarray, anchor: float, c: np.ndarray | None = None) -> np.ndarray:
+    """Whole-pixel offsets ``round(D t + C t^2)``, ``t`` in [-anchor, 1 - anchor], at steps
+    of at most half a pixel along the path (unique, m x 2 as (dx, dy)).
+
+    Every point of the continuous path lies within half a pixel (per axis) of an offset's
+    unrounded point, so within one pixel of the offset."""
+    d = np.asarray(d, np.float64)
+    c = np.zeros(2) if c is None else np.asarray(c, np.float64)
+    lo, hi = -anchor, 1.0 - anchor
+    # |dP/dt| <= |D| + 2 |C| max|t|: the per-axis speed bounds the step between grid points
+    speed = np.abs(d) + 2.0 * np.abs(c) * max(abs(lo), abs(hi))
+    steps = int(np.ceil(2.0 * float(speed.max()) * (hi - lo))) + 1
+    t = np.linspace(lo, hi, steps + 1)[:, None]
+    return np.unique(np.rint(d * t + c * t * t).astype(np.int64), axis=0)
+
+
+def swept(covered: np.ndarray, d: np.ndarray, anchor: float,
+          c: np.ndarray | None = None) -> np.ndarray:
+    """The pixels ``p`` at which a rigid layer's samples can read its coverage: some sample
+    position ``q = p - D t - C t^2`` has a bilinear corner (clamped to the image) on a
+    ``covered`` pixel.  Conservative, never short.
+
+    Why: the composite visits a layer only where this holds, and takes as many samples as
+    the longest vector among the layers that reach a pixel.  The disc of the vector's length
+    around the coverage (what a warped layer needs) holds, for a long straight motion, about
+    twice the pixels of the streak itself; the static background beside a streak then went
+    through the composite at the fast layer's sample count.
+
+    How: a bilinear corner lies within Chebyshev distance < 1 of ``q``; with ``q`` within one
+    pixel of ``p - o`` for a whole-pixel offset ``o`` (:func:`path_offsets`), ``p - o`` is
+    within Chebyshev distance < 2 of a covered pixel, i.e. in its 3 x 3 dilation, read with
+    the index clamped to the image as the sampler clamps positions.
+    """
+    import cv2
+
+    h, w = covered.shape
+    near = cv2.dilate(covered.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    offsets = path_offsets(d, anchor, c)
+    rows, cols = np.nonzero(near.any(axis=1))[0], np.nonzero(near.any(axis=0))[0]
+    # the window p can lie in: the dilation's box moved by the offsets, out to the image's
+    # edge on a side where the box touches it (a clamped read lands there from beyond)
+    (oy0, ox0), (oy1, ox1) = offsets[:, ::-1].min(axis=0), offsets[:, ::-1].max(axis=0)
+    r0 = 0 if rows[0] == 0 else max(rows[0] + oy0, 0)
+    r1 = h if rows[-1] == h - 1 else min(rows[-1] + oy1 + 1, h)
+    c0 = 0 if cols[0] == 0 else max(cols[0] + ox0, 0)
+    c1 = w if cols[-1] == w - 1 else min(cols[-1] + ox1 + 1, w)
+    out = np.zeros((h, w), bool)
+    if r0 >= r1 or c0 >= c1:
+        return out
+    rr, cc = np.arange(r0, r1), np.arange(c0, c1)
+    window = out[r0:r1, c0:c1]
+    for ox, oy in offsets:
+        window |= near[np.clip(rr - oy, 0, h - 1)][:, np.clip(cc - ox, 0, w - 1)]
+    return out
+
+
+def _box(values: np.ndarray, margin: int) -> tuple[slice, slice] | None:
+    """The bounding box of the pixels of ``values`` (H x W [x C]) that are nonzero in any
+    channel, grown by ``margin`` (clipped to the image), or None when there are none.
+
+    The reductions run along memory order (rows, then the rows' columns): reducing a
+    H x W x C float array over its last axis cost more than the rest of building a layer."""
+    h, w = values.shape[:2]
+    rows = np.flatnonzero(values.reshape(h, -1).any(axis=1))
+    if rows.size == 0:
+        return None
+    band = values[rows[0]:rows[-1] + 1]
+    cols = np.flatnonzero((band != 0).reshape(band.shape[0], -1).any(axis=0)
+                          .reshape(w, -1).any(axis=1))
+    return (slice(max(rows[0] - margin, 0), min(rows[-1] + margin + 1, h)),
+            slice(max(cols[0] - margin, 0), min(cols[-1] + margin + 1, w)))
+
+
+def _within(covered: np.ndarray, radius) -> np.ndarray:
+    """``distance_to(covered) <= radius`` (``radius`` one value or H x W), computed on the box
+    that it can hold: the box of ``covered`` grown by the largest radius.  Every covered pixel
+    lies in that box, so the distances in it are the whole image's; beyond it they exceed the
+    radius.  An object's layer is small; the whole frame's transform was most of the cost."""
+    from clblur.layer_planes import distance_to
+
+    radius = np.asarray(radius)
+    out = np.zeros(covered.shape, bool)
+    box = _box(covered, int(np.ceil(radius.max())) + 1)
+    if box is not None:
+        out[box] = distance_to(covered[box]) <= (radius[box] if radius.size > 1 else radius)
+    return out
 
 
 def layers_for(linear: Sequence[np.ndarray], flows: Sequence[np.ndarray], anchor: float,
@@ -89,69 +205,160 @@ def layers_for(linear: Sequence[np.ndarray], flows: Sequence[np.ndarray], anchor
     """
     from scipy.ndimage import distance_transform_edt
 
-    from clblur.layer_planes import distance_to
-
     h, w, cp = linear[0].shape
     k = len(linear)
-    planes = np.empty((k, h, w, cp + 1), dtype)
+    planes = np.zeros((k, h, w, cp + 1), dtype)
     vectors = np.zeros((k, h, w, 2), np.float32)
     present = np.zeros((k, h, w), bool)
+    reach = np.zeros((k, h, w), bool)
     warped = np.zeros(k, bool)
     curves = None if curvature is None else np.zeros((k, h, w, 2), np.float32)
     span = max(anchor, 1.0 - anchor)
     for i, (lin, flow) in enumerate(zip(linear, flows, strict=True)):
-        planes[i, ..., :cp] = lin
-        planes[i, ..., cp] = lin[..., -1]
-        covered = lin[..., -1] > 0
-        if not covered.any():
-            continue  # an empty layer: zero coverage everywhere, nothing to read
+        held = _box(lin, 0)  # an object's layer holds light in a small box
+        if held is None:
+            continue  # an empty layer: nothing to read
+        planes[i][held + (slice(0, cp),)] = lin[held]
+        cover = lin[held + (-1,)]
+        planes[i][held + (cp,)] = cover
+        if not (cover > 0).any():
+            continue  # no coverage: nothing hides what is behind it, nothing to read
+        covered = np.zeros((h, w), bool)
+        covered[held] = cover > 0
         # a vector pass is point-sampled: trust a pixel's vector where the layer covers at
         # least half of it (an anti-aliased rim pixel may hold the vector of what is behind)
-        solid = lin[..., -1] >= 0.5
+        solid = cover >= 0.5
         if not solid.any():
-            solid = covered
+            solid = cover > 0
         fields = [flow] if curvature is None else [flow, curvature[i]]
-        owns = [f[solid] for f in fields]
+        owns = [f[held][solid] for f in fields]
         if all((own == own[0]).all() for own in owns):  # a rigid translation
             vectors[i] = owns[0][0]
             if curves is not None:
                 curves[i] = owns[1][0]
         else:
-            nearest = distance_transform_edt(~solid, return_indices=True,
+            outside = np.ones((h, w), bool)
+            outside[held] = ~solid
+            nearest = distance_transform_edt(outside, return_indices=True,
                                              return_distances=False)
             vectors[i] = flow[nearest[0], nearest[1]]
             if curves is not None:
                 curves[i] = curvature[i][nearest[0], nearest[1]]
             warped[i] = True
-        # how far the layer's samples reach from a pixel: one value for a rigid layer
+        # everything within the farthest reach of its vectors (a bilinear footprint reaches
+        # sqrt(2) px): where a warped layer's inverse motion can read it, and where any
+        # layer's vectors set the sample count (module Conventions, sample counts)
         pick = (Ellipsis,) if warped[i] else (slice(0, 1), slice(0, 1))
         d = vectors[i][pick]
         farthest = np.hypot(d[..., 0], d[..., 1]) * span
         if curves is not None:
             c = curves[i][pick]
             farthest += np.hypot(c[..., 0], c[..., 1]) * span * span
-        # a bilinear footprint reaches sqrt(2) px
-        present[i] = (distance_to(covered) <= farthest + 1.5) & region
+        reach[i] = _within(covered, farthest + 1.5) & region
+        # a rigid layer's one path reaches far fewer pixels than that disc
+        present[i] = reach[i] if warped[i] else swept(
+            covered, vectors[i][0, 0], anchor,
+            None if curves is None else curves[i][0, 0]) & region
     return Layers(origin=(0, 0), planes=planes, vectors=vectors,
                   flow=np.zeros((h, w, 2), np.float32), linear=np.zeros((h, w, cp), dtype),
                   region=region, present=present, warped=warped, curvature=curves,
-                  inverse_steps=RENDER_INVERSE_STEPS)
+                  inverse_steps=RENDER_INVERSE_STEPS, reach=reach)
 
 
-def _composite(layers: Layers, plan: BlurPlan, backend: str, device: str | None) -> np.ndarray:
-    """The exposure of the region's pixels (H x W x (C + 1), zero elsewhere), float64."""
+def still_alone(layers: Layers) -> tuple[np.ndarray, np.ndarray]:
+    """The region's pixels that exactly one layer can reach, a layer that does not move there:
+    (mask, H x W; the index of that layer, H x W, meaningful under the mask).
+
+    Why: at such a pixel every shutter sample reads that one layer at the pixel itself
+    (``present`` is conservative: the other layers hold zero coverage wherever its samples
+    land), and ``counts`` gives it one sample, so the composite is the layer's plane there,
+    bit for bit.  A static background with a few moving objects is mostly such pixels; they
+    skip the compositing kernel (the culling asked of the occlusion path, issue 11).  A
+    moving layer alone at a pixel still goes through the composite: its samples spread.
+    """
+    k = len(layers.planes)
+    still = np.zeros(k, bool)
+    for i in range(k):
+        if layers.warped[i]:
+            continue  # its vectors vary: the inverse motion may read other pixels
+        # a rigid layer's field is one value wherever it is present
+        moved = layers.vectors[i].any() or (layers.curvature is not None
+                                            and layers.curvature[i].any())
+        still[i] = not moved
+    count = layers.present.sum(axis=0, dtype=np.uint8)
+    which = np.argmax(layers.present, axis=0)
+    return (count == 1) & still[which] & layers.region, which
+
+
+def _layers_under(alone: np.ndarray, which: np.ndarray) -> np.ndarray:
+    """The layers that ``which`` names at some ``alone`` pixel."""
+    return np.flatnonzero(np.bincount(which[alone], minlength=1))
+
+
+def _composite(layers: Layers, plan: BlurPlan, backend: str,
+               device: str | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The exposure of the region's pixels (H x W x (C + 1), zero elsewhere, float64) and
+    :func:`still_alone`'s mask and layer index.
+
+    Pixels that one still layer alone reaches take its plane; the others go through the
+    compositing kernel."""
+    from dataclasses import replace
+
     from clblur import layered_exposure
 
     full = layers.region.shape
+    cp = layers.planes.shape[-1] - 1
+    alone, which = still_alone(layers)
+    out = np.zeros(full + (cp,))
+    for k in _layers_under(alone, which):
+        np.copyto(out, layers.planes[k][..., :cp], where=(alone & (which == k))[..., None])
+    mixed = layers.region & ~alone
+    if not mixed.any():
+        return out, alone, which
+    layers = replace(layers, region=mixed, present=layers.present & mixed)
     if backend == "numpy":
-        out = layered_exposure.composite(layers, plan.anchor, plan.samples, plan.weights, full)
-        out[~layers.region] = 0.0
-        return out
-    from clblur.opencl.layered import composite
+        values = layered_exposure.composite(layers, plan.anchor, plan.samples, plan.weights,
+                                            full)
+        out[mixed] = values[mixed]
+    else:
+        from clblur.opencl.layered import composite
 
-    values = composite(layers, plan.anchor, plan.samples, plan.weights, full, device)
-    out = np.zeros(full + (values.shape[1],))
-    out[layers.region] = values
+        out[mixed] = composite(layers, plan.anchor, plan.samples, plan.weights, full, device)
+    return out, alone, which
+
+
+def _finish(acc: np.ndarray, plan: BlurPlan, images: Sequence[np.ndarray], alone: np.ndarray,
+            which: np.ndarray, planes) -> np.ndarray:
+    """``clblur.reference.finish(acc, plan)``, with the opaque pixels that one still layer
+    alone reaches (``alone``, layer ``which``) of an integer image looked up per code.
+
+    Their exposure is the layer's linearised code as the planes hold it (``planes``, the
+    dtype), coverage 1, whatever the pixel: so their output is a function of the code, one
+    table per channel, evaluated by ``finish`` itself on every code.  The response and the
+    rounding of every pixel of the frame were a sixth of a call.  Other pixels, and float
+    images (whose values are not a few codes), go through ``finish``."""
+    from clblur.pixels import imax, linearisation_table
+    from clblur.reference import finish
+
+    if plan.dtype.kind != "u" or not alone.any():
+        return finish(acc, plan)
+    top = int(imax(plan.dtype))
+    colour = plan.colour_channels
+    exposure = np.ones((top + 1, 1, colour + 1))
+    for c in range(colour):
+        table = linearisation_table(plan.responses[c], plan.dtype, plan.saturation)
+        exposure[:, 0, c] = table.astype(planes).astype(np.float64)
+    lut = finish(exposure, plan)[:, 0]
+    out = np.empty(acc.shape, plan.dtype)
+    looked_up = np.zeros(alone.shape, bool)
+    for k in _layers_under(alone, which):
+        image = images[k]
+        mask = alone & (which == k) & (image[..., -1] == top)
+        for c in range(colour + 1):
+            np.copyto(out[..., c], lut[image[..., c], c], where=mask)
+        looked_up |= mask
+    rest = ~looked_up
+    out[rest] = finish(acc[rest][:, None], plan)[:, 0]
     return out
 
 
@@ -190,7 +397,6 @@ def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "cente
         without one, or a bad overscan.
     """
     from clblur.blur import resolve_backend
-    from clblur.reference import finish, linearise
 
     if isinstance(layers, np.ndarray) or not isinstance(layers, Sequence) or not layers:
         raise InputError("layers must be a non-empty list of (image, motion) pairs, front "
@@ -230,7 +436,7 @@ def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "cente
     plans = [[make_plan(image, motion if part is None else motion[part], response,
                         anchor=a, **common)
               for image, motion in layers] for a, part in halves]
-    linear = [linearise(p) for p in plans[0]]
+    linear = [_linear_layer(p) for p in plans[0]]
     for i, lin in enumerate(linear):
         cover = lin[..., -1]
         if cover.min() < 0.0 or cover.max() > 1.0:
@@ -239,7 +445,6 @@ def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "cente
     h, w = shape[:2]
     region = np.zeros((h, w), bool)
     region[overscan:h - overscan, overscan:w - overscan] = True
-    acc = 0.0
     planes = np.float64 if ran == "numpy" else np.float32  # what each backend composites in
     if curved:  # one parabola through the halves' three points
         from dataclasses import replace
@@ -248,11 +453,18 @@ def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "cente
         chord = [(f + s).astype(np.float32) for f, s in zip(first, second, strict=True)]
         bend = [(2.0 * (s - f)).astype(np.float32) for f, s in zip(first, second, strict=True)]
         stack = layers_for(linear, chord, 0.5, region, curvature=bend, dtype=planes)
-        acc = _composite(stack, replace(plans[0][0], anchor=0.5), ran, device)
+        acc, alone, which = _composite(stack, replace(plans[0][0], anchor=0.5), ran, device)
     else:  # one straight path, or two halves whose exposures are averaged
-        for half in plans:
+        acc = 0.0
+        for i, half in enumerate(plans):
             flows = [_field_of(p) for p in half]
             stack = layers_for(linear, flows, half[0].anchor, region, dtype=planes)
-            acc = acc + _composite(stack, half[0], ran, device) / len(plans)
+            exposure, still, layer = _composite(stack, half[0], ran, device)
+            acc = acc + exposure / len(plans)  # a still pixel: x / 2 + x / 2 is x exactly
+            # alone in every half, with the same layer (a still layer reaches the same pixels
+            # in both halves)
+            alone, which = (still, layer) if i == 0 else (alone & still & (layer == which),
+                                                          which)
     inner = (slice(overscan, h - overscan), slice(overscan, w - overscan))
-    return finish(np.asarray(acc)[inner], plans[0][0])
+    return _finish(np.asarray(acc)[inner], plans[0][0],
+                   [p.image[inner] for p in plans[0]], alone[inner], which[inner], planes)

@@ -296,3 +296,86 @@ def test_render_layers_solve_the_inverse_motion_to_convergence(monkeypatch):
     kept = score(render_layers.RENDER_INVERSE_STEPS)
     assert abs(kept - score(8)) < 0.1
     assert kept > score(layered_exposure.INVERSE_STEPS) + 0.2
+
+
+def _brute_swept(covered, d, anchor, c=None, steps=4001):
+    """Pixels whose samples at ``steps`` instants of the path read a covered bilinear corner
+    (positions clamped to the image, as the sampler does): the definition of ``swept``."""
+    h, w = covered.shape
+    c = np.zeros(2) if c is None else np.asarray(c, np.float64)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    out = np.zeros((h, w), bool)
+    for t in np.linspace(-anchor, 1.0 - anchor, steps):
+        x = np.clip(xx - d[0] * t - c[0] * t * t, 0, w - 1)
+        y = np.clip(yy - d[1] * t - c[1] * t * t, 0, h - 1)
+        x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+        x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+        out |= covered[y0, x0] | covered[y0, x1] | covered[y1, x0] | covered[y1, x1]
+    return out
+
+
+def test_swept_holds_every_pixel_a_rigid_layer_can_reach(rng):
+    """``render_layers.swept`` against a brute-force sampling of the path: never short
+    (a missed pixel would lose the layer's light), and within two pixels of it (the
+    3 x 3 margin and the whole-pixel offsets), with paths that leave the image."""
+    from scipy.ndimage import binary_dilation
+
+    from clblur.render_layers import swept
+
+    for trial in range(12):
+        h, w = 40, 56
+        covered = np.zeros((h, w), bool)
+        r0, c0 = rng.integers(0, h - 6), rng.integers(0, w - 6)
+        covered[r0:r0 + rng.integers(1, 7), c0:c0 + rng.integers(1, 7)] = True
+        if trial % 4 == 0:
+            covered[:, 0] |= rng.random(h) < 0.2  # touching the image's edge
+        d = rng.uniform(-30, 30, 2)
+        c = rng.uniform(-12, 12, 2) if trial % 3 == 0 else None
+        anchor = (0.5, 0.0, 1.0)[trial % 3]
+        got = swept(covered, d, anchor, c)
+        want = _brute_swept(covered, d, anchor, c)
+        assert not (want & ~got).any(), trial
+        assert not (got & ~binary_dilation(want, np.ones((5, 5), bool))).any(), trial
+        assert got.sum() < want.sum() + 4 * (h + w) + 200
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32])
+def test_culling_changes_no_pixel(dtype, monkeypatch):
+    """The culled composite (a still layer alone at a pixel is its plane, looked up per code
+    for integer images; a rigid layer visited only where its path reaches) gives what
+    compositing every pixel with every layer in reach gives: the same codes for integer
+    images, float rounding for float ones; straight, bent and curved paths."""
+    from clblur import render_layers
+
+    scene = example_scenes(160, 112)["pan_and_object"]
+    layers = object_layers(scene, "srgb", dtype, overscan=6)
+    still_scene = example_scenes(160, 112)["crossing_fast_behind"]
+    still_layers = object_layers(still_scene, "srgb", dtype)
+
+    def run(form, lay, **kw):
+        return clblur.blur_layers(form(lay), "srgb", backend="numpy", **kw)
+
+    cases = [(straight, layers, dict(overscan=6)), (bent, layers, dict(overscan=6)),
+             (bent, layers, dict(overscan=6, curved=True)), (straight, still_layers, {}),
+             (bent, still_layers, {})]
+    culled = [run(form, lay, **kw) for form, lay, kw in cases]
+    alone = render_layers.still_alone
+    monkeypatch.setattr(render_layers, "still_alone",
+                        lambda stack: (np.zeros_like(stack.region), alone(stack)[1]))
+    monkeypatch.setattr(render_layers, "swept", lambda covered, *a: np.ones_like(covered))
+    for got, (form, lay, kw) in zip(culled, cases, strict=True):
+        want = run(form, lay, **kw)
+        if np.dtype(dtype).kind == "u":
+            np.testing.assert_array_equal(got, want)
+        else:
+            np.testing.assert_allclose(got, want, atol=1e-6, rtol=0)
+    monkeypatch.undo()
+    # the background is still in crossing_fast_behind: most of its pixels skip the composite
+    from clblur.reference import linearise
+    from clblur.request import make_plan
+
+    linear = [linearise(make_plan(image, flow, "srgb", alpha=True))
+              for image, flow, _, _ in still_layers]
+    region = np.ones(linear[0].shape[:2], bool)
+    stack = render_layers.layers_for(linear, [f for _, f, _, _ in still_layers], 0.5, region)
+    assert render_layers.still_alone(stack)[0].mean() > 0.5
