@@ -313,18 +313,45 @@ def _composite(layers: Layers, plan: BlurPlan, backend: str,
     for k in _layers_under(alone, which):
         np.copyto(out, layers.planes[k][..., :cp], where=(alone & (which == k))[..., None])
     mixed = layers.region & ~alone
-    if not mixed.any():
+    box = _box(mixed, _farthest_read(layers, plan.anchor))
+    if box is None:
         return out, alone, which
-    layers = replace(layers, region=mixed, present=layers.present & mixed)
+    # the crop that every sample of the mixed pixels reads: the device reads (or, with its
+    # own memory, receives) that much of the planes and fields, not the frame's
+    every = (slice(None),) + box  # every layer, the box
+
+    def cut(a: np.ndarray | None) -> np.ndarray | None:
+        return None if a is None else a[every]
+
+    crop = replace(layers, origin=(box[0].start, box[1].start), planes=cut(layers.planes),
+                   vectors=cut(layers.vectors), flow=layers.flow[box],
+                   linear=layers.linear[box], region=mixed[box],
+                   present=cut(layers.present) & mixed[box], reach=cut(layers.reach),
+                   curvature=cut(layers.curvature))
     if backend == "numpy":
-        values = layered_exposure.composite(layers, plan.anchor, plan.samples, plan.weights,
+        values = layered_exposure.composite(crop, plan.anchor, plan.samples, plan.weights,
                                             full)
-        out[mixed] = values[mixed]
+        out[box][crop.region] = values[crop.region]
     else:
         from clblur.opencl.layered import composite
 
-        out[mixed] = composite(layers, plan.anchor, plan.samples, plan.weights, full, device)
+        out[box][crop.region] = composite(crop, plan.anchor, plan.samples, plan.weights, full,
+                                          device)
     return out, alone, which
+
+
+def _farthest_read(layers: Layers, anchor: float) -> int:
+    """Pixels beyond which no sample of a pixel reads (whole pixels): the longest path of
+    any layer from the anchor, ``|D| t + |C| t^2`` at the farther end of the shutter (an
+    inverse motion's iterates read positions ``p - D(q) t - C(q) t^2`` as well), plus the
+    bilinear footprint and a pixel of margin."""
+    span = max(anchor, 1.0 - anchor)
+    d = layers.vectors.reshape(-1, 2).astype(np.float64)
+    far = float(np.hypot(d[:, 0], d[:, 1]).max(initial=0.0)) * span
+    if layers.curvature is not None:
+        c = layers.curvature.reshape(-1, 2).astype(np.float64)
+        far += float(np.hypot(c[:, 0], c[:, 1]).max(initial=0.0)) * span * span
+    return int(np.ceil(far)) + 2
 
 
 def _finish(acc: np.ndarray, plan: BlurPlan, images: Sequence[np.ndarray], alone: np.ndarray,
