@@ -20,7 +20,8 @@ _warned_fallback = False
 def blur(image: np.ndarray, motion, response="exp", *, anchor: str = "center",
          samples: int | None = None, weights=None, backend: str = "auto",
          saturation: float = 1.0, device: str | None = None, depth=None,
-         alpha: bool = False, background: np.ndarray | None = None) -> np.ndarray:
+         alpha: bool = False, background: np.ndarray | None = None,
+         exposure: str = "frames") -> np.ndarray:
     """Photo-consistent motion blur (Lin & Chang 2006, Eq. 8/9).
 
     ``g(p) = I( sum_j w_j I^-1(f(p - v(p) (s_j - a))) )``: linearise with the inverse
@@ -37,6 +38,13 @@ def blur(image: np.ndarray, motion, response="exp", *, anchor: str = "center",
         static image shows.
     samples : samples per pixel; default ``ceil(|v|) + 1`` per pixel.
     weights : per-sample time weights (non-uniform velocity); sets ``samples`` if not given.
+    exposure : how the samples are weighted without ``weights``.  ``"frames"`` (default):
+        each ``1/N``, the paper's Eq. 9 and the mean of ``N`` equally spaced frames
+        (GoPro-style data).  ``"continuous"``: the vector is the chord of a continuous
+        exposure (a renderer's vector pass, a real shutter): the trapezoid rule on the same
+        samples.  Equal weights get a continuous exposure wrong at the shutter's two ends by
+        an error of first order in ``1/N`` (0.3 - 5.2 dB on the scenes of
+        ``docs/studies/occlusion.md``; ``clblur.motion``).
     backend : ``"auto"`` (OpenCL when a device can build and run a kernel, else numpy with one
         warning), ``"numpy"`` (the float64 reference) or ``"opencl"``.
     saturation : exposure given to full-scale pixels, in units of the least exposure that
@@ -73,10 +81,12 @@ def blur(image: np.ndarray, motion, response="exp", *, anchor: str = "center",
             raise InputError("depth, alpha and background take numpy arrays, not device arrays")
 
         return opencl.blur_array(image, motion, response, anchor=anchor, samples=samples,
-                                 weights=weights, saturation=saturation, device=device)
+                                 weights=weights, saturation=saturation, device=device,
+                                 exposure=exposure)
     chosen = resolve_backend(backend, device)
     plan = make_plan(image, motion, response, anchor=anchor, samples=samples, weights=weights,
                      saturation=saturation, depth=depth, alpha=alpha, background=background,
+                     exposure=exposure,
                      # the layered path reads the flow on the host, so it is checked there
                      check_flow=chosen == "numpy" or depth is not None)
     return blur_plan(plan, chosen, device)

@@ -33,7 +33,8 @@ __all__ = ["blur"]
 
 def blur(array, motion, response="exp", *, anchor: str = "center", samples: int | None = None,
          weights=None, backend: str = "auto", saturation: float = 1.0,
-         device: str | None = None, max_displacement: tuple[float, float] | None = None):
+         device: str | None = None, max_displacement: tuple[float, float] | None = None,
+         exposure: str = "frames"):
     """Lazy photo-consistent blur of an H x W or H x W x C Dask array (see ``clblur.blur``).
 
     ``motion``: ``(dx, dy)``, a 2-D PSF, or an H x W x 2 flow (numpy, zarr or Dask array, or
@@ -62,7 +63,8 @@ def blur(array, motion, response="exp", *, anchor: str = "center", samples: int 
             flow = da.from_array(tm.flow, chunks=(array.chunks[0], array.chunks[1], 2))
     # Validate every option now, in the client, so errors surface before compute().
     make_plan(np.zeros((1, 1) + array.shape[2:], array.dtype), (0.0, 0.0), response,
-              anchor=anchor, samples=samples, weights=weights, saturation=saturation)
+              anchor=anchor, samples=samples, weights=weights, saturation=saturation,
+              exposure=exposure)
     if flow is not None:
         depth = _flow_depth(flow, a, max_displacement)
     else:
@@ -71,7 +73,8 @@ def blur(array, motion, response="exp", *, anchor: str = "center", samples: int 
         array = array.rechunk({2: -1})
     array = _rechunk_at_least(array, depth)
     options = dict(response=response, anchor=anchor, samples=samples, weights=weights,
-                   saturation=saturation, backend=backend, device=device, fixed=fixed,
+                   exposure=exposure, saturation=saturation, backend=backend, device=device,
+                   fixed=fixed,
                    halo=depth, grid=array.chunks[:2], extent=(h, w))
     axes = {0: depth[0], 1: depth[1]}
     if array.ndim == 3:
@@ -125,13 +128,14 @@ def _origin(index: int, chunks: tuple[int, ...], depth: int) -> tuple[int, int]:
     return max(start - depth, 0), start
 
 
-def _blur_block(image, flow=None, *, response, anchor, samples, weights, saturation, backend,
-                device, fixed: Uniform | PSF | None, halo, grid, extent, block_info=None):
+def _blur_block(image, flow=None, *, response, anchor, samples, weights, exposure, saturation,
+                backend, device, fixed: Uniform | PSF | None, halo, grid, extent,
+                block_info=None):
     loc = block_info[0]["chunk-location"]
     (wr0, r0), (wc0, c0) = (_origin(loc[i], grid[i], halo[i]) for i in (0, 1))
     th, tw = grid[0][loc[0]], grid[1][loc[1]]
     motion = fixed if flow is None else flow
     plan = make_plan(image, motion, response, anchor=anchor, samples=samples, weights=weights,
-                     saturation=saturation, region=(wr0, wc0, *extent))
+                     saturation=saturation, region=(wr0, wc0, *extent), exposure=exposure)
     out = blur_plan(plan, backend, device)
     return out[r0 - wr0:r0 - wr0 + th, c0 - wc0:c0 - wc0 + tw]

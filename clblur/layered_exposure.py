@@ -91,7 +91,7 @@ from clblur.layering import (
     order_components,
     speed_order,
 )
-from clblur.motion import PSF, Field, Uniform, sample_counts
+from clblur.motion import PSF, Field, Uniform, sample_counts, sample_weight
 from clblur.request import BlurPlan
 
 __all__ = ["DEPTH_TAU", "GAP_FRACTION", "INVERSE_STEPS", "MAX_LAYERS", "SPLIT_PRIOR",
@@ -295,10 +295,12 @@ def _inverse_motion(d: np.ndarray, c: np.ndarray | None, x: np.ndarray, y: np.nd
 
 
 def composite(layers: Layers, anchor: float, samples: int | None, weights: np.ndarray | None,
-              full_shape: tuple[int, int]) -> np.ndarray:
+              full_shape: tuple[int, int], ends: bool = False) -> np.ndarray:
     """Front-to-back composite of every shutter sample, float64 (the numpy reference).
 
-    Returns the exposure of every crop pixel (h x w x C); only ``layers.region`` is used.
+    ``ends``: per-pixel counts with the ``continuous`` exposure (``BlurPlan.ends``): each
+    pixel's first and last samples take half weight.  Returns the exposure of every crop
+    pixel (h x w x C); only ``layers.region`` is used.
     """
     from clblur.reference import bilinear_at
 
@@ -336,7 +338,7 @@ def composite(layers: Layers, anchor: float, samples: int | None, weights: np.nd
         x = xx - (v[..., 0] * num) / den
         y = yy - (v[..., 1] * num) / den
         e += left * bilinear_at(layers.linear, x, y, layers.origin, full_shape)
-        wj = weights[j] if weights is not None else 1.0 / n
+        wj = weights[j] if weights is not None else sample_weight(j, n, ends)
         acc += np.where(active, wj, 0.0)[..., None] * e
     return acc
 
@@ -367,7 +369,8 @@ def integrate(lin: np.ndarray, plan: BlurPlan) -> np.ndarray:
     layers = prepare(lin, v, order, plan.anchor, region, background_linear(plan), rule=rule)
     if layers is None:
         return acc
-    out = composite(layers, plan.anchor, plan.samples, plan.weights, plan.full_shape)
+    out = composite(layers, plan.anchor, plan.samples, plan.weights, plan.full_shape,
+                    plan.ends)
     h, w = layers.region.shape
     r0, c0 = layers.origin
     view = acc[r0:r0 + h, c0:c0 + w]
@@ -397,7 +400,7 @@ def integrator(backend: str, device: str | None = None):
 
 def layered_half(lin: np.ndarray, v: np.ndarray, anchor: str, *, depth=None,
                  samples: int | None = None, backend: str = "auto",
-                 device: str | None = None) -> np.ndarray:
+                 device: str | None = None, exposure: str = "frames") -> np.ndarray:
     """Linear exposure (H x W x C, the dtype of ``lin``) of one straight shutter segment with
     vectors ``v``, ordered by ``depth`` (default: speed).  ``lin`` is linear light and is
     blurred with the identity response (used by ``clblur.video`` for each shutter half)."""
@@ -405,4 +408,4 @@ def layered_half(lin: np.ndarray, v: np.ndarray, anchor: str, *, depth=None,
 
     order = "speed" if depth is None else depth
     return blur(lin, v, "linear", anchor=anchor, samples=samples, backend=backend,
-                device=device, depth=order)
+                device=device, depth=order, exposure=exposure)

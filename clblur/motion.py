@@ -10,6 +10,14 @@ Conventions
   Computed as ``p - v * (j - a (N-1)) / (N-1)`` so integer steps stay exact.
 * Default sample count ``N = ceil(|v|) + 1`` (neighbouring samples at most one pixel apart),
   evaluated exactly from the float32 vector by ``sample_counts`` (both backends use it).
+* Exposure (``EXPOSURES``): how the N samples are weighted when no time weights are given.
+  ``frames`` (the default): equally, ``1/N`` each: the paper's Eq. 9, which averages ``K``
+  pixels for a motion of ``K - 1``, and the mean of ``N`` equally spaced frames (how the GoPro
+  deblurring data are made).  ``continuous``: the vector is the chord of a continuous
+  exposure (what a renderer's vector pass holds); the samples, which include both ends, take
+  the trapezoid rule's weights ``1/2, 1, ..., 1, 1/2`` over ``N - 1`` (:func:`sample_weight`).
+  Equal weights count the shutter's two ends double, an error of first order in ``1/N``
+  against a continuous exposure (``docs/studies/occlusion.md``, Shutter weights).
 * Optional per-sample time weights (non-uniform velocity) are normalised to unit sum.
 * A PSF (2-D weights ``h``, centre at ``(rows // 2, cols // 2)``) is a space-invariant
   displacement distribution: ``g(p) = I(sum_s h(s) I^-1(f(p - s)))`` (a true convolution).
@@ -23,11 +31,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["ANCHORS", "FLOW_LIMIT", "PSF", "Field", "Uniform", "anchor_value", "check_flow",
-           "flow_error", "parse_motion", "psf", "sample_counts", "sample_fractions",
-           "time_weights", "uniform_taps"]
+__all__ = ["ANCHORS", "FLOW_LIMIT", "PSF", "EXPOSURES", "Field", "Uniform", "anchor_value",
+           "check_flow", "check_exposure", "flow_error", "parse_motion", "psf", "sample_counts",
+           "sample_fractions", "sample_weight", "time_weights", "trapezoid_weights",
+           "uniform_taps"]
 
 ANCHORS = {"start": 0.0, "center": 0.5, "end": 1.0}
+EXPOSURES = ("frames", "continuous")  # module Conventions
 # Largest flow component accepted, in px: far beyond any image, small enough that sample
 # positions keep 2^-8 px in float32 and the per-pixel sample count stays bounded.
 FLOW_LIMIT = 65536.0
@@ -181,6 +191,32 @@ def time_weights(samples: int | None, weights: Sequence[float] | None) -> tuple[
     if samples is not None and samples != w.size:
         raise ValueError(f"got {w.size} time weights for samples={samples}")
     return w.size, w / w.sum()
+
+
+def check_exposure(exposure) -> str:
+    """``exposure`` if it is one of ``EXPOSURES``, else a one-line error."""
+    if not isinstance(exposure, str) or exposure not in EXPOSURES:
+        raise ValueError(f"exposure must be one of {', '.join(EXPOSURES)}, got {exposure!r}")
+    return exposure
+
+
+def trapezoid_weights(n: int) -> np.ndarray:
+    """The ``continuous`` exposure's weights for a fixed ``n`` (float64, unit sum; [1] for
+    ``n = 1``)."""
+    return sample_weight(np.arange(n), np.full(n, n), True)
+
+
+def sample_weight(j, n, continuous: bool) -> np.ndarray:
+    """Weight of sample ``j`` of ``n`` (arrays, broadcast; ``j < n``) with no time weights:
+    ``1 / n`` (``frames``), or the trapezoid rule over ``n - 1`` steps (``continuous``): half
+    of ``1 / (n - 1)`` at ``j = 0`` and ``j = n - 1``, all of it between; 1 when ``n = 1``
+    (module Conventions)."""
+    n = np.asarray(n, dtype=np.float64)
+    if not continuous:
+        return 1.0 / n
+    j = np.asarray(j)
+    end = (j == 0) | (j == n - 1)
+    return np.where(n > 1, np.where(end, 0.5, 1.0) / np.maximum(n - 1.0, 1.0), 1.0)
 
 
 def sample_fractions(n: int, anchor: float) -> np.ndarray:

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from clblur.motion import PSF, Field, Uniform, sample_counts, uniform_taps
+from clblur.motion import PSF, Field, Uniform, sample_counts, sample_weight, uniform_taps
 from clblur.pixels import linearisation_table, normalise, quantise
 from clblur.pixels import linearise as linearise_channel
 from clblur.request import BlurPlan
@@ -96,7 +96,8 @@ def integrate(lin: np.ndarray, plan: BlurPlan) -> np.ndarray:
             num = j - plan.anchor * (n - 1)
             x = xx - (vx * num) / den
             y = yy - (vy * num) / den
-            wj = plan.weights[j] if plan.weights is not None else 1.0 / n
+            wj = plan.weights[j] if plan.weights is not None else sample_weight(j, n,
+                                                                                  plan.ends)
             acc += np.where(active, wj, 0.0)[..., None] * bilinear(lin, x, y, plan)
         return acc
     if isinstance(m, PSF):

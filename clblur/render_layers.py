@@ -330,13 +330,13 @@ def _composite(layers: Layers, plan: BlurPlan, backend: str,
                    curvature=cut(layers.curvature))
     if backend == "numpy":
         values = layered_exposure.composite(crop, plan.anchor, plan.samples, plan.weights,
-                                            full)
+                                            full, plan.ends)
         out[box][crop.region] = values[crop.region]
     else:
         from clblur.opencl.layered import composite
 
         out[box][crop.region] = composite(crop, plan.anchor, plan.samples, plan.weights, full,
-                                          device)
+                                          device, ends=plan.ends)
     return out, alone, which
 
 
@@ -392,7 +392,7 @@ def _finish(acc: np.ndarray, plan: BlurPlan, images: Sequence[np.ndarray], alone
 def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "center",
                 samples: int | None = None, weights=None, overscan: int = 0,
                 curved: bool = False, backend: str = "auto", saturation: float = 1.0,
-                device: str | None = None) -> np.ndarray:
+                device: str | None = None, exposure: str = "frames") -> np.ndarray:
     """Motion blur of a multi-layer render: each layer moves along its own vectors and the
     layers occlude each other front to back at every shutter sample, in linear light.
 
@@ -401,7 +401,9 @@ def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "cente
     layers : front to back, ``(image, motion)`` per layer (module Conventions): ``image``
         H x W x (C + 1) colour and coverage (straight alpha for integer dtypes, premultiplied
         for float), ``motion`` H x W x 2 vectors or a bent path ``(first, second)``.
-    response, samples, weights, saturation, backend, device : as ``clblur.blur``.
+    response, samples, weights, saturation, backend, device, exposure : as ``clblur.blur``
+        (a renderer's vectors are exposure chords: ``exposure="continuous"`` integrates them
+        as a real shutter does).
     anchor : as ``clblur.blur``, for straight motion; a bent path is anchored at its bend.
     overscan : pixels by which the layers extend beyond the output on every side.
     curved : with a bent path, follow the parabola through its three points (the start, the
@@ -423,7 +425,10 @@ def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "cente
         [0, 1], an anchor other than the bend or time weights with a bent path, ``curved``
         without one, or a bad overscan.
     """
+    from dataclasses import replace
+
     from clblur.blur import resolve_backend
+    from clblur.motion import check_exposure, trapezoid_weights
 
     if isinstance(layers, np.ndarray) or not isinstance(layers, Sequence) or not layers:
         raise InputError("layers must be a non-empty list of (image, motion) pairs, front "
@@ -456,6 +461,9 @@ def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "cente
                          f"{overscan} px" if len(shape) == 3 else
                          f"layer images must be H x W x (C + 1), got shape {shape}")
     ran = resolve_backend(backend, device)
+    if check_exposure(exposure) == "continuous" and weights is not None:
+        raise InputError("time weights replace the exposure's weights: give weights or "
+                         "exposure='continuous', not both")
     common = dict(samples=samples, weights=weights, saturation=saturation, alpha=True,
                   check_flow=True)
     # one plan per layer and half: make_plan validates every image and field
@@ -473,21 +481,28 @@ def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "cente
     region = np.zeros((h, w), bool)
     region[overscan:h - overscan, overscan:w - overscan] = True
     planes = np.float64 if ran == "numpy" else np.float32  # what each backend composites in
-    if curved:  # one parabola through the halves' three points
-        from dataclasses import replace
+    def timing(plan: BlurPlan, **changes) -> BlurPlan:
+        """The composite's plan: the samples, anchor and exposure every layer shares (a
+        continuous exposure's weights made explicit for a fixed count, as make_plan does)."""
+        plan = replace(plan, **changes)
+        if exposure == "continuous":
+            plan = replace(plan, exposure=exposure, weights=None if plan.samples is None
+                           else trapezoid_weights(plan.samples))
+        return plan
 
+    if curved:  # one parabola through the halves' three points
         first, second = ([_field_of(p).astype(np.float64) for p in half] for half in plans)
         chord = [(f + s).astype(np.float32) for f, s in zip(first, second, strict=True)]
         bend = [(2.0 * (s - f)).astype(np.float32) for f, s in zip(first, second, strict=True)]
         stack = layers_for(linear, chord, 0.5, region, curvature=bend, dtype=planes)
-        acc, alone, which = _composite(stack, replace(plans[0][0], anchor=0.5), ran, device)
+        acc, alone, which = _composite(stack, timing(plans[0][0], anchor=0.5), ran, device)
     else:  # one straight path, or two halves whose exposures are averaged
         acc = 0.0
         for i, half in enumerate(plans):
             flows = [_field_of(p) for p in half]
             stack = layers_for(linear, flows, half[0].anchor, region, dtype=planes)
-            exposure, still, layer = _composite(stack, half[0], ran, device)
-            acc = acc + exposure / len(plans)  # a still pixel: x / 2 + x / 2 is x exactly
+            light, still, layer = _composite(stack, timing(half[0]), ran, device)
+            acc = acc + light / len(plans)  # a still pixel: x / 2 + x / 2 is x exactly
             # alone in every half, with the same layer (a still layer reaches the same pixels
             # in both halves)
             alone, which = (still, layer) if i == 0 else (alone & still & (layer == which),

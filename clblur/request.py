@@ -10,7 +10,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from clblur.motion import FLOW_LIMIT, Field, Motion, anchor_value, parse_motion, time_weights
+from clblur.motion import (
+    FLOW_LIMIT,
+    PSF,
+    Field,
+    Motion,
+    Uniform,
+    anchor_value,
+    check_exposure,
+    parse_motion,
+    sample_counts,
+    time_weights,
+    trapezoid_weights,
+)
 from clblur.pixels import SUPPORTED_DTYPES, validate_saturation
 from clblur.responses import Response, per_channel
 
@@ -43,6 +55,16 @@ class BlurPlan:
     speed_order: bool = False
     # What lies behind every layer (a clean plate), the input's dtype and layout, or None.
     background: np.ndarray | None = None
+    # How samples are weighted without time weights (``clblur.motion`` Conventions, exposure).
+    # ``make_plan`` turns a ``continuous`` exposure with a fixed sample count (and uniform
+    # motion) into explicit ``weights``; only a per-pixel count keeps it here (``ends``).
+    exposure: str = "frames"
+
+    @property
+    def ends(self) -> bool:
+        """Per-pixel sample counts with the ``continuous`` exposure: each pixel's first and
+        last samples take half weight (``clblur.motion.sample_weight``)."""
+        return self.exposure == "continuous" and self.weights is None
 
     @property
     def colour_channels(self) -> int:
@@ -81,21 +103,34 @@ def check_image(image) -> np.ndarray:
 def make_plan(image, motion, response="exp", *, anchor: str = "center",
               samples: int | None = None, weights=None, saturation: float = 1.0,
               region: tuple[int, int, int, int] | None = None, depth=None,
-              alpha: bool = False, background=None, check_flow: bool = True) -> BlurPlan:
+              alpha: bool = False, background=None, check_flow: bool = True,
+              exposure: str = "frames") -> BlurPlan:
     """Validate a request.  ``region = (row0, col0, full_h, full_w)`` marks ``image`` as a
     window of a larger image (used by tiling); the flow, if any, covers the window.
     ``depth``: occlusion ordering, H x W (see ``check_depth``); ``alpha``: the last channel is
     coverage; ``background``: a clean plate (what lies behind every layer), same shape and
     dtype as ``image``, used with ``depth``.  ``check_flow=False``: the OpenCL backend
-    validates the flow's values on the device."""
+    validates the flow's values on the device.  ``exposure``: ``clblur.motion.EXPOSURES``."""
     img = check_image(image)
     h, w, c = img.shape
+    exposure = check_exposure(exposure)
+    if exposure == "continuous" and weights is not None:
+        raise ValueError("time weights replace the exposure's weights: give weights or "
+                         "exposure='continuous', not both")
     n, wts = time_weights(samples, weights)
     a = anchor_value(anchor)
     where = _region(region, (h, w))
     if n is not None and isinstance(motion, np.ndarray) and motion.ndim == 3:
         motion = bound_far_flow(motion, n, a, where.get("extent", (h, w)))
     parsed = parse_motion(motion, (h, w), check=check_flow)
+    if exposure == "continuous":
+        if isinstance(parsed, PSF):
+            raise ValueError("exposure='continuous' applies to motion vectors; a PSF carries "
+                             "its own weights")
+        if isinstance(parsed, Uniform) and n is None:  # one count for every pixel
+            n = int(sample_counts(np.float32(parsed.dx), np.float32(parsed.dy)))
+        if n is not None:  # one count: the weights say it all (ends stays False)
+            wts = trapezoid_weights(n)
     if not isinstance(alpha, (bool, np.bool_)):
         raise TypeError(f"alpha must be True or False, got {alpha!r}")
     if alpha and c < 2:
@@ -107,7 +142,7 @@ def make_plan(image, motion, response="exp", *, anchor: str = "center",
                     alpha=bool(alpha), speed_order=_is_speed(depth),
                     depth=check_depth(_named(depth, parsed), (h, w), speed=_is_speed(depth)),
                     background=_check_background(background, image, depth),
-                    **where)
+                    exposure=exposure, **where)
 
 
 def bound_far_flow(flow: np.ndarray, samples: int, anchor: float,

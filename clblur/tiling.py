@@ -161,7 +161,8 @@ def _check_arrays(src, dst) -> tuple[int, int, int]:
 def blur_tiled(src, dst, motion, response="exp", *, anchor: str = "center",
                samples: int | None = None, weights=None, backend: str = "auto",
                saturation: float = 1.0, device: str | None = None, tile=None,
-               memory_budget: int | None = None, progress: bool = False) -> TiledRun:
+               memory_budget: int | None = None, progress: bool = False,
+               exposure: str = "frames") -> TiledRun:
     """Blur array-like ``src`` into array-like ``dst`` (same shape and dtype), tile by tile.
 
     ``motion`` as for ``clblur.blur``; a flow may be any H x W x 2 array-like or a ``.npy``
@@ -194,7 +195,8 @@ def blur_tiled(src, dst, motion, response="exp", *, anchor: str = "center",
     ran = resolve_backend(backend, device)
     # Validate the options once on a tiny window so a bad option fails before any work.
     make_plan(np.zeros((1, 1, channels), np.dtype(src.dtype)), (0.0, 0.0), response,
-              anchor=anchor, samples=samples, weights=weights, saturation=saturation)
+              anchor=anchor, samples=samples, weights=weights, saturation=saturation,
+              exposure=exposure)
     blocks = list(tiles((h, w), tile))
     used = (0, 0)
     bar = _progress(len(blocks), progress)
@@ -217,7 +219,7 @@ def blur_tiled(src, dst, motion, response="exp", *, anchor: str = "center",
                 m = big[wr0 - gr0:wr1 - gr0, wc0 - gc0:wc1 - gc0]
             plan = make_plan(window, m, response, anchor=anchor, samples=samples,
                              weights=weights, saturation=saturation,
-                             region=(wr0, wc0, h, w))
+                             region=(wr0, wc0, h, w), exposure=exposure)
             out = blur_plan(plan, ran, device)
             dst[r0:r1, c0:c1] = out[r0 - wr0:r1 - wr0, c0 - wc0:c1 - wc0]
             bar.update(1)
@@ -239,7 +241,7 @@ def blur_file(src: str | os.PathLike, dst: str | os.PathLike, motion, *, respons
               anchor: str = "center", samples: int | None = None, weights=None,
               backend: str = "auto", saturation: float = 1.0, device: str | None = None,
               memory_budget: int | None = None, progress: bool = False,
-              tile=None) -> TiledRun:
+              tile=None, exposure: str = "frames") -> TiledRun:
     """Blur the image file ``src`` into ``dst``, in bounded memory where the formats allow.
 
     TIFF sources are read window by window; a TIFF destination is an uncompressed TIFF
@@ -265,7 +267,7 @@ def blur_file(src: str | os.PathLike, dst: str | os.PathLike, motion, *, respons
         raise InputError(f"{dst.suffix} cannot hold float images; write .tif or .tiff instead")
     options = dict(response=response, anchor=anchor, samples=samples, weights=weights,
                    backend=backend, saturation=saturation, device=device, tile=tile,
-                   memory_budget=max(budget - whole, 1), progress=progress)
+                   memory_budget=max(budget - whole, 1), progress=progress, exposure=exposure)
     if is_tiff(dst):
         result: list[TiledRun] = []
 

@@ -45,6 +45,7 @@ from clblur.io.video import (
 )
 from clblur.layered_exposure import layered_half
 from clblur.layering import departure_order, named_order
+from clblur.motion import check_exposure
 from clblur.pipeline import run_numpy
 from clblur.request import check_image, make_plan
 from clblur.responses import per_channel
@@ -101,8 +102,11 @@ def blur_frame(frame: np.ndarray, backward: np.ndarray | None, forward: np.ndarr
                response=DEFAULT_RESPONSE, *, shutter: float = DEFAULT_SHUTTER,
                samples: int | None = None, backend: str = "auto", saturation: float = 1.0,
                device: str | None = None, layers: bool = False,
-               depth: np.ndarray | str | None = None) -> np.ndarray:
+               depth: np.ndarray | str | None = None, exposure: str = "frames") -> np.ndarray:
     """Blur one frame along the bent path given by its backward and forward flows.
+
+    ``exposure``: how each half's samples are weighted (``clblur.blur``; ``"continuous"``:
+    the trapezoid rule, for a real shutter).
 
     ``layers``: integrate each half as layered exposure (``clblur.layered_exposure``), so
     moving objects smear over what lies behind them, ordered by ``depth``: H x W (smaller =
@@ -113,6 +117,7 @@ def blur_frame(frame: np.ndarray, backward: np.ndarray | None, forward: np.ndarr
     Returns an array with the frame's dtype and shape (see the module Conventions).
     """
     first, second = half_paths(backward, forward, shutter, check_image(frame).shape[:2])
+    check_exposure(exposure)
     if isinstance(depth, str):
         named_order(depth)  # checked; speed: each half orders by its own vectors (None)
         depth = departure_order(first.astype(np.float64) + second) \
@@ -125,15 +130,15 @@ def blur_frame(frame: np.ndarray, backward: np.ndarray | None, forward: np.ndarr
         # the whole bent path on the device: one upload, one download per frame
         from clblur.opencl.bent_path import blur_bent
 
-        return blur_bent(plan, first, second, samples, device)
+        return blur_bent(plan, first, second, samples, device, exposure=exposure)
     integrate = bent_path(first, second, samples=samples, backend=backend, device=device,
-                          layers=layers, depth=depth)
+                          layers=layers, depth=depth, exposure=exposure)
     return run_numpy(plan, integrate)
 
 
 def bent_path(first: np.ndarray, second: np.ndarray, *, samples: int | None = None,
               backend: str = "auto", device: str | None = None, layers: bool = False,
-              depth: np.ndarray | None = None):
+              depth: np.ndarray | None = None, exposure: str = "frames"):
     """Integrator (``clblur.pipeline``) of the bent path: the mean of the two halves' exposures.
 
     Each half is a straight blur of the linearised frame with the identity response (the
@@ -141,7 +146,7 @@ def bent_path(first: np.ndarray, second: np.ndarray, *, samples: int | None = No
     ``layers`` integrates each half as layered exposure (``clblur.layered_exposure``) ordered
     by ``depth``, or by speed when ``depth`` is None.
     """
-    opts = dict(samples=samples, backend=backend, device=device)
+    opts = dict(samples=samples, backend=backend, device=device, exposure=exposure)
 
     def integrate(lin: np.ndarray, plan) -> np.ndarray:
         lin32 = lin.astype(np.float32)
@@ -196,14 +201,15 @@ def blur_video(src: str | os.PathLike, dst: str | os.PathLike, *,
                saturation: float = 1.0, device: str | None = None, fps: float | None = None,
                codec: str | None = None, crf: int = DEFAULT_CRF,
                save_flows_to: str | os.PathLike | None = None, layers: bool = False,
-               order: str = "speed", progress: bool = False) -> VideoResult:
+               order: str = "speed", progress: bool = False,
+               exposure: str = "frames") -> VideoResult:
     """Blur every frame of a video file or image folder ``src`` into ``dst``.
 
     The output keeps the input's frame rate and timestamps (``fps`` sets it for an image
     sequence) and copies the audio.  On unreadable or truncated input the frames decoded so
     far are blurred, written and finalised, then ``VideoReadError`` says how many.
     ``layers``: layered exposure, ordered by ``order`` (``"speed"`` or ``"departure"``,
-    :func:`blur_frame`'s ``depth``).
+    :func:`blur_frame`'s ``depth``); ``exposure``: :func:`blur_frame`'s.
     """
     from tqdm import tqdm
 
@@ -211,6 +217,7 @@ def blur_video(src: str | os.PathLike, dst: str | os.PathLike, *,
     shutter_fraction(shutter)
     per_channel(response, 1)  # fail on a bad response before decoding anything
     named_order(order)  # and on a bad layer order
+    check_exposure(exposure)
     flows = _Flows(flow, save_flows_to)
     source = open_source(src, fps)
     if fps is not None and not isinstance(source, ImageSequenceSource):
@@ -230,7 +237,7 @@ def blur_video(src: str | os.PathLike, dst: str | os.PathLike, *,
         t0 = time.perf_counter()
         out = blur_frame(frame.image, backward, forward, response, shutter=shutter,
                          samples=samples, backend=backend, saturation=saturation, device=device,
-                         layers=layers, depth=order)
+                         layers=layers, depth=order, exposure=exposure)
         t1 = time.perf_counter()
         sink.write(frame, out)
         timer["blur"] += t1 - t0

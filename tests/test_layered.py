@@ -526,7 +526,8 @@ def test_command_line_depth_and_alpha(tmp_path, capsys):
 
 def test_opencl_cpu_layout_is_the_one_pixel_kernel_bit_for_bit(opencl, crossing):
     """composite_lanes (8 pixels of a row per work-item) against composite_layers, on
-    non-rigid layers (varying vectors), a clean plate, time weights and a start anchor."""
+    non-rigid layers (varying vectors), a clean plate, time weights, a start anchor and the
+    continuous exposure; and both against the reference."""
     from clblur.layer_planes import prepare
     from clblur.opencl.layered import composite
 
@@ -536,15 +537,18 @@ def test_opencl_cpu_layout_is_the_one_pixel_kernel_bit_for_bit(opencl, crossing)
     bend = np.stack([np.sin(yy / 9.0), np.cos(xx / 7.0)], -1).astype(np.float32)
     flow = flow + bend * (depth < np.max(depth))[..., None]
     lin = SRGB.inverse(frame)
-    for anchor, samples, weights, plate in ((0.5, None, None, None),
-                                            (0.0, 5, np.array([1, 2, 3, 2, 1]) / 9.0,
-                                             lin[::-1].copy())):
+    for anchor, samples, weights, plate, ends in (
+            (0.5, None, None, None, False),
+            (0.0, 5, np.array([1, 2, 3, 2, 1]) / 9.0, lin[::-1].copy(), False),
+            (0.5, None, None, None, True)):  # the continuous exposure's half-weight ends
         region = layered.region_mask(flow, anchor)
         layers = prepare(lin, flow, depth, anchor, region, plate)
-        one = composite(layers, anchor, samples, weights, (h, w), lanes=False)
-        eight = composite(layers, anchor, samples, weights, (h, w), lanes=True)
+        one = composite(layers, anchor, samples, weights, (h, w), lanes=False, ends=ends)
+        eight = composite(layers, anchor, samples, weights, (h, w), lanes=True, ends=ends)
         assert one.shape == (region.sum(), 3)
         np.testing.assert_array_equal(eight, one)
+        ref = layered.composite(layers, anchor, samples, weights, (h, w), ends)[layers.region]
+        np.testing.assert_allclose(one, ref, atol=2e-5, rtol=1e-5)
 
 
 def test_distance_to_is_scipys_transform_bit_for_bit():

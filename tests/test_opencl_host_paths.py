@@ -92,6 +92,11 @@ def _cases(rng):
     yield make_plan(random_image(rng, np.uint8, 3), rng.random((5, 7)), "srgb")
     yield make_plan(random_image(rng, np.uint16, 3), (40.5, 3.0), "exp")  # wider than a tile
     yield make_plan(random_image(rng, np.float32, 3), near_integer_flow(rng), "exp")
+    # the continuous exposure: per-pixel half-weight ends in the field kernels
+    yield make_plan(random_image(rng, np.uint8, 3), smooth_flow(rng), "srgb",
+                    exposure="continuous")
+    yield make_plan(random_image(rng, np.uint16, 4), discontinuous_flow(rng), "exp",
+                    anchor="end", exposure="continuous")
 
 
 @pytest.mark.opencl

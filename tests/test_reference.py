@@ -242,3 +242,58 @@ def test_far_flow_with_fixed_samples_reads_the_edge(backend, rng, request):
     np.testing.assert_array_equal(got, want)
     with pytest.raises(ValueError, match="beyond"):  # default N = ceil(|v|) + 1: refused
         clblur.blur(img, flow, "srgb", backend=backend)
+
+
+def test_sample_weights_of_both_exposures_sum_to_one():
+    from clblur.motion import sample_weight, trapezoid_weights
+
+    for n in range(1, 40):
+        j = np.arange(n)
+        for continuous in (False, True):
+            assert np.isclose(sample_weight(j, np.full(n, n), continuous).sum(), 1.0)
+        w = trapezoid_weights(n)
+        if n > 2:
+            assert w[0] == w[-1] == 0.5 * w[1] and np.all(w[1:-1] == w[1])
+    assert trapezoid_weights(1).tolist() == [1.0]
+
+
+@pytest.mark.parametrize("anchor", ["start", "center", "end"])
+def test_continuous_exposure_integrates_the_interpolant_exactly(rng, anchor):
+    """Samples on whole pixels (an integer axis-aligned vector, the default count) with
+    exposure="continuous": the trapezoid rule on the bilinear interpolant, which is linear
+    between the samples, i.e. the exact mean over the path (away from the image's edges,
+    where the clamp bends it).  "frames" (equal weights, Eq. 9, the samples' mean E) differs
+    from it by the first-order end term ((f_0 + f_N-1) / 2 - E) / (N - 1)."""
+    row = rng.random((1, 60))
+    k = 10  # a vector of 10 px: 11 samples, on whole pixels for every anchor
+    a = {"start": 0.0, "center": 0.5, "end": 1.0}[anchor]
+    x = np.arange(60.0)
+    # the mean of the interpolant over [x - a k, x + (1 - a) k] (content moves right by k:
+    # p reads p - v (s - a)), by a fine midpoint rule on the piecewise-linear interpolant
+    s = (np.arange(20000) + 0.5) / 20000
+    pos = np.clip(x[:, None] - k * (s[None, :] - a), 0, 59)
+    exact = np.interp(pos, x, row[0]).mean(axis=1)
+    inside = slice(k, 60 - k)
+    got = blur(row, (k, 0), "linear", anchor=anchor, exposure="continuous")[0]
+    np.testing.assert_allclose(got[inside], exact[inside], atol=1e-7)
+    frames = blur(row, (k, 0), "linear", anchor=anchor)[0]
+    taps = np.clip(x[:, None] - (np.arange(k + 1) - a * k)[None, :], 0, 59).astype(int)
+    end_term = (0.5 * (row[0][taps[:, 0]] + row[0][taps[:, -1]]) - frames) / k
+    np.testing.assert_allclose(frames, got + end_term, atol=1e-12)
+    assert np.abs(frames - exact)[inside].max() > 1e-3
+
+
+def test_continuous_exposure_refuses_what_it_cannot_mean(rng):
+    img = rng.random((8, 9))
+    with pytest.raises(ValueError, match="exposure must be one of"):
+        blur(img, (3, 0), "linear", exposure="trapezoid")
+    with pytest.raises(ValueError, match="not both"):
+        blur(img, (3, 0), "linear", exposure="continuous", weights=[1, 2, 1])
+    with pytest.raises(ValueError, match="PSF"):
+        blur(img, np.ones((3, 3)), "linear", exposure="continuous")
+    # a uniform motion, a uniform field and a fixed count are the same integral
+    field = np.broadcast_to(np.float32([4.5, -2.0]), (8, 9, 2)).copy()
+    a = blur(img, (4.5, -2.0), "srgb", exposure="continuous")
+    np.testing.assert_array_equal(blur(img, field, "srgb", exposure="continuous"), a)
+    np.testing.assert_array_equal(blur(img, field, "srgb", exposure="continuous", samples=6),
+                                  a)

@@ -379,3 +379,23 @@ def test_culling_changes_no_pixel(dtype, monkeypatch):
     region = np.ones(linear[0].shape[:2], bool)
     stack = render_layers.layers_for(linear, [f for _, f, _, _ in still_layers], 0.5, region)
     assert render_layers.still_alone(stack)[0].mean() > 0.5
+
+
+def test_continuous_exposure_of_a_render(opencl):
+    """A renderer's vectors are exposure chords: exposure="continuous" (the trapezoid rule)
+    scores closer to the sub-frame truth than equal weights, and the device is within the
+    layered tolerance of the reference (its half-weight ends, culled composite)."""
+    scene = example_scenes(160, 112)["disc"]
+    truth = render(scene, "srgb", np.uint8, samples=64)
+    layers = straight(object_layers(scene, "srgb"))
+    ref = clblur.blur_layers(layers, "srgb", backend="numpy", exposure="continuous")
+    got = clblur.blur_layers(layers, "srgb", backend="opencl", exposure="continuous")
+    d = np.abs(ref.astype(np.int64) - got)
+    assert d.max() <= 1 and (d > 0).mean() <= 0.02
+    frames = clblur.blur_layers(layers, "srgb", backend="numpy")
+    gain = (psnr(ref[..., :3], truth.image, truth.swept)
+            - psnr(frames[..., :3], truth.image, truth.swept))
+    assert gain > 1.0, gain
+    with pytest.raises(InputError, match="not both"):
+        clblur.blur_layers(layers, "srgb", backend="numpy", exposure="continuous",
+                           weights=[1, 1])

@@ -143,7 +143,8 @@ def test_halves_are_summed_as_exposures_not_pictures():
 def test_opencl_bent_path_matches_the_reference(opencl, dtype, channels):
     """The device bent path (clblur/opencl/bent_path.py: one upload, both halves on the
     device, the mean finished there) within the tolerance of docs/tolerances.md, for grey,
-    RGB and two channel groups, default and fixed sample counts, a missing flow mirrored."""
+    RGB and two channel groups, default and fixed sample counts, a missing flow mirrored,
+    both exposures."""
     rng = np.random.default_rng(11)
     shape = (H, W) if channels is None else (H, W, channels)
     codes = rng.integers(0, 256, shape)
@@ -152,11 +153,14 @@ def test_opencl_bent_path_matches_the_reference(opencl, dtype, channels):
     yy, xx = np.mgrid[0:H, 0:W].astype(np.float32)
     backward = np.stack([-6 - xx / 9, np.sin(yy / 5) * 3], -1).astype(np.float32)
     forward = np.stack([np.cos(xx / 7) * 5, 4 + yy / 8], -1).astype(np.float32)
-    for bwd, fwd, samples in ((backward, forward, None), (backward, None, 9)):
+    for bwd, fwd, samples, exposure in ((backward, forward, None, "frames"),
+                                        (backward, None, 9, "frames"),
+                                        (backward, forward, None, "continuous"),
+                                        (backward, forward, 9, "continuous")):
         ref = blur_frame(frame, bwd, fwd, "srgb", shutter=270, samples=samples,
-                         backend="numpy")
+                         backend="numpy", exposure=exposure)
         got = blur_frame(frame, bwd, fwd, "srgb", shutter=270, samples=samples,
-                         backend="opencl")
+                         backend="opencl", exposure=exposure)
         assert got.shape == ref.shape and got.dtype == ref.dtype
         if dtype == np.float32:
             np.testing.assert_allclose(got, ref, atol=2e-5, rtol=1e-5)

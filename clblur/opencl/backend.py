@@ -249,7 +249,8 @@ def integrate_field(rt: Runtime, prog: Program, gpu: bool, plan: BlurPlan, src: 
     args = dict(lin=lin_buf, flow=field.flow, flow_half=int(field.half), bad_flow=field.bad,
                 counts=field.counts, host_counts=int(field.host_counts),
                 fixed_n=plan.samples or 0, time_w=rt.upload("time_weights", time_w, table=True),
-                weighted=int(plan.weights is not None), anchor=plan.anchor, w=w, h=h, **finish)
+                weighted=int(plan.weights is not None), ends=int(plan.ends),
+                anchor=plan.anchor, w=w, h=h, **finish)
 
     def launch(queue, glob, local, offset, wait_for):
         return prog.run("integrate_field", queue, glob, local, global_offset=offset,

@@ -23,7 +23,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from clblur.motion import Field
+from clblur.motion import Field, trapezoid_weights
 from clblur.opencl import response_pack
 from clblur.opencl.backend import (
     GROUP_SIZE,
@@ -44,24 +44,28 @@ __all__ = ["blur_bent", "run_bent"]
 
 
 def blur_bent(plan: BlurPlan, first: np.ndarray, second: np.ndarray, samples: int | None,
-              device: str | None = None) -> np.ndarray:
+              device: str | None = None, exposure: str = "frames") -> np.ndarray:
     """Blur ``plan.image`` along the bent path ``first`` then ``second`` (H x W x 2 float32)
     on the device; the output has the image's dtype and layout (``plan.finish``)."""
     rt = runtime(device)
     with rt.lock:
-        return run_bent(rt, plan, first, second, samples)
+        return run_bent(rt, plan, first, second, samples, exposure=exposure)
 
 
 def run_bent(rt: Runtime, plan: BlurPlan, first: np.ndarray, second: np.ndarray,
-             samples: int | None, gpu: bool | None = None) -> np.ndarray:
+             samples: int | None, gpu: bool | None = None,
+             exposure: str = "frames") -> np.ndarray:
     """:func:`blur_bent` on ``rt`` (the caller holds ``rt.lock``); ``gpu`` forces the GPU
     (True) or CPU (False) kernel variants, default: the device's type."""
     cl = pyopencl_module()
     gpu = rt.gpu if gpu is None else gpu
     img = plan.image
     h, w, channels = img.shape
-    halves = [replace(plan, motion=Field(v), anchor=a, samples=samples, weights=None)
-              for v, a in ((first, 1.0), (second, 0.0))]
+    # a fixed count's continuous weights are explicit, as make_plan makes them
+    weights = (trapezoid_weights(samples) if exposure == "continuous" and samples is not None
+               else None)
+    halves = [replace(plan, motion=Field(v), anchor=a, samples=samples, weights=weights,
+                      exposure=exposure) for v, a in ((first, 1.0), (second, 0.0))]
     src = upload_input(rt, plan)
     prog = rt.program(False, gpu)
     planes = not gpu  # the CPU field kernel reads channel planes

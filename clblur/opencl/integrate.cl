@@ -166,7 +166,7 @@ static int8 sample_counts8(float8 vx, float8 vy)
 #define FIELD_PARAMS                                                                      \
     __global const uchar *flow, int flow_half, __global int *bad_flow,                     \
     __global const int *counts, int host_counts, int fixed_n, __global const float *time_w, \
-    int weighted, float anchor
+    int weighted, int ends, float anchor
 
 /* N of pixel i: host counts (devices without fp64), the fixed N, or computed here. */
 static int pixel_count(float2 v, size_t i, __global const int *counts, int host_counts,
@@ -336,11 +336,38 @@ static int16 floor_int16(float16 v)
         }                                                                                 \
     }
 
+/* One tap j of the CPU field kernel with clamps, edge selects and per-lane weights: a lane
+ * whose N is done gets weight 0; time weights, or the continuous exposure's half weight at a
+ * lane's first and last sample (ends). */
+#define FIELD_GENERAL(CG, J)                                                              \
+    {                                                                                     \
+        float16 t = (float16)((float)(J)) - a_n1;                                         \
+        float16 ox = -(sx * t), oy = -(sy * t);                                           \
+        int16 ix = floor_int16(ox), iy = floor_int16(oy);                                 \
+        float16 fx = ox - convert_float16(ix), fy = oy - convert_float16(iy);             \
+        int16 xi = px + ix, yi = (int16)(row) + iy;                                       \
+        /* Before the first pixel the sample is the first pixel; past the last, the       \
+         * padding repeats the last, so the fraction does not matter there. */            \
+        fx = select(fx, (float16)(0.0f), xi < 0);                                         \
+        fy = select(fy, (float16)(0.0f), yi < 0);                                         \
+        int16 base = clamp(yi, 0, h - 1) * ws + clamp(xi, 0, w - 1);                      \
+        float16 unit = ends ? select((float16)(1.0f), (float16)(0.5f),                    \
+                                     (((int16)(J) == 0) | ((int16)(J) == n - 1)) & (n > 1)) \
+                            : (float16)(1.0f);                                            \
+        float16 wj = select((float16)(0.0f), weighted ? (float16)(time_w[J]) : unit,      \
+                            (int16)(J) < n);                                              \
+        float16 upper = (1.0f - fy) * wj, lower = fy * wj;                                \
+        FIELD_TAP(CG)                                                                     \
+    }
+
 /* The tap loops of the CPU field kernel for CG channels: the taps every lane takes inside
- * the window (j < j0), then the general ones. */
+ * the window with weight 1 (jf <= j < j0), the others general (j < jf: the continuous
+ * exposure's first sample; j >= j0). */
 #define FIELD_LOOPS(CG)                                                                   \
     {                                                                                     \
-        for (int j = 0; j < j0; ++j) {                                                    \
+        for (int j = 0; j < jf; ++j)                                                      \
+            FIELD_GENERAL(CG, j)                                                          \
+        for (int j = jf; j < j0; ++j) {                                                   \
             float16 t = (float16)((float)j) - a_n1;                                       \
             float16 ox = -(sx * t), oy = -(sy * t);                                       \
             int16 ix = floor_int16(ox), iy = floor_int16(oy);                             \
@@ -349,22 +376,8 @@ static int16 floor_int16(float16 v)
             float16 upper = 1.0f - fy, lower = fy;  /* (1 - fy) * 1 and fy * 1, exactly */\
             FIELD_TAP(CG)                                                                 \
         }                                                                                 \
-        for (int j = j0; j < nmax; ++j) {                                                 \
-            float16 t = (float16)((float)j) - a_n1;                                       \
-            float16 ox = -(sx * t), oy = -(sy * t);                                       \
-            int16 ix = floor_int16(ox), iy = floor_int16(oy);                             \
-            float16 fx = ox - convert_float16(ix), fy = oy - convert_float16(iy);         \
-            int16 xi = px + ix, yi = (int16)(row) + iy;                                   \
-            /* Before the first pixel the sample is the first pixel; past the last, the   \
-             * padding repeats the last, so the fraction does not matter there. */        \
-            fx = select(fx, (float16)(0.0f), xi < 0);                                     \
-            fy = select(fy, (float16)(0.0f), yi < 0);                                     \
-            int16 base = clamp(yi, 0, h - 1) * ws + clamp(xi, 0, w - 1);                  \
-            float16 wj = select((float16)(0.0f), (float16)(weighted ? time_w[j] : 1.0f),  \
-                                (int16)(j) < n);                                          \
-            float16 upper = (1.0f - fy) * wj, lower = fy * wj;                            \
-            FIELD_TAP(CG)                                                                 \
-        }                                                                                 \
+        for (int j = max(j0, jf); j < nmax; ++j)                                          \
+            FIELD_GENERAL(CG, j)                                                          \
     }
 
 /* store_row8 for the CPU field kernel: whole rows of 8 RGB pixels of uint8 codes (24
@@ -463,7 +476,10 @@ __kernel void integrate_field(__global const STORE_T *lin, FIELD_PARAMS, int w, 
     int16 out_y = (min(y_a, y_b) < 0) | (max(y_a, y_b) > h - 1);
     bool inside = zero16(out_x | out_y);
     int last15 = (h - 1) * ws + w - 1 - 15;  /* the last pixel's index, less 15 */
-    int j0 = inside && !weighted ? nmin : 0;
+    /* with ends, every lane's first sample and its last (j = n - 1 >= nmin - 1) take half
+     * weight: the general loop, not the unit-weight one */
+    int jf = ends ? 1 : 0;
+    int j0 = inside && !weighted ? (ends ? nmin - 1 : nmin) : 0;
     if (cg == 3)  /* the loops specialised per group size: no channel tests per tap */
         FIELD_LOOPS(3)
     else if (cg == 4)
@@ -473,8 +489,8 @@ __kernel void integrate_field(__global const STORE_T *lin, FIELD_PARAMS, int w, 
     else
         FIELD_LOOPS(1)
     float16 s0 = left0 + right0, s1 = left1 + right1, s2 = left2 + right2, s3 = left3 + right3;
-    if (!weighted) {
-        float16 nf = convert_float16(n);
+    if (!weighted) {  /* the sum of the weights: N, or N - 1 with ends (1 when N = 1) */
+        float16 nf = convert_float16(ends ? max(n - 1, 1) : n);
         s0 = s0 / nf;
         s1 = s1 / nf;
         s2 = s2 / nf;
@@ -516,7 +532,8 @@ __kernel void integrate_field(__global const STORE_T *lin, FIELD_PARAMS, int w, 
         fx = xi < 0 ? 0.0f : fx;
         fy = yi < 0 ? 0.0f : fy;
         size_t base = (size_t)clamp(yi, 0, h - 1) * ws + clamp(xi, 0, w - 1);
-        float wj = weighted ? time_w[j] : 1.0f;
+        float wj = weighted ? time_w[j]
+                            : (ends && n > 1 && (j == 0 || j == n - 1) ? 0.5f : 1.0f);
         float upper = (1.0f - fy) * wj, lower = fy * wj;
         float8 top = LOAD8(base), bottom = LOAD8(base + ws);
         left = fma(top.lo, (float4)((1.0f - fx) * upper), left);
@@ -525,7 +542,7 @@ __kernel void integrate_field(__global const STORE_T *lin, FIELD_PARAMS, int w, 
         right = fma(bottom.hi, (float4)(fx * lower), right);
     }
     float4 sum = left + right;
-    if (!weighted) sum = sum / (float)n;
+    if (!weighted) sum = sum / (float)(ends ? max(n - 1, 1) : n);  /* the weights' sum */
     store_pixel(sum, i, STORE_ARGS);
 }
 

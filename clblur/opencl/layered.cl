@@ -12,7 +12,9 @@
  *   is read from it), so that with CP = 4 every read is one float4 per tap.
  * - present: K x h x w, 0 where layer k cannot reach the pixel at any sample (skipped).
  * - One work-item per listed pixel (pix: n x 2 (row, col) in the crop); counts: its sample
- *   count N; weights: N time weights when weighted != 0, else 1/N each.
+ *   count N; weights: N time weights when weighted != 0, else 1/N each, or with ends != 0
+ *   (the continuous exposure, clblur/motion.py sample_weight) 1/(N-1) each but half of it
+ *   at j = 0 and j = N - 1 (1 when N = 1).
  * - Sample j of a pixel p reads each layer k at q = p - D_k(q) t, t = (j - a (N-1)) /
  *   max(N-1, 1): q = p - D_k(p) t for a rigid layer (warped[k] = 0), and INVERSE_STEPS
  *   (a build option: Layers.inverse_steps) fixed-point steps from there for a warped one,
@@ -150,13 +152,25 @@ static float2 inverse_motion(__global const float *vec, __global const float *cu
     return (float2)(x, y);
 }
 
+/* Weight of sample j of N without time weights (see Conventions): 1/N, or with ends the
+ * trapezoid rule over N - 1 steps. */
+static float end_weight(int j, int N, int ends)
+{
+    if (!ends)
+        return 1.0f / (float)N;
+    if (N == 1)
+        return 1.0f;
+    float full = 1.0f / (float)(N - 1);
+    return (j == 0 || j == N - 1) ? 0.5f * full : full;
+}
+
 __kernel void composite_layers(__global const float *planes, __global const float *vectors,
                                __global const float *flow, __global const float *linear,
                                __global const uchar *present, __global const uchar *warped,
                                __global const float *curvature,
                                __global const int *pix, __global const int *counts,
-                               __global const float *weights, int weighted, int n,
-                               int layers, int h, int w, int r0, int c0,
+                               __global const float *weights, int weighted, int ends,
+                               int n, int layers, int h, int w, int r0, int c0,
                                int fh, int fw, float anchor, __global float *out)
 {
     int i = get_global_id(0);
@@ -218,7 +232,7 @@ __kernel void composite_layers(__global const float *planes, __global const floa
                 e[c] += left * CH(s, c);
             left = left * (1.0f - CH(s, channels));
         }
-        float wj = weighted ? weights[j] : 1.0f / (float)N;
+        float wj = weighted ? weights[j] : end_weight(j, N, ends);
         if (left != 0.0f) {
             float x = px - (fx * num) / den;
             float y = py - (fy * num) / den;
@@ -374,8 +388,8 @@ __kernel void composite_lanes(__global const float *planes, __global const float
                               __global const float *curvature,
                               __global const int *chunks,
                               __global const int *counts, __global const float *weights,
-                              int weighted, int n, int layers, int h, int w, int r0, int c0,
-                              int fh, int fw, float anchor, __global float *out)
+                              int weighted, int ends, int n, int layers, int h, int w, int r0,
+                              int c0, int fh, int fw, float anchor, __global float *out)
 {
     int i = get_global_id(0);
     if (i >= n)
@@ -435,7 +449,12 @@ __kernel void composite_lanes(__global const float *planes, __global const float
     float8 n1 = convert_float8(N - 1);
     float8 px = (float8)((float)(c0 + col0)) + (float8)(0.0f, 1.0f, 2.0f, 3.0f, 4.0f, 5.0f, 6.0f, 7.0f);
     float8 py = (float8)((float)(r0 + row));
-    float8 wn = 1.0f / convert_float8(N);
+    /* the weight of a sample that is no end (all of them without ends), and of an end:
+     * end_weight() per lane */
+    float8 wn = ends ? select(1.0f / convert_float8(N - 1), (float8)(1.0f), N == 1)
+                     : 1.0f / convert_float8(N);
+    float8 wend = ends ? select(0.5f * (1.0f / convert_float8(N - 1)), (float8)(1.0f), N == 1)
+                       : wn;
     /* A layer (or the image's own vectors) standing still in every lane samples at the
      * pixel itself at every j (px - (0 * num) / den is px exactly): sampled once. */
     bool still[MAXK];
@@ -489,7 +508,9 @@ __kernel void composite_lanes(__global const float *planes, __global const float
             if (!any(left != 0.0f))
                 break;  /* opaque in every lane: the rest would add +-0 (as the scalar kernel) */
         }
-        float8 wj = select((float8)(0.0f), weighted ? (float8)(weights[j]) : wn,
+        float8 wj = select((float8)(0.0f),
+                           weighted ? (float8)(weights[j])
+                                    : select(wn, wend, ((int8)(j) == 0) | ((int8)(j) == N - 1)),
                            (int8)(j) < N);
         if (!any(left != 0.0f)) {  /* e + T * s with T = +-0 is e */
             acc_lo += SPREAD_LO(wj) * e_lo;

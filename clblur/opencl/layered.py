@@ -88,12 +88,14 @@ class OpenCLStages:
 
 def composite(layers: layered.Layers, anchor: float, samples: int | None,
               weights: np.ndarray | None, full_shape: tuple[int, int],
-              device: str | None = None, lanes: bool | None = None) -> np.ndarray:
+              device: str | None = None, lanes: bool | None = None,
+              ends: bool = False) -> np.ndarray:
     """:func:`clblur.layered_exposure.composite` on the device, for ``layers.region`` only.
 
     ``lanes``: use the CPU layout (``composite_lanes``, LANES pixels of a row per work-item;
     three light channels only) or not (``composite_layers``, one pixel per work-item); the
     default picks it for three channels on a CPU device.  Both give the same bits.
+    ``ends``: the ``continuous`` exposure with per-pixel counts (``BlurPlan.ends``).
     Returns the exposures of the region's pixels (n x C float32, row-major order of the
     region)."""
     from clblur.opencl import runtime
@@ -138,7 +140,8 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
                     curvature=buf(np.zeros(2, np.float32) if layers.curvature is None
                                   else layers.curvature.astype(np.float32, copy=False)),
                     weights=buf(wts),
-                    weighted=weighted, layers=k, h=h, w=w, r0=r0, c0=c0, fh=fh, fw=fw,
+                    weighted=weighted, ends=int(bool(ends) and not weighted), layers=k,
+                    h=h, w=w, r0=r0, c0=c0, fh=fh, fw=fw,
                     anchor=anchor)
         if lanes and cp != 4:
             raise ValueError("the CPU compositing layout takes three light channels")
@@ -189,7 +192,7 @@ def integrator(device: str | None = None):
         if layers is None:
             return None
         values = composite(layers, plan.anchor, plan.samples, plan.weights, plan.full_shape,
-                           device)
+                           device, ends=plan.ends)
         rows, cols = np.nonzero(layers.region)
         r0, c0 = layers.origin
         return rows + r0, cols + c0, values.astype(np.float64)

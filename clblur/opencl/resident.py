@@ -30,7 +30,7 @@ def _is_device_array(x) -> bool:
 
 def blur_array(image, motion, response="exp", *, anchor: str = "center",
                samples: int | None = None, weights=None, saturation: float = 1.0,
-               device: str | None = None):
+               device: str | None = None, exposure: str = "frames"):
     """``clblur.blur`` for a ``pyopencl.array.Array`` image; returns one (same context).
 
     Parameters are those of ``clblur.blur`` (without ``backend``: this is the OpenCL backend).
@@ -67,7 +67,7 @@ def blur_array(image, motion, response="exp", *, anchor: str = "center",
         flow = motion
         motion = (0.0, 0.0)
     plan = make_plan(proxy, motion, response, anchor=anchor, samples=samples, weights=weights,
-                     saturation=saturation, check_flow=False)
+                     saturation=saturation, check_flow=False, exposure=exposure)
     if image.ndim == 2:
         plan = dataclasses.replace(plan, squeeze=True)
     if flow is not None:
