@@ -10,7 +10,8 @@ Conventions
   ``<stem>.flo``), or ``--psf``.  Flows are read window by window (``.npy``).
 * Manifest (``--manifest CSV``): a header row, then one row per image to override; columns
   ``image`` (a path inside IN_DIR, required) and any of ``output`` (a file name in OUT_DIR),
-  ``dx``, ``dy``, ``flow``, ``psf``, ``response``, ``anchor``, ``samples``, ``saturation``.
+  ``dx``, ``dy``, ``flow``, ``psf``, ``response``, ``anchor``, ``samples``, ``saturation``,
+  ``exposure``.
   Empty cells keep the command line's value; ``flow``/``psf``/response-file paths are relative
   to the manifest's folder.  A row naming a missing image is reported as a failure.
 * Where paths may point: every path from the manifest, the flow folder or the IN_DIR listing
@@ -61,7 +62,7 @@ __all__ = ["IMAGE_SUFFIXES", "MANIFEST_COLUMNS", "list_images", "plan_jobs", "re
 
 IMAGE_SUFFIXES = tuple(IMAGE_FORMATS)
 MANIFEST_COLUMNS = ("image", "output", "dx", "dy", "flow", "psf", "response", "anchor",
-                    "samples", "saturation")
+                    "samples", "saturation", "exposure")
 
 
 # --------------------------------------------------------------------------- one job
@@ -85,7 +86,8 @@ def run_job(job: Job) -> Result:
             job.flow if job.flow is not None else read_psf(job.psf)
         run = blur_file(job.src, job.dst, motion, response=job.response, anchor=job.anchor,
                         samples=job.samples, backend=job.backend, saturation=job.saturation,
-                        device=job.device, memory_budget=job.memory_budget)
+                        device=job.device, memory_budget=job.memory_budget,
+                        exposure=job.exposure)
         atomic_write_text(marker_path(job), json.dumps(
             {"key": key, "output_bytes": Path(job.dst).stat().st_size,
              "backend": run.backend, "tiles": run.tiles}, indent=1) + "\n")
@@ -167,7 +169,7 @@ def _row_job(job: Job, row: dict[str, str], roots: list[Path], out_dir: Path) ->
             if key in row:
                 changes.update(motion=None, **{k: None for k in ("flow", "psf") if k != key})
         for key, cast in (("response", str), ("anchor", str), ("samples", int),
-                          ("saturation", float)):
+                          ("saturation", float), ("exposure", str)):
             if key in row and key not in changes:
                 changes[key] = cast(row[key])
         return replace(job, **changes)

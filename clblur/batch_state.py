@@ -44,6 +44,7 @@ class Job:
     anchor: str = "center"
     samples: int | None = None
     saturation: float = 1.0
+    exposure: str = "frames"
     backend: str = "auto"
     device: str | None = None
     memory_budget: str | None = None
@@ -101,6 +102,8 @@ def job_key(job: Job) -> str:
     d = asdict(job)
     for key in ("backend", "device", "memory_budget", "problem"):  # same pixels either way
         d.pop(key)
+    if d["exposure"] == "frames":  # the default before the option existed: the same keys
+        d.pop("exposure")
     files = {"src": job.src, "flow": job.flow, "psf": job.psf,
              "response": response_file(job.response)}
     d["content"] = {k: _file_digest(p) for k, p in files.items() if p}

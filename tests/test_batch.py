@@ -126,6 +126,31 @@ def test_manifest_overrides_per_image(folder, capsys):
                                   clblur.blur(images["im2.png"], (3, 0), backend="numpy"))
 
 
+def test_manifest_exposure_column(folder, capsys):
+    """``exposure`` per image: a continuous exposure's output, keyed apart from the default
+    (whose keys are those of batches run before the column existed)."""
+    from clblur.batch_state import Job, job_key
+
+    tmp_path, images = folder
+    (tmp_path / "in" / "broken.png").unlink()
+    (tmp_path / "m.csv").write_text("image,exposure\nim0.png,continuous\nim1.png,frames\n"
+                                    "im2.png,trapezoid\n")
+    rc = run_cli(str(tmp_path / "in"), str(tmp_path / "out"), "--manifest",
+                 str(tmp_path / "m.csv"), "--motion", "5,2", "--backend", "numpy", "--quiet")
+    assert rc == 1
+    text = capsys.readouterr().out
+    assert "2 blurred, 0 already finished, 1 failed" in text and "exposure must be one of" in text
+    out = tmp_path / "out"
+    np.testing.assert_array_equal(
+        read_image(out / "im0.png"),
+        clblur.blur(images["im0.png"], (5, 2), backend="numpy", exposure="continuous"))
+    np.testing.assert_array_equal(read_image(out / "im1.png"),
+                                  clblur.blur(images["im1.png"], (5, 2), backend="numpy"))
+    job = Job(src=str(tmp_path / "in" / "im0.png"), dst="x.png", motion=(5.0, 2.0))
+    from dataclasses import replace
+    assert job_key(replace(job, exposure="continuous")) != job_key(job)
+
+
 @pytest.mark.parametrize("manifest, match", [
     ("name,dx\na.png,1\n", "needs an 'image' column"),
     ("image,speed\na.png,1\n", "unknown: speed"),

@@ -58,7 +58,8 @@ def run(args: argparse.Namespace) -> int:
     defaults = Job(src="", dst="", motion=parse_vector(args.motion) if args.motion else None,
                    psf=str(Path(args.psf).resolve()) if args.psf else None,
                    response=args.response, anchor=args.anchor, samples=args.samples,
-                   saturation=args.saturation, backend=args.backend, device=args.device,
+                   saturation=args.saturation, exposure=args.exposure, backend=args.backend,
+                   device=args.device,
                    memory_budget=args.memory_budget)
     # fail now, not once per image
     parse_size(args.memory_budget)

@@ -10,9 +10,10 @@ import argparse
 
 from clblur.blur import BACKENDS
 from clblur.errors import InputError
-from clblur.motion import ANCHORS
+from clblur.motion import ANCHORS, EXPOSURES
 
-__all__ = ["add_backend_options", "add_blur_options", "add_memory_option",
+__all__ = ["add_backend_options", "add_blur_options", "add_exposure_option",
+           "add_memory_option",
            "add_motion_options", "add_vector_options", "blur_options", "check_device",
            "check_response", "motion_from_args", "parse_vector"]
 
@@ -44,10 +45,20 @@ def add_blur_options(p: argparse.ArgumentParser) -> None:
                    help="shutter time the static image shows (default: center)")
     p.add_argument("--samples", type=int, default=None, metavar="N",
                    help="samples per pixel (default: ceil(|v|)+1 per pixel)")
+    add_exposure_option(p)
     p.add_argument("--saturation", type=float, default=1.0, metavar="S",
                    help="exposure of clipped pixels, in units of the least saturating "
                         "exposure (>= 1, default 1)")
     add_backend_options(p)
+
+
+def add_exposure_option(p: argparse.ArgumentParser) -> None:
+    """--exposure: how the samples along a vector are weighted (``clblur.motion``)."""
+    p.add_argument("--exposure", choices=list(EXPOSURES), default="frames",
+                   help="frames: each sample alike, the paper's Eq. 9 and a mean of video "
+                        "frames (default); continuous: the vector is a continuous "
+                        "exposure's chord (a renderer's vectors, a real shutter): the "
+                        "trapezoid rule")
 
 
 def add_backend_options(p: argparse.ArgumentParser) -> None:
@@ -133,4 +144,5 @@ def check_response(spec: str, option: str = "--response") -> None:
 def blur_options(args: argparse.Namespace) -> dict:
     """The library keyword arguments of the shared blur options."""
     return dict(response=args.response, anchor=args.anchor, samples=args.samples,
-                backend=args.backend, saturation=args.saturation, device=args.device)
+                backend=args.backend, saturation=args.saturation, device=args.device,
+                exposure=args.exposure)

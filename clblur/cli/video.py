@@ -6,7 +6,12 @@ import argparse
 
 import numpy as np
 
-from clblur.cli.options import add_backend_options, check_device, check_response
+from clblur.cli.options import (
+    add_backend_options,
+    add_exposure_option,
+    check_device,
+    check_response,
+)
 from clblur.errors import InputError
 from clblur.io.video import DEFAULT_CRF
 from clblur.layering import NAMED_ORDERS
@@ -33,6 +38,7 @@ def register(subparsers) -> None:
     p.add_argument("--samples", type=int, default=None, metavar="N",
                    help="samples per pixel for each half of the shutter (default: "
                         "ceil(|v|)+1 per pixel)")
+    add_exposure_option(p)
     p.add_argument("--response", default=DEFAULT_RESPONSE, metavar="SPEC",
                    help="camera response: linear, exp, exp:K, gamma:G, srgb or a JSON file "
                         f"(default {DEFAULT_RESPONSE}; see docs/studies/video.md)")
@@ -75,7 +81,8 @@ def run(args: argparse.Namespace) -> int:
                         saturation=args.saturation, device=args.device, fps=args.fps,
                         codec=args.codec, crf=args.crf, save_flows_to=args.save_flows,
                         layers=args.layers or args.order is not None,
-                        order=args.order or "speed", progress=not args.quiet)
+                        order=args.order or "speed", progress=not args.quiet,
+                        exposure=args.exposure)
     audio = {"copied": ", audio copied", "dropped": ", audio dropped (image sequence output)",
              "none": ""}[result.audio]
     print(f"wrote {result.frames} frame(s) at {float(result.fps):g} fps to {result.output}"
