@@ -11,10 +11,11 @@ differs from its mean.  The trapezoid weights (``1/2, 1, ..., 1, 1/2``, normalis
 at the same cost.
 
 This script scores both, at the same ``N`` (the longest vector's default count, for every
-pixel, so that a time-weight vector can be given), and equal weights at ``4 N``, against the
-sub-frame truth of ``docs/studies/occlusion.md`` (``K = 128`` instants, 2 x 2 sub-pixel samples,
-PSNR over the swept region): the plain gather of the sharp frame, and ``clblur.blur_layers``
-on the scene's multi-layer render.
+pixel, given as a time-weight vector), equal weights at ``4 N``, and the library's two
+exposures at their default per-pixel counts (``exposure="frames"``, the default, and
+``exposure="continuous"``), against the sub-frame truth of ``docs/studies/occlusion.md``
+(``K = 128`` instants, 2 x 2 sub-pixel samples, PSNR over the swept region): the plain gather
+of the sharp frame, and ``clblur.blur_layers`` on the scene's multi-layer render.
 
 Run:  python docs/studies/shutter_weights.py [--backend auto] [--samples 128]
 Prints a Markdown table (docs/studies/occlusion.md, "Shutter weights").
@@ -46,16 +47,18 @@ def main() -> None:
     ap.add_argument("--backend", default="auto")
     ap.add_argument("--samples", type=int, default=128, help="shutter instants of the truth")
     args = ap.parse_args()
-    rows = ["| scene | N | gather, equal | gather, trapezoid | gather, equal, 4 N "
-            "| render layers, equal | render layers, trapezoid | render layers, equal, 4 N |",
-            "|---|---|---|---|---|---|---|---|"]
+    runs = ["equal, N", "trapezoid, N", "equal, 4 N", "frames", "continuous"]
+    rows = ["| scene | N | " + " | ".join(f"{m}: {r}" for m in ("gather", "render layers")
+                                         for r in runs) + " |",
+            "|---|---|" + "---|" * 2 * len(runs)]
     for name, scene in scenes.example_scenes().items():
         truth = scenes.render(scene, RESPONSE, np.uint8, samples=args.samples, spp=2)
         layers = [(image, flow) for image, flow, _, _ in
                   scenes.object_layers(scene, RESPONSE, np.uint8, spp=2)]
         longest = max(float(np.hypot(f[..., 0], f[..., 1]).max()) for _, f in layers)
         n = int(np.ceil(longest)) + 1
-        runs = [dict(samples=n), dict(samples=n, weights=trapezoid(n)), dict(samples=4 * n)]
+        runs = [dict(samples=n), dict(samples=n, weights=trapezoid(n)), dict(samples=4 * n),
+                {}, dict(exposure="continuous")]
         gather = [clblur.blur(truth.sharp, truth.flow, RESPONSE, backend=args.backend, **kw)
                   for kw in runs]
         composite = [clblur.blur_layers(layers, RESPONSE, backend=args.backend, **kw)[..., :3]
