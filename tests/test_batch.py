@@ -101,21 +101,25 @@ def test_changed_options_or_input_redo_the_image(folder, capsys):
     assert "1 blurred, 2 already finished" in capsys.readouterr().out
 
 
+def run_manifest(tmp_path, capsys, manifest: str, *options: str) -> tuple[int, str]:
+    """``clblur batch in out --manifest m.csv OPTIONS`` on numpy, the CSV written first:
+    (exit code, what it printed)."""
+    (tmp_path / "m.csv").write_text(manifest)
+    rc = run_cli(str(tmp_path / "in"), str(tmp_path / "out"), "--manifest",
+                 str(tmp_path / "m.csv"), *options, "--backend", "numpy", "--quiet")
+    return rc, capsys.readouterr().out
+
+
 def test_manifest_overrides_per_image(folder, capsys):
     tmp_path, images = folder
     (tmp_path / "in" / "broken.png").unlink()
     psf = np.ones((1, 7))
     np.save(tmp_path / "k.npy", psf)
-    (tmp_path / "m.csv").write_text(
-        "image,dx,dy,psf,response,anchor,output\n"
-        "im0.png,6,-2,,linear,start,\n"
-        "im1.png,,,k.npy,,,renamed.png\n"
-        "ghost.png,1,1,,,,\n")
-    rc = run_cli(str(tmp_path / "in"), str(tmp_path / "out"), "--manifest",
-                 str(tmp_path / "m.csv"), "--motion", "3,0", "--backend", "numpy", "--quiet")
-    assert rc == 1
-    text = capsys.readouterr().out
-    assert "3 blurred, 0 already finished, 1 failed" in text and "ghost.png" in text
+    rc, text = run_manifest(tmp_path, capsys, "image,dx,dy,psf,response,anchor,output\n"
+                                              "im0.png,6,-2,,linear,start,\n"
+                                              "im1.png,,,k.npy,,,renamed.png\n"
+                                              "ghost.png,1,1,,,,\n", "--motion", "3,0")
+    assert rc == 1 and "3 blurred, 0 already finished, 1 failed" in text and "ghost.png" in text
     out = tmp_path / "out"
     np.testing.assert_array_equal(
         read_image(out / "im0.png"),
@@ -133,13 +137,11 @@ def test_manifest_exposure_column(folder, capsys):
 
     tmp_path, images = folder
     (tmp_path / "in" / "broken.png").unlink()
-    (tmp_path / "m.csv").write_text("image,exposure\nim0.png,continuous\nim1.png,frames\n"
-                                    "im2.png,trapezoid\n")
-    rc = run_cli(str(tmp_path / "in"), str(tmp_path / "out"), "--manifest",
-                 str(tmp_path / "m.csv"), "--motion", "5,2", "--backend", "numpy", "--quiet")
-    assert rc == 1
-    text = capsys.readouterr().out
-    assert "2 blurred, 0 already finished, 1 failed" in text and "exposure must be one of" in text
+    rc, text = run_manifest(tmp_path, capsys, "image,exposure\nim0.png,continuous\n"
+                                              "im1.png,frames\nim2.png,trapezoid\n",
+                            "--motion", "5,2")
+    assert rc == 1 and "2 blurred, 0 already finished, 1 failed" in text
+    assert "exposure must be one of" in text
     out = tmp_path / "out"
     np.testing.assert_array_equal(
         read_image(out / "im0.png"),
@@ -147,7 +149,6 @@ def test_manifest_exposure_column(folder, capsys):
     np.testing.assert_array_equal(read_image(out / "im1.png"),
                                   clblur.blur(images["im1.png"], (5, 2), backend="numpy"))
     job = Job(src=str(tmp_path / "in" / "im0.png"), dst="x.png", motion=(5.0, 2.0))
-    from dataclasses import replace
     assert job_key(replace(job, exposure="continuous")) != job_key(job)
 
 
