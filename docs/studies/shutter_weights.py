@@ -17,8 +17,12 @@ exposures at their default per-pixel counts (``exposure="frames"``, the default,
 (``K = 128`` instants, 2 x 2 sub-pixel samples, PSNR over the swept region): the plain gather
 of the sharp frame, and ``clblur.blur_layers`` on the scene's multi-layer render.
 
-Run:  python docs/studies/shutter_weights.py [--backend auto] [--samples 128]
-Prints a Markdown table (docs/studies/occlusion.md, "Shutter weights").
+With ``$CLBLUR_DATA/gopro240/frames`` present it also scores both exposures on the GoPro
+frames of ``docs/studies/video.md`` (frames 8 - 12, DIS flows to ``c - 8`` and ``c + 8``, a
+360-degree bent path, gamma 2.2 truth), the gather and the depth proxy's layers.
+
+Run:  python docs/studies/shutter_weights.py [--backend auto] [--samples 128] [--no-gopro]
+Prints Markdown tables (docs/studies/occlusion.md, "Shutter weights").
 """
 
 from __future__ import annotations
@@ -46,6 +50,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--backend", default="auto")
     ap.add_argument("--samples", type=int, default=128, help="shutter instants of the truth")
+    ap.add_argument("--no-gopro", action="store_true", help="skip the GoPro frames")
     args = ap.parse_args()
     runs = ["equal, N", "trapezoid, N", "equal, 4 N", "frames", "continuous"]
     rows = ["| scene | N | " + " | ".join(f"{m}: {r}" for m in ("gather", "render layers")
@@ -69,6 +74,44 @@ def main() -> None:
         print(rows[-1], flush=True)
     print()
     print("\n".join(rows))
+    if not args.no_gopro:
+        gopro(args.backend)
+
+
+def gopro(backend: str) -> None:
+    """Both exposures on the GoPro frames of docs/studies/video.md (mean PSNR, frames 8-12)."""
+    import importlib.util
+    from pathlib import Path
+
+    from clblur import video
+    from clblur.flow import FlowEstimator
+    from clblur.io import data_dir, read_image
+
+    d = data_dir()
+    if d is None or not (d / "gopro240" / "frames").is_dir():
+        print("GoPro frames not found ($CLBLUR_DATA): skipped")
+        return
+    spec = importlib.util.spec_from_file_location(
+        "video_study", Path(__file__).resolve().parent / "video_study.py")
+    study = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(study)
+    frames = [read_image(p) for p in sorted((d / "gopro240" / "frames").glob("*.png"))]
+    flow = FlowEstimator("dis")
+    methods = {"gather": {}, "depth layers (departure proxy)": dict(layers=True,
+                                                                    depth="departure")}
+    scores: dict[tuple[str, str], list[float]] = {}
+    for c in range(8, 13):
+        truth = study.truth_exposure(frames, c, study.PRIMARY_TRUTH)
+        backward, forward = flow(frames[c], frames[c - 8]), flow(frames[c], frames[c + 8])
+        for name, options in methods.items():
+            for exposure in ("frames", "continuous"):
+                out = video.blur_frame(frames[c], backward, forward, RESPONSE, shutter=360,
+                                       backend=backend, exposure=exposure, **options)
+                scores.setdefault((name, exposure), []).append(study.psnr(out, truth))
+    print("\n| GoPro, mean PSNR (dB) | frames | continuous |\n|---|---|---|")
+    for name in methods:
+        print(f"| {name} | {np.mean(scores[(name, 'frames')]):.2f} | "
+              f"{np.mean(scores[(name, 'continuous')]):.2f} |")
 
 
 if __name__ == "__main__":
