@@ -202,10 +202,11 @@ def best_time(fn, repeats: int):
     return best
 
 
-def layers_apart_then_over(layers, spec: str = "srgb", backend: str = "auto") -> np.ndarray:
+def layers_apart_then_over(layers, spec: str = "srgb", backend: str = "auto",
+                           exposure: str = "frames") -> np.ndarray:
     """``layers`` as ``clblur.blur_layers`` takes them (nearest first, ``(image, flow)``
-    straight): each blurred alone, then ``over`` front to back in linear light; the result in
-    the layers' dtype and alpha convention."""
+    straight): each blurred alone (with ``exposure``, ``clblur.blur``'s), then ``over`` front
+    to back in linear light; the result in the layers' dtype and alpha convention."""
     from scipy.ndimage import distance_transform_edt
 
     import clblur
@@ -223,6 +224,7 @@ def layers_apart_then_over(layers, spec: str = "srgb", backend: str = "auto") ->
         if solid.any():
             idx = distance_transform_edt(~solid, return_indices=True, return_distances=False)
             flow = flow[idx[0], idx[1]]
-        out = clblur.blur(lin, flow, "linear", alpha=True, backend=backend).astype(np.float64)
+        out = clblur.blur(lin, flow, "linear", alpha=True, backend=backend,
+                          exposure=exposure).astype(np.float64)
         acc = out if acc is None else acc + (1.0 - acc[..., -1:]) * out
     return finish(acc, plan)

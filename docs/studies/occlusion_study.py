@@ -64,36 +64,41 @@ def bench_peers():
 
 
 def methods_for(r: scenes.Render, backend: str, scene: scenes.Scene | None = None,
-                spp: int = 2) -> dict[str, np.ndarray]:
+                spp: int = 2, exposure: str = "frames") -> dict[str, np.ndarray]:
     """Every method's blur of the sharp frame along the renderer's vectors; with ``scene``,
-    also of the scene's multi-layer render (``clblur.blur_layers``)."""
+    also of the scene's multi-layer render (``clblur.blur_layers``).  ``exposure``: every
+    method's (``clblur.blur``'s; passed only when not the default, so that a tree from
+    before the option runs the script too)."""
+    backend_opts = {"backend": backend}
+    if exposure != "frames":
+        backend_opts["exposure"] = exposure
     out = {"sharp frame (no blur)": r.sharp,
-           "gather": clblur.blur(r.sharp, r.flow, RESPONSE, anchor="center", backend=backend)}
+           "gather": clblur.blur(r.sharp, r.flow, RESPONSE, anchor="center", **backend_opts)}
     # what clblur video --layers runs: layered exposure ordered by speed (faster = nearer)
     out["speed layers"] = clblur.blur(r.sharp, r.flow, RESPONSE, anchor="center",
-                                      backend=backend, depth="speed")
+                                      **backend_opts, depth="speed")
     if depth_supported():
         out["depth layers"] = clblur.blur(r.sharp, r.flow, RESPONSE, anchor="center",
-                                          backend=backend, depth=r.depth)
+                                          **backend_opts, depth=r.depth)
     if depth_supported():
         # the same ordering as integer layer IDs (the depth's rank): every object is its own
         # layer whatever the spacing of the depth values (see the doc: a far background makes
         # the float-depth layering merge near objects)
         rank = np.unique(r.depth, return_inverse=True)[1].reshape(r.depth.shape)
         out["depth rank as layer IDs"] = clblur.blur(
-            r.sharp, r.flow, RESPONSE, anchor="center", backend=backend,
+            r.sharp, r.flow, RESPONSE, anchor="center", **backend_opts,
             depth=rank.astype(np.int32))
     if depth_supported():
         # the renderer's two halves of the path, as Blender's Vector pass holds them (previous
         # and next): each half integrated as layers, the exposures averaged
         out["depth layers, bent path"] = vectors.blur_bent(
-            r.sharp, r.flow_first, r.flow_second, RESPONSE, backend=backend, layers=True,
+            r.sharp, r.flow_first, r.flow_second, RESPONSE, **backend_opts, layers=True,
             depth=r.depth)
     if depth_supported() and plate_supported():
         # a multi-layer render also hands over the background alone: the hidden light of the
         # background is then known (hidden parts of far objects still are not)
         out["depth layers + clean plate"] = clblur.blur(
-            r.sharp, r.flow, RESPONSE, anchor="center", backend=backend, depth=r.depth,
+            r.sharp, r.flow, RESPONSE, anchor="center", **backend_opts, depth=r.depth,
             background=r.plate)
     if scene is not None and hasattr(clblur, "blur_layers"):
         # a multi-layer render: every object alone as its own RGBA layer with its vectors,
@@ -101,11 +106,11 @@ def methods_for(r: scenes.Render, backend: str, scene: scenes.Scene | None = Non
         # time is guessed; uint8 sRGB with straight alpha, as the sharp frame is
         layers = scenes.object_layers(scene, RESPONSE, np.uint8, spp=spp)
         straight = [(image, flow) for image, flow, _, _ in layers]
-        out["render layers"] = clblur.blur_layers(straight, RESPONSE, backend=backend)[..., :3]
+        out["render layers"] = clblur.blur_layers(straight, RESPONSE, **backend_opts)[..., :3]
         # the compositor's way without per-sample occlusion: each layer blurred alone, then
         # merged with `over` (bench/peers.py)
         out["render layers blurred apart, then over"] = bench_peers().layers_apart_then_over(
-            straight, RESPONSE, backend=backend)[..., :3]
+            straight, RESPONSE, **backend_opts)[..., :3]
         # the same with the two halves and an overscan that holds whatever can enter the
         # frame during the shutter: a bent half anchored at one end reaches its whole length,
         # the parabola through the halves' points |D| / 2 + |C| / 4 (D = f + s, C = 2 (s - f))
@@ -115,9 +120,9 @@ def methods_for(r: scenes.Render, backend: str, scene: scenes.Scene | None = Non
         layers = scenes.object_layers(scene, RESPONSE, np.uint8, spp=spp, overscan=m)
         bent = [(image, (first, second)) for image, _, first, second in layers]
         out["render layers, bent path, overscan"] = clblur.blur_layers(
-            bent, RESPONSE, overscan=m, backend=backend)[..., :3]
+            bent, RESPONSE, overscan=m, **backend_opts)[..., :3]
         out["render layers, curved path, overscan"] = clblur.blur_layers(
-            bent, RESPONSE, overscan=m, curved=True, backend=backend)[..., :3]
+            bent, RESPONSE, overscan=m, curved=True, **backend_opts)[..., :3]
     return out
 
 
@@ -127,7 +132,7 @@ def scene_part(args, contrast: float = 0.6) -> tuple[dict, dict]:
         t0 = time.perf_counter()
         r = scenes.render(scene, RESPONSE, np.uint8, samples=args.samples, spp=args.spp)
         t1 = time.perf_counter()
-        got = methods_for(r, args.backend, scene, args.spp)
+        got = methods_for(r, args.backend, scene, args.spp, args.exposure)
         visible = r.swept & (r.hidden < HIDDEN_MAX)
         row = {"description": scene.description, "render_s": round(t1 - t0, 2),
                "swept_fraction": float(r.swept.mean()),
@@ -324,22 +329,27 @@ def main() -> None:
     ap.add_argument("--samples", type=int, default=128, help="shutter instants (>= 64)")
     ap.add_argument("--spp", type=int, default=2, help="sub-pixel samples per axis")
     ap.add_argument("--no-gopro", action="store_true", help="skip part 2")
+    ap.add_argument("--exposure", choices=("frames", "continuous"), default="frames",
+                    help="every method's exposure (clblur.blur); continuous writes "
+                         "results_continuous.json and no figures (implies --no-gopro)")
     args = ap.parse_args()
     if args.samples < 64:
         ap.error("--samples must be >= 64")
     FIG.mkdir(parents=True, exist_ok=True)
     table, renders = scene_part(args)
-    figures(renders, table)
+    if args.exposure == "frames":
+        figures(renders, table)
     gentle, _ = scene_part(args, GENTLE)
     gopro = None
-    if not args.no_gopro:
+    if not args.no_gopro and args.exposure == "frames":
         gopro = gopro_part(argparse.Namespace(backend=args.gopro_backend))
     doc = {"response": RESPONSE, "samples": args.samples, "spp": args.spp,
            "backend": args.backend, "depth_layers_scored": depth_supported(),
            "hidden_max": HIDDEN_MAX, "scenes": table,
            "scenes_gentle_background": gentle, "gentle_contrast": GENTLE,
-           "gopro_gamma22_truth": gopro}
-    (FIG / "results.json").write_text(json.dumps(doc, indent=1) + "\n")
+           "gopro_gamma22_truth": gopro, "exposure": args.exposure}
+    name = "results.json" if args.exposure == "frames" else f"results_{args.exposure}.json"
+    (FIG / name).write_text(json.dumps(doc, indent=1) + "\n")
     print(summarise(table, gopro, gentle))
 
 
