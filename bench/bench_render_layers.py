@@ -79,6 +79,9 @@ def main() -> None:
             lambda: clblur.blur_layers(straight, "srgb", backend=args.backend),
         "blur_layers, 4 layers, bent":
             lambda: clblur.blur_layers(bent, "srgb", backend=args.backend),
+        "blur_layers, 4 layers, straight, exposure=\"continuous\"":
+            lambda: clblur.blur_layers(straight, "srgb", backend=args.backend,
+                                       exposure="continuous"),
     }
     for fn in runs.values():  # build the kernels, warm the caches
         fn()
