@@ -42,6 +42,14 @@ def test_equals_in_memory(rng, image, chunks, kind):
     np.testing.assert_array_equal(out.compute(scheduler="sync"), ref)
 
 
+def test_continuous_exposure_equals_in_memory(rng, image):
+    flow = _flow(rng, *image.shape[:2])
+    ref = clblur.blur(image, flow, "srgb", backend="numpy", exposure="continuous")
+    out = cdask.blur(da.from_array(image, chunks=(10, 9, 3)), flow, "srgb", backend="numpy",
+                     exposure="continuous")
+    np.testing.assert_array_equal(out.compute(scheduler="sync"), ref)
+
+
 def test_grey_float_image_and_depth_beyond_chunks(rng):
     img = rng.random((40, 30)).astype(np.float32)
     ref = clblur.blur(img, (1.0, 25.0), response="srgb", backend="numpy")

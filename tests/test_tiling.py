@@ -61,6 +61,19 @@ def test_options_pass_through_tiles(rng):
     np.testing.assert_array_equal(out, ref)
 
 
+def test_continuous_exposure_passes_through_tiles(rng):
+    """Each tile keeps its pixels' counts and end weights: bit for bit the untiled blur."""
+    img = _image(rng, (29, 31), np.uint8)
+    flow = _cross_tile_flow(rng, 29, 31)
+    for kw in (dict(exposure="continuous"), dict(exposure="continuous", samples=6)):
+        ref = clblur.blur(img, flow, "srgb", backend="numpy", **kw)
+        out = np.zeros_like(img)
+        blur_tiled(img, out, flow, "srgb", backend="numpy", tile=(6, 7), **kw)
+        np.testing.assert_array_equal(out, ref)
+    # and the option is in effect (the same fixed count, equal weights)
+    assert not np.array_equal(ref, clblur.blur(img, flow, "srgb", backend="numpy", samples=6))
+
+
 def test_halo_too_small_breaks_equality(rng, monkeypatch):
     """The equality tests can fail: without a halo the tile edges differ."""
     img = _image(rng)
