@@ -56,6 +56,15 @@ def test_hidden_effect_is_ranked_first_and_significant(effect):
     assert top["significant"] and top["p_value"] < 0.05 / len(EFFECT_NAMES)
     if effect != "psf_orientation":  # a discrete choice has no interval
         assert top["interval"], top
+    if effect == "response_shape":
+        # the effective gamma's interval (delta method on the ridge-penalised sandwich):
+        # holds the camera's gamma and is informative, where the exponent alone trades
+        # with the warp
+        lo, hi = top["interval"]["gamma"]
+        assert lo <= sc.truth[effect] <= hi and hi - lo < 0.5, top["interval"]
+    if effect == "response_imax":
+        lo, hi = top["interval"]["rho"]
+        assert lo <= sc.truth[effect] <= hi, top["interval"]
     if effect == "noise":
         assert r["extended"]["heldout_nll"] < MARGIN * r["baseline"]["heldout_nll"]
     elif effect == "quantisation":  # a sub-code bias: the floor is the 0.29-code rounding

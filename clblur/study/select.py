@@ -45,6 +45,7 @@ import numpy as np
 
 from clblur.study.crossfit import (
     CONDITIONAL,
+    WARP_RIDGE,
     Folds,
     applicable,
     assign_blocks,
@@ -56,7 +57,7 @@ from clblur.study.crossfit import (
     physical_bounds,
 )
 from clblur.study.effects import EFFECTS, PARAMS, explain, readable_estimate
-from clblur.study.model import Group, null_params, time_ok
+from clblur.study.model import WARP_KEYS, Group, null_params, time_ok
 from clblur.study.significance import t_test, weighted_test
 from clblur.study.variants import pack, pixel_nll
 
@@ -367,6 +368,9 @@ def intervals(groups: list[Group], p: dict, effect: str, channels: int,
     interval.  Intervals are cut to the physically possible range (parameter bounds, e.g.
     a black level no higher than the darkest code seen).  Conditional on the other
     parameters, so somewhat narrow when parameters trade off.  ``None`` for discrete effects.
+    The response's effects also give ``gamma``, the effective gamma's interval (the delta
+    method, :func:`_effective_gamma_interval`), with the family's exponent as ``exponent``:
+    the keys of ``effects.readable_estimate``.
     """
     names = [n for n in EFFECTS[effect].params(channels) if n in PARAMS]
     if not names or effect == "psf_orientation":
@@ -415,6 +419,12 @@ def intervals(groups: list[Group], p: dict, effect: str, channels: int,
             hij = (float((fpp + fmm - 2 * f0).sum()) - hess[i, i] * h[i] ** 2
                    - hess[j, j] * h[j] ** 2) / (2 * h[i] * h[j])
             hess[i, j] = hess[j, i] = hij
+    # the fits minimise the NLL plus the warp's ridge (crossfit.penalised_nll): its
+    # curvature belongs to the estimator's Hessian (the sandwich of a penalised fit), and
+    # bounds the directions in which the exponent and the warp trade at equal likelihood
+    for i, n in enumerate(names):
+        if n in WARP_KEYS:
+            hess[i, i] += 2.0 * WARP_RIDGE
     try:
         hinv = np.linalg.inv(hess)
     except np.linalg.LinAlgError:
@@ -430,6 +440,35 @@ def intervals(groups: list[Group], p: dict, effect: str, channels: int,
         key, fn = _READABLE.get(n, (n, None))
         a, b = (fn(a), fn(b)) if fn else (a, b)
         out[key] = [float(a), float(b)]
+    if effect in ("response_shape", "response_imax"):
+        # the estimates' "gamma" is the effective gamma (effects.readable_estimate); the
+        # family's own exponent is "exponent" there and here
+        if "gamma" in out:
+            out["exponent"] = out.pop("gamma")
+        out["gamma"] = _effective_gamma_interval({**p, **dict(zip(names, x0, strict=True))},
+                                                 names, h, cov)
     return out
+
+
+def _effective_gamma_interval(p: dict, names: list[str], h: np.ndarray,
+                              cov: np.ndarray) -> list[float]:
+    """95 % interval of ``effects.effective_gamma`` at ``p``: the delta method on the
+    parameters' covariance ``cov`` (the sandwich of :func:`intervals`), with the gradient by
+    central differences of step ``h``.
+
+    Why: the effective gamma is what a user reads (2.2 for a display gamma, 1 for a linear
+    camera), while with the free warp the exponent alone trades with the warp and its
+    interval says little about the curve."""
+    from clblur.study.effects import effective_gamma
+
+    grad = np.zeros(len(names))
+    for i, n in enumerate(names):
+        up, down = dict(p), dict(p)
+        up[n] += h[i]
+        down[n] -= h[i]
+        grad[i] = (effective_gamma(up) - effective_gamma(down)) / (2.0 * h[i])
+    centre = effective_gamma(p)
+    half = 1.96 * float(np.sqrt(max(grad @ cov @ grad, 0.0)))
+    return [centre - half, centre + half]
 
 
