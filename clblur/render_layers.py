@@ -278,10 +278,12 @@ def still_alone(layers: Layers) -> tuple[np.ndarray, np.ndarray]:
 
     Why: at such a pixel every shutter sample reads that one layer at the pixel itself
     (``present`` is conservative: the other layers hold zero coverage wherever its samples
-    land), and ``counts`` gives it one sample, so the composite is the layer's plane there,
-    bit for bit.  A static background with a few moving objects is mostly such pixels; they
-    skip the compositing kernel (the culling asked of the occlusion path, issue 11).  A
-    moving layer alone at a pixel still goes through the composite: its samples spread.
+    land), so the exposure is the layer's plane there: exactly what the composite gives with
+    one sample, and within the last bit of its mean of equal samples where a moving layer's
+    reach sets a larger count (``Layers.reach``).  A static background with a few moving
+    objects is mostly such pixels; they skip the compositing kernel (the culling asked of
+    the occlusion path, issue 11).  A moving layer alone at a pixel still goes through the
+    composite: its samples spread.
     """
     k = len(layers.planes)
     still = np.zeros(k, bool)
