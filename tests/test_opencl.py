@@ -200,11 +200,13 @@ def test_fixed_samples_and_time_weights(opencl, rng):
 @pytest.mark.parametrize("anchor", ["start", "center", "end"])
 def test_continuous_exposure(opencl, rng, anchor):
     """exposure="continuous": per-pixel half-weight ends (the field kernel's loops), and the
-    explicit weights make_plan gives a fixed count or a uniform motion (the taps kernel)."""
+    explicit weights make_plan gives a fixed count or a uniform motion (the taps kernel, or
+    the box kernels with half-weight ends for whole-pixel axis-aligned motion)."""
     for dtype in (np.uint8, np.uint16, np.float32):
         img = random_image(rng, dtype, 3)
+        # (8, 0) and (0, -12) are boxes with half-weight ends (the box kernels' ends)
         for motion in (smooth_flow(rng), discontinuous_flow(rng), near_integer_flow(rng),
-                       (5.5, 2.0), (8.0, 0.0)):
+                       (5.5, 2.0), (8.0, 0.0), (0.0, -12.0)):
             plan = make_plan(img, motion, "srgb", anchor=anchor, exposure="continuous")
             assert_matches_reference(opencl, plan)
         assert_matches_reference(opencl, make_plan(img, smooth_flow(rng), "exp", samples=6,

@@ -97,6 +97,10 @@ def _cases(rng):
                     exposure="continuous")
     yield make_plan(random_image(rng, np.uint16, 4), discontinuous_flow(rng), "exp",
                     anchor="end", exposure="continuous")
+    yield make_plan(random_image(rng, np.uint8, 3), (9.0, 0.0), "srgb", anchor="start",
+                    exposure="continuous")  # a box with half-weight ends
+    yield make_plan(random_image(rng, np.float32, 3), (0.0, 14.0), "exp",
+                    exposure="continuous")
 
 
 @pytest.mark.opencl
@@ -337,14 +341,16 @@ def test_box_code_grid_equals_the_search(opencl, rng, monkeypatch, spec):
 
 
 @pytest.mark.opencl
-@pytest.mark.parametrize("length", [1, 2, 5, 24, 60, 130])
+@pytest.mark.parametrize("length", [1, 2, 3, 5, 24, 60, 130, 1100])
 def test_boxes_of_every_length_match_the_reference(opencl, rng, length):
-    """Running sums whose values are kept until they leave the box (integrate_box_codes),
-    including boxes longer than the line (clamped values entering and leaving)."""
+    """Running sums whose values are kept until they leave the box (integrate_box_codes; past
+    BOX_RING taps, read twice), including boxes longer than the line (clamped values entering
+    and leaving), with equal weights and with the continuous exposure's half-weight ends."""
     from clblur.opencl.taps import space_invariant_taps
 
     img = random_image(rng, np.uint8, 3)
     for motion in ((float(length - 1), 0.0), (0.0, float(length - 1))):
-        plan = make_plan(img, motion, "exp", anchor="start")
-        assert length == 1 or space_invariant_taps(plan).box()
-        assert_matches_reference(opencl, plan)
+        for exposure in ("frames", "continuous"):
+            plan = make_plan(img, motion, "exp", anchor="start", exposure=exposure)
+            assert length == 1 or space_invariant_taps(plan).box()
+            assert_matches_reference(opencl, plan)

@@ -55,14 +55,22 @@ def test_box_detection():
     def taps_of(motion, **kw):
         return taps.space_invariant_taps(make_plan(np.zeros((4, 4)), motion, **kw))
 
-    assert taps_of((24.0, 0.0)).box() == (0, -12, 12)  # N = 25, centred, integer steps
-    assert taps_of((0.0, -8.0), anchor="start").box() == (1, 0, 8)
-    assert taps_of((8.0, 0.0), anchor="end").box() == (0, 0, 8)
-    assert taps_of((3.0, 0.0)).box() is None  # half-integer offsets: bilinear, not a box
+    assert taps_of((24.0, 0.0)).box() == (0, -12, 12, False)  # N = 25, centred, integer steps
+    assert taps_of((0.0, -8.0), anchor="start").box() == (1, 0, 8, False)
+    assert taps_of((8.0, 0.0), anchor="end").box() == (0, 0, 8, False)
+    # half-integer offsets split bilinearly into whole pixels: 1/8, 1/4, 1/4, 1/4, 1/8, a
+    # box with half-weight ends (the same weights, summed by the box kernels)
+    assert taps_of((3.0, 0.0)).box() == (0, -2, 2, True)
+    assert taps_of((3.0, 0.0), anchor="start").box() == (0, -3, 0, False)
     assert taps_of((6.0, 6.0)).box() is None
     assert taps_of((6.0, 0.0), weights=[1, 2, 3, 4, 5, 6, 7]).box() is None
-    assert taps_of(np.ones((1, 5))).box() == (0, -2, 2)
-    assert taps_of(np.ones((4, 1))).box() == (1, -1, 2)
+    assert taps_of(np.ones((1, 5))).box() == (0, -2, 2, False)
+    assert taps_of(np.ones((4, 1))).box() == (1, -1, 2, False)
+    # the continuous exposure's trapezoid rule: a box with half-weight ends
+    assert taps_of((24.0, 0.0), exposure="continuous").box() == (0, -12, 12, True)
+    assert taps_of((0.0, -8.0), anchor="start", exposure="continuous").box() == (1, 0, 8, True)
+    assert taps_of((2.5, 0.0)).box() is None  # quarter-pixel fractions: unequal weights
+    assert taps_of((6.0, 0.0), weights=[1, 2, 2, 2, 2, 2, 1.5]).box() is None
 
 
 @pytest.mark.parametrize("spec", RESPONSES, ids=str)

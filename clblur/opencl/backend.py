@@ -266,8 +266,9 @@ def integrate_box(rt: Runtime, prog: Program, plan: BlurPlan, src: DeviceInput,
     through fixed-point tables (linearisation fused); float images are linearised on the host
     and laid out in a float4 plane (transposed for a horizontal box) first."""
     h, w = plan.image.shape[:2]
-    axis, lo, hi = box
-    scale = taps.fixed_point_scale(src.max_abs, hi - lo + 1)
+    axis, lo, hi, ends = box
+    # with ends the kernels sum 2 S - (first + last): twice the values' count of headroom
+    scale = taps.fixed_point_scale(src.max_abs, (2 if ends else 1) * (hi - lo + 1))
     transposed = axis == 0
     across, length = (h, w) if transposed else (w, h)
     grid = _grid(-(-across // LANES), group=BOX_GROUP_SIZE)
@@ -281,8 +282,8 @@ def integrate_box(rt: Runtime, prog: Program, plan: BlurPlan, src: DeviceInput,
                          wait_for=ready, image=src.buffer, in_kind=src.kind,
                          lutq=rt.upload("lutq", lutq, table=True), lut_len=table.shape[1],
                          across=across,
-                         len=length, transposed=int(transposed), lo=lo, hi=hi, scale=scale,
-                         w=w, **finish)]
+                         len=length, transposed=int(transposed), lo=lo, hi=hi,
+                         ends=int(ends), scale=scale, w=w, **finish)]
     stride = _round_up(across, LANES)  # whole 8-pixel vectors stay in bounds
     plane = rt.buffer("plane", stride * length * 16)
     shape = dict(ps=stride, across=across, len=length, transposed=int(transposed), w=w)
@@ -292,7 +293,8 @@ def integrate_box(rt: Runtime, prog: Program, plan: BlurPlan, src: DeviceInput,
                   lut_len=table.shape[1],
                   plane=plane, **shape)
     return [prog.run("integrate_box", rt.queue, grid, (BOX_GROUP_SIZE,), wait_for=[ev],
-                     plane=plane, lo=lo, hi=hi, scale=scale, **shape, **finish)]
+                     plane=plane, lo=lo, hi=hi, ends=int(ends), scale=scale, **shape,
+                     **finish)]
 
 
 def run_plan(rt: Runtime, plan: BlurPlan, gpu: bool | None = None, *, half: bool | None = None,

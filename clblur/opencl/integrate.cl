@@ -726,11 +726,11 @@ static long16 fixed_hi(__global const float *plane, size_t at, float scale)
         }                                                                                  \
     }
 
-/* The box mean of step k (8 lines x 4 channels in sum_lo/sum_hi), stored as codes (packed where
- * the layout allows) or as floats: the same store for both box kernels. */
-#define BOX_EMIT()                                                                              \
+/* The box mean of step k (8 lines x 4 channels in the fixed-point sums S_LO/S_HI), stored as
+ * codes (packed where the layout allows) or as floats: the same store for both box kernels. */
+#define BOX_EMIT(S_LO, S_HI)                                                                    \
     {                                                                                           \
-        float16 m_lo = convert_float16(sum_lo) * norm, m_hi = convert_float16(sum_hi) * norm;   \
+        float16 m_lo = convert_float16(S_LO) * norm, m_hi = convert_float16(S_HI) * norm;       \
         if (codes) {                                                                            \
             int16 q_lo = BOX_QUANTISE(m_lo), q_hi = BOX_QUANTISE(m_hi);                         \
             if (packed && (!transposed || k < len4)) {                                          \
@@ -752,15 +752,17 @@ static long16 fixed_hi(__global const float *plane, size_t at, float scale)
 /* Box of taps d = lo..hi along plane index k with equal weights, as running sums: the cost
  * per pixel does not grow with the box length.  LANES neighbouring lines run as vector lanes.
  * Taps clamp to the window (which lies inside the image: the same as clamping to the image
- * and then to the window).  mean = sum / (count * scale). */
+ * and then to the window).  mean = sum / (count * scale).  With ends (the continuous
+ * exposure's trapezoid rule, count >= 3): the two end taps weigh half, mean = (2 sum - first
+ * - last) / (2 (count - 1) scale), still exact integers before the one division. */
 __kernel void integrate_box(__global const float *plane, int ps, int across, int len,
-                            int transposed, int lo, int hi, float scale, int w,
+                            int transposed, int lo, int hi, int ends, float scale, int w,
                             __global const int *grid, int cells, int gstride, float gscale,
                             STORE_PARAMS)
 {
     int x0 = get_global_id(0) * LANES;
     if (x0 >= across) return;
-    float norm = 1.0f / ((float)(hi - lo + 1) * scale);
+    float norm = 1.0f / ((float)(ends ? 2 * (hi - lo) : hi - lo + 1) * scale);
     bool codes = out_kind != OUT_F32;
     BOX_PACKED_STATE
     long16 sum_lo = (long16)(0), sum_hi = (long16)(0);
@@ -770,7 +772,14 @@ __kernel void integrate_box(__global const float *plane, int ps, int across, int
         sum_hi += fixed_hi(plane, at, scale);
     }
     for (int k = 0; k < len; ++k) {
-        BOX_EMIT()
+        if (ends) {
+            size_t first = (size_t)clamp(k + lo, 0, len - 1) * ps + x0;
+            size_t last = (size_t)clamp(k + hi, 0, len - 1) * ps + x0;
+            BOX_EMIT(2 * sum_lo - fixed_lo(plane, first, scale) - fixed_lo(plane, last, scale),
+                     2 * sum_hi - fixed_hi(plane, first, scale) - fixed_hi(plane, last, scale))
+        } else {
+            BOX_EMIT(sum_lo, sum_hi)
+        }
         size_t enter = (size_t)clamp(k + hi + 1, 0, len - 1) * ps + x0;
         size_t leave = (size_t)clamp(k + lo, 0, len - 1) * ps + x0;
         sum_lo += fixed_lo(plane, enter, scale) - fixed_lo(plane, leave, scale);
@@ -831,11 +840,11 @@ static long4 fixed_codes(__global const uchar *image, int in_kind, __global cons
 __attribute__((always_inline))
 static void box_codes_body(__global const uchar *image, int in_kind,
                            __global const long *lutq, int lut_len, int across, int len,
-                           int transposed, int lo, int hi, float scale, int w,
+                           int transposed, int lo, int hi, int ends, float scale, int w,
                            __global const int *grid, int cells, int gstride, float gscale,
                            STORE_PARAMS, int x0, long16 *ring_lo, long16 *ring_hi)
 {
-    float norm = 1.0f / ((float)(hi - lo + 1) * scale);
+    float norm = 1.0f / ((float)(ends ? 2 * (hi - lo) : hi - lo + 1) * scale);
     bool codes = out_kind != OUT_F32;
     BOX_PACKED_STATE
     long16 sum_lo = (long16)(0), sum_hi = (long16)(0);
@@ -854,7 +863,17 @@ static void box_codes_body(__global const uchar *image, int in_kind,
         }
     }
     for (int k = 0; k < len; ++k) {
-        BOX_EMIT()
+        if (ends) {  /* the values at k + lo and k + hi: the ring's oldest and newest */
+            int first = clamp(k + lo, 0, len - 1), last = clamp(k + hi, 0, len - 1);
+            int newest = j == 0 ? n - 1 : j - 1;
+            long16 f_lo = ring ? ring_lo[j] : CODES4(0, first);
+            long16 f_hi = ring ? ring_hi[j] : CODES4(4, first);
+            long16 l_lo = ring ? ring_lo[newest] : CODES4(0, last);
+            long16 l_hi = ring ? ring_hi[newest] : CODES4(4, last);
+            BOX_EMIT(2 * sum_lo - f_lo - l_lo, 2 * sum_hi - f_hi - l_hi)
+        } else {
+            BOX_EMIT(sum_lo, sum_hi)
+        }
         int enter = clamp(k + hi + 1, 0, len - 1), leave = clamp(k + lo, 0, len - 1);
         if (ring) {  /* ring[j] entered n steps ago: the value at k + lo */
             long16 v_lo = CODES4(0, enter), v_hi = CODES4(4, enter);
@@ -873,7 +892,7 @@ static void box_codes_body(__global const uchar *image, int in_kind,
 /* integrate_box for integer images, read from the codes (same sums, same results). */
 __kernel void integrate_box_codes(__global const uchar *image, int in_kind,
                                   __global const long *lutq, int lut_len, int across, int len,
-                                  int transposed, int lo, int hi, float scale, int w,
+                                  int transposed, int lo, int hi, int ends, float scale, int w,
                                   __global const int *grid, int cells, int gstride,
                                   float gscale, STORE_PARAMS)
 {
@@ -882,16 +901,17 @@ __kernel void integrate_box_codes(__global const uchar *image, int in_kind,
     long16 ring_lo[BOX_RING], ring_hi[BOX_RING];
     if (in_kind == IN_U8 && channels == 3 && cg == 3) {  /* uint8 RGB: constants */
         if (transposed)
-            box_codes_body(image, IN_U8, lutq, lut_len, across, len, 1, lo, hi, scale, w, grid,
-                           cells, gstride, gscale, resp, tables, thresholds, buckets, out,
+            box_codes_body(image, IN_U8, lutq, lut_len, across, len, 1, lo, hi, ends, scale, w,
+                           grid, cells, gstride, gscale, resp, tables, thresholds, buckets, out,
                            out_kind, 3, 0, 3, x0, ring_lo, ring_hi);
         else
-            box_codes_body(image, IN_U8, lutq, lut_len, across, len, 0, lo, hi, scale, w, grid,
-                           cells, gstride, gscale, resp, tables, thresholds, buckets, out,
+            box_codes_body(image, IN_U8, lutq, lut_len, across, len, 0, lo, hi, ends, scale, w,
+                           grid, cells, gstride, gscale, resp, tables, thresholds, buckets, out,
                            out_kind, 3, 0, 3, x0, ring_lo, ring_hi);
     } else {
-        box_codes_body(image, in_kind, lutq, lut_len, across, len, transposed, lo, hi, scale, w,
-                       grid, cells, gstride, gscale, STORE_ARGS, x0, ring_lo, ring_hi);
+        box_codes_body(image, in_kind, lutq, lut_len, across, len, transposed, lo, hi, ends,
+                       scale, w, grid, cells, gstride, gscale, STORE_ARGS, x0, ring_lo,
+                       ring_hi);
     }
 }
 

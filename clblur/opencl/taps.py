@@ -33,16 +33,22 @@ class IntegerTaps:
     dy: np.ndarray  # int32
     w: np.ndarray  # float64
 
-    def box(self) -> tuple[int, int, int] | None:
-        """``(axis, lo, hi)`` when the taps are a box of equal weights on offsets lo..hi along
-        x (axis 0, dy == 0) or y (axis 1, dx == 0); else None."""
-        if not np.all(self.w == self.w[0]):
-            return None
+    def box(self) -> tuple[int, int, int, bool] | None:
+        """``(axis, lo, hi, ends)`` when the taps are a box on offsets lo..hi along x (axis 0,
+        dy == 0) or y (axis 1, dx == 0): of equal weights (``ends`` False), or of half
+        weights at both ends and equal ones between, the continuous exposure's trapezoid
+        rule (``ends`` True, ``clblur.motion``); else None."""
         for axis, along, across in ((0, self.dx, self.dy), (1, self.dy, self.dx)):
             if np.all(across == 0):
-                offs = np.sort(along)
-                if np.array_equal(offs, np.arange(offs[0], offs[0] + offs.size)):
-                    return axis, int(offs[0]), int(offs[-1])
+                order = np.argsort(along, kind="stable")
+                offs = along[order]
+                if not np.array_equal(offs, np.arange(offs[0], offs[0] + offs.size)):
+                    continue
+                w = self.w[order]
+                if np.all(w == w[0]):
+                    return axis, int(offs[0]), int(offs[-1]), False
+                if w.size >= 3 and np.all(w[1:-1] == w[1]) and w[0] == w[-1] == 0.5 * w[1]:
+                    return axis, int(offs[0]), int(offs[-1]), True
         return None
 
 
