@@ -18,8 +18,8 @@ import numpy as np
 from clblur.halo import halo_for_reach, reach
 from clblur.layering import layer_labels
 
-__all__ = ["INPAINT_RADIUS", "Layers", "MID_EXTEND_PX", "SPLIT_PRIOR", "distance_to", "prepare",
-           "split_coverage"]
+__all__ = ["INPAINT_RADIUS", "Layers", "MID_EXTEND_PX", "SPLIT_PRIOR", "bounding_box",
+           "distance_to", "prepare", "split_coverage"]
 
 INPAINT_RADIUS = 3
 MID_EXTEND_PX = 2.0
@@ -97,6 +97,23 @@ def distance_to(inside: np.ndarray,
     return np.sqrt(np.rint(d * d))
 
 
+def bounding_box(values: np.ndarray, margin: int = 0) -> tuple[slice, slice] | None:
+    """The bounding box of the pixels of ``values`` (H x W [x C]) that are nonzero in any
+    channel, grown by ``margin`` (clipped to the image), or None when there are none.
+
+    The reductions run along memory order (rows, then the rows' columns): reducing a
+    H x W x C float array over its last axis cost more than the rest of building a layer."""
+    h, w = values.shape[:2]
+    rows = np.flatnonzero(values.reshape(h, -1).any(axis=1))
+    if rows.size == 0:
+        return None
+    band = values[rows[0]:rows[-1] + 1]
+    cols = np.flatnonzero((band != 0).reshape(band.shape[0], -1).any(axis=0)
+                          .reshape(w, -1).any(axis=1))
+    return (slice(max(rows[0] - margin, 0), min(rows[-1] + margin + 1, h)),
+            slice(max(cols[0] - margin, 0), min(cols[-1] + margin + 1, w)))
+
+
 def _nearest_transform(outside: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``scipy.ndimage.distance_transform_edt(outside, return_indices=True)`` with the
     indices as flat (row-major) indices into the image: (distance, flat index), H x W each.
@@ -143,10 +160,7 @@ def _inpaint(lin: np.ndarray, known: np.ndarray, depth: float,
         return out
     # cv2.inpaint marches over the whole array it is given: give it only the hole's box
     # plus the radius it reads (and one pixel of border) around it.
-    m = INPAINT_RADIUS + 2
-    rows, cols = np.nonzero(hole.any(axis=1))[0], np.nonzero(hole.any(axis=0))[0]
-    box = (slice(max(rows[0] - m, 0), rows[-1] + m + 1),
-           slice(max(cols[0] - m, 0), cols[-1] + m + 1))
+    box = bounding_box(hole, INPAINT_RADIUS + 2)
     # inpainting's input (float32): as the result outside the hole, and in it too where
     # there is anything deep (else the image itself, as the fill has always been given)
     base = (_at(lin, flat[box]) if deep.any() else lin[box]).astype(np.float32)
@@ -241,10 +255,8 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     r = reach(v, anchor)
     band = 2.0 * r + 2.0
     margin = int(math.ceil(band + r)) + 3
-    rows, cols = np.nonzero(region.any(axis=1))[0], np.nonzero(region.any(axis=0))[0]
-    r0, r1 = max(rows[0] - margin, 0), min(rows[-1] + margin + 1, h)
-    c0, c1 = max(cols[0] - margin, 0), min(cols[-1] + margin + 1, w)
-    crop = (slice(r0, r1), slice(c0, c1))
+    crop = bounding_box(region, margin)
+    (r0, r1), (c0, c1) = (crop[0].start, crop[0].stop), (crop[1].start, crop[1].stop)
     labels = layer_labels(order[crop], rule=rule)
     last = int(labels.max())
     if last == 0 and background is None:
@@ -334,8 +346,9 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     # the planes are built on that window of the crop, and the vectors and the presence of
     # each layer at the region's pixels only (nothing else reads them).
     hal = halo_for_reach(r)
-    win = (slice(max(rows[0] - hal, r0) - r0, min(rows[-1] + hal + 1, r1) - r0),
-           slice(max(cols[0] - hal, c0) - c0, min(cols[-1] + hal + 1, c1) - c0))
+    inner = bounding_box(region, hal)
+    win = (slice(max(inner[0].start, r0) - r0, min(inner[0].stop, r1) - r0),
+           slice(max(inner[1].start, c0) - c0, min(inner[1].stop, c1) - c0))
     reg = region[crop][win]
     at = np.nonzero(reg)
     lab_w, split_w, lin_w, v_w = labels[win], split[win], lin_c[win], v_c[win]

@@ -193,10 +193,16 @@ def time_weights(samples: int | None, weights: Sequence[float] | None) -> tuple[
     return w.size, w / w.sum()
 
 
-def check_exposure(exposure) -> str:
-    """``exposure`` if it is one of ``EXPOSURES``, else a one-line error."""
+def check_exposure(exposure, weights=None) -> str:
+    """``exposure`` if it is one of ``EXPOSURES`` and, when ``continuous``, given without time
+    weights (which would replace its weights); else a one-line ``InputError``."""
+    from clblur.errors import InputError
+
     if not isinstance(exposure, str) or exposure not in EXPOSURES:
-        raise ValueError(f"exposure must be one of {', '.join(EXPOSURES)}, got {exposure!r}")
+        raise InputError(f"exposure must be one of {', '.join(EXPOSURES)}, got {exposure!r}")
+    if exposure == "continuous" and weights is not None:
+        raise InputError("time weights replace the exposure's weights: give weights or "
+                         "exposure='continuous', not both")
     return exposure
 
 

@@ -57,8 +57,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from clblur.errors import InputError
-from clblur.layer_planes import Layers
-from clblur.request import BlurPlan, make_plan
+from clblur.layer_planes import Layers, bounding_box
+from clblur.request import BlurPlan, make_plan, retime
 
 __all__ = ["RENDER_INVERSE_STEPS", "blur_layers", "layers_for", "path_offsets", "still_alone",
            "swept"]
@@ -90,7 +90,7 @@ def _linear_layer(plan: BlurPlan) -> np.ndarray:
     if plan.dtype.kind != "u":
         return linearise(plan)
     out = np.zeros(plan.image.shape, np.float64)
-    box = _box(plan.image[..., -1], 0)
+    box = bounding_box(plan.image[..., -1])
     if box is not None:
         out[box] = linearise(replace(plan, image=plan.image[box]))
     return out
@@ -146,14 +146,14 @@ def swept(covered: np.ndarray, d: np.ndarray, anchor: float,
     h, w = covered.shape
     near = cv2.dilate(covered.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     offsets = path_offsets(d, anchor, c)
-    rows, cols = np.nonzero(near.any(axis=1))[0], np.nonzero(near.any(axis=0))[0]
+    rows, cols = bounding_box(near)
     # the window p can lie in: the dilation's box moved by the offsets, out to the image's
     # edge on a side where the box touches it (a clamped read lands there from beyond)
     (oy0, ox0), (oy1, ox1) = offsets[:, ::-1].min(axis=0), offsets[:, ::-1].max(axis=0)
-    r0 = 0 if rows[0] == 0 else max(rows[0] + oy0, 0)
-    r1 = h if rows[-1] == h - 1 else min(rows[-1] + oy1 + 1, h)
-    c0 = 0 if cols[0] == 0 else max(cols[0] + ox0, 0)
-    c1 = w if cols[-1] == w - 1 else min(cols[-1] + ox1 + 1, w)
+    r0 = 0 if rows.start == 0 else max(rows.start + oy0, 0)
+    r1 = h if rows.stop == h else min(rows.stop + oy1, h)
+    c0 = 0 if cols.start == 0 else max(cols.start + ox0, 0)
+    c1 = w if cols.stop == w else min(cols.stop + ox1, w)
     out = np.zeros((h, w), bool)
     if r0 >= r1 or c0 >= c1:
         return out
@@ -162,23 +162,6 @@ def swept(covered: np.ndarray, d: np.ndarray, anchor: float,
     for ox, oy in offsets:
         window |= near[np.clip(rr - oy, 0, h - 1)][:, np.clip(cc - ox, 0, w - 1)]
     return out
-
-
-def _box(values: np.ndarray, margin: int) -> tuple[slice, slice] | None:
-    """The bounding box of the pixels of ``values`` (H x W [x C]) that are nonzero in any
-    channel, grown by ``margin`` (clipped to the image), or None when there are none.
-
-    The reductions run along memory order (rows, then the rows' columns): reducing a
-    H x W x C float array over its last axis cost more than the rest of building a layer."""
-    h, w = values.shape[:2]
-    rows = np.flatnonzero(values.reshape(h, -1).any(axis=1))
-    if rows.size == 0:
-        return None
-    band = values[rows[0]:rows[-1] + 1]
-    cols = np.flatnonzero((band != 0).reshape(band.shape[0], -1).any(axis=0)
-                          .reshape(w, -1).any(axis=1))
-    return (slice(max(rows[0] - margin, 0), min(rows[-1] + margin + 1, h)),
-            slice(max(cols[0] - margin, 0), min(cols[-1] + margin + 1, w)))
 
 
 def _within(covered: np.ndarray, radius) -> np.ndarray:
@@ -190,7 +173,7 @@ def _within(covered: np.ndarray, radius) -> np.ndarray:
 
     radius = np.asarray(radius)
     out = np.zeros(covered.shape, bool)
-    box = _box(covered, int(np.ceil(radius.max())) + 1)
+    box = bounding_box(covered, int(np.ceil(radius.max())) + 1)
     if box is not None:
         out[box] = distance_to(covered[box]) <= (radius[box] if radius.size > 1 else radius)
     return out
@@ -222,7 +205,7 @@ def layers_for(linear: Sequence[np.ndarray], flows: Sequence[np.ndarray], anchor
     curves = None if curvature is None else np.zeros((k, h, w, 2), np.float32)
     span = max(anchor, 1.0 - anchor)
     for i, (lin, flow) in enumerate(zip(linear, flows, strict=True)):
-        held = _box(lin, 0)  # an object's layer holds light in a small box
+        held = bounding_box(lin)  # an object's layer holds light in a small box
         if held is None:
             continue  # an empty layer: nothing to read
         planes[i][held + (slice(0, cp),)] = lin[held]
@@ -322,7 +305,7 @@ def _composite(layers: Layers, plan: BlurPlan, backend: str,
     for k in _layers_under(alone, which):
         np.copyto(out, layers.planes[k][..., :cp], where=(alone & (which == k))[..., None])
     mixed = layers.region & ~alone
-    box = _box(mixed, _farthest_read(layers, plan.anchor))
+    box = bounding_box(mixed, _farthest_read(layers, plan.anchor))
     if box is None:
         return out, alone, which
     # the crop that every sample of the mixed pixels reads: the device reads (or, with its
@@ -434,10 +417,9 @@ def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "cente
         [0, 1], an anchor other than the bend or time weights with a bent path, ``curved``
         without one, or a bad overscan.
     """
-    from dataclasses import replace
 
     from clblur.blur import resolve_backend
-    from clblur.motion import check_exposure, trapezoid_weights
+    from clblur.motion import check_exposure
 
     if isinstance(layers, np.ndarray) or not isinstance(layers, Sequence) or not layers:
         raise InputError("layers must be a non-empty list of (image, motion) pairs, front "
@@ -470,9 +452,7 @@ def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "cente
                          f"{overscan} px" if len(shape) == 3 else
                          f"layer images must be H x W x (C + 1), got shape {shape}")
     ran = resolve_backend(backend, device)
-    if check_exposure(exposure) == "continuous" and weights is not None:
-        raise InputError("time weights replace the exposure's weights: give weights or "
-                         "exposure='continuous', not both")
+    check_exposure(exposure, weights)
     common = dict(samples=samples, weights=weights, saturation=saturation, alpha=True,
                   check_flow=True)
     # one plan per layer and half: make_plan validates every image and field
@@ -490,29 +470,22 @@ def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "cente
     region = np.zeros((h, w), bool)
     region[overscan:h - overscan, overscan:w - overscan] = True
     planes = np.float64 if ran == "numpy" else np.float32  # what each backend composites in
-    def timing(plan: BlurPlan, **changes) -> BlurPlan:
-        """The composite's plan: the samples, anchor and exposure every layer shares (a
-        continuous exposure's weights made explicit for a fixed count, as make_plan does)."""
-        plan = replace(plan, **changes)
-        if exposure == "continuous":
-            plan = replace(plan, exposure=exposure, weights=None if plan.samples is None
-                           else trapezoid_weights(plan.samples))
-        return plan
-
     if curved:  # one parabola through the halves' three points
         first, second = ([_field_of(p).astype(np.float64) for p in half] for half in plans)
         chord = [(f + s).astype(np.float32) for f, s in zip(first, second, strict=True)]
         bend = [(2.0 * (s - f)).astype(np.float32) for f, s in zip(first, second, strict=True)]
         stack = layers_for(linear, chord, 0.5, region, curvature=bend, dtype=planes,
                            reach_counts=exposure == "frames")
-        acc, alone, which = _composite(stack, timing(plans[0][0], anchor=0.5), ran, device)
+        acc, alone, which = _composite(stack, retime(plans[0][0], anchor=0.5,
+                                                     exposure=exposure), ran, device)
     else:  # one straight path, or two halves whose exposures are averaged
         acc = 0.0
         for i, half in enumerate(plans):
             flows = [_field_of(p) for p in half]
             stack = layers_for(linear, flows, half[0].anchor, region, dtype=planes,
                                reach_counts=exposure == "frames")
-            light, still, layer = _composite(stack, timing(half[0]), ran, device)
+            light, still, layer = _composite(stack, retime(half[0], exposure=exposure), ran,
+                                             device)
             acc = acc + light / len(plans)  # a still pixel: x / 2 + x / 2 is x exactly
             # alone in every half, with the same layer (a still layer reaches the same pixels
             # in both halves)

@@ -26,7 +26,7 @@ from clblur.motion import (
 from clblur.pixels import SUPPORTED_DTYPES, validate_saturation
 from clblur.responses import Response, per_channel
 
-__all__ = ["BlurPlan", "bound_far_flow", "check_depth", "check_image", "make_plan"]
+__all__ = ["BlurPlan", "bound_far_flow", "check_depth", "check_image", "make_plan", "retime"]
 
 
 @dataclass(frozen=True)
@@ -113,10 +113,7 @@ def make_plan(image, motion, response="exp", *, anchor: str = "center",
     validates the flow's values on the device.  ``exposure``: ``clblur.motion.EXPOSURES``."""
     img = check_image(image)
     h, w, c = img.shape
-    exposure = check_exposure(exposure)
-    if exposure == "continuous" and weights is not None:
-        raise ValueError("time weights replace the exposure's weights: give weights or "
-                         "exposure='continuous', not both")
+    exposure = check_exposure(exposure, weights)
     n, wts = time_weights(samples, weights)
     a = anchor_value(anchor)
     where = _region(region, (h, w))
@@ -143,6 +140,21 @@ def make_plan(image, motion, response="exp", *, anchor: str = "center",
                     depth=check_depth(_named(depth, parsed), (h, w), speed=_is_speed(depth)),
                     background=_check_background(background, image, depth),
                     exposure=exposure, **where)
+
+
+def retime(plan: BlurPlan, **changes) -> BlurPlan:
+    """``plan`` with ``changes`` (motion, anchor, samples, weights, exposure), its weights
+    derived as :func:`make_plan` derives them for a ``continuous`` exposure: explicit
+    trapezoid weights for a fixed count, none for per-pixel counts (``BlurPlan.ends``).  For
+    plans built once and run with other sample counts or anchors (a bent path's halves, the
+    layers of a render)."""
+    from dataclasses import replace
+
+    plan = replace(plan, **changes)
+    if plan.exposure == "continuous":
+        plan = replace(plan, weights=None if plan.samples is None
+                       else trapezoid_weights(plan.samples))
+    return plan
 
 
 def bound_far_flow(flow: np.ndarray, samples: int, anchor: float,

@@ -23,7 +23,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from clblur.motion import Field, trapezoid_weights
+from clblur.motion import Field
 from clblur.opencl import response_pack
 from clblur.opencl.backend import (
     GROUP_SIZE,
@@ -37,7 +37,7 @@ from clblur.opencl.backend import (
     upload_input,
 )
 from clblur.opencl.device import Runtime, pyopencl_module, runtime
-from clblur.request import BlurPlan
+from clblur.request import BlurPlan, retime
 from clblur.responses import response
 
 __all__ = ["blur_bent", "run_bent"]
@@ -61,11 +61,8 @@ def run_bent(rt: Runtime, plan: BlurPlan, first: np.ndarray, second: np.ndarray,
     gpu = rt.gpu if gpu is None else gpu
     img = plan.image
     h, w, channels = img.shape
-    # a fixed count's continuous weights are explicit, as make_plan makes them
-    weights = (trapezoid_weights(samples) if exposure == "continuous" and samples is not None
-               else None)
-    halves = [replace(plan, motion=Field(v), anchor=a, samples=samples, weights=weights,
-                      exposure=exposure) for v, a in ((first, 1.0), (second, 0.0))]
+    halves = [retime(plan, motion=Field(v), anchor=a, samples=samples, weights=None,
+                     exposure=exposure) for v, a in ((first, 1.0), (second, 0.0))]
     src = upload_input(rt, plan)
     prog = rt.program(False, gpu)
     planes = not gpu  # the CPU field kernel reads channel planes
