@@ -83,7 +83,8 @@ def main() -> None:
         (ndimage, "distance_transform_edt", "  scipy distance transforms (wherever they run)"),
         (layer_planes, "distance_to", "  distance_to (OpenCV exact distances)"),
         (layer_planes, "_inpaint", "  _inpaint (hidden background)"),
-        (cv2, "inpaint", "    cv2.inpaint (Navier-Stokes)"),
+        (cv2, "inpaint", "    cv2.inpaint (Navier-Stokes, before 2026-11-24)"),
+        (layer_planes, "harmonic_fill", "    harmonic_fill (the fill itself)"),
         (device_layered, "composite", "composite (counts, upload, kernel)"),
         (layered, "counts", "  counts (samples per pixel)"),
     ]

@@ -19,8 +19,11 @@ from clblur.halo import halo_for_reach, reach
 from clblur.layering import layer_labels
 
 __all__ = ["INPAINT_RADIUS", "Layers", "MID_EXTEND_PX", "SPLIT_PRIOR", "bounding_box",
-           "distance_to", "prepare", "split_coverage"]
+           "distance_to", "harmonic_fill", "prepare", "split_coverage"]
 
+# px the reconstruction of hidden light extends beyond the pixels a sample reads, so that
+# what is read is filled from a filled neighbourhood (the radius the Navier-Stokes
+# inpainting this fill replaced read)
 INPAINT_RADIUS = 3
 MID_EXTEND_PX = 2.0
 SPLIT_PRIOR = 1e-4  # (linear light)^2: below this contrast a mixed pixel stays half and half
@@ -131,21 +134,71 @@ def _at(a: np.ndarray, flat: np.ndarray) -> np.ndarray:
     return np.take(a.reshape((-1,) + a.shape[2:]), flat, axis=0)
 
 
+# Jacobi sweeps of harmonic_fill at its finest level, doubled at each coarser one (up to
+# FILL_SWEEPS_MAX): the error left by upsampling a coarser solution is mostly a few pixels
+# long, which a few sweeps damp
+FILL_SWEEPS = 4
+FILL_SWEEPS_MAX = 64
+_NEIGHBOUR_MEAN = np.array([[0, 1, 0], [1, 0, 1], [0, 1, 0]], np.float32) / 4
+
+
+def harmonic_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """``values`` (h x w x C float32) with the pixels outside ``known`` (h x w bool, at least
+    one True) filled smoothly from the known ones; known pixels are returned unchanged.
+
+    The fill approximates the membrane (harmonic) interpolant, the solution of Laplace's
+    equation in the hole with the known pixels as boundary values: the smoothest fill, exact
+    for a linear ramp, which a hole's middle then follows rather than bending towards the
+    hole's mean.  It is computed coarse to fine (a cascadic multigrid, Bornemann and
+    Deuflhard, Numer. Math. 75, 1996): a pyramid of weight-premultiplied values and weights
+    (the *pull* of Gortler et al.'s pull-push, "The Lumigraph", SIGGRAPH 1996;
+    ``cv2.pyrDown``) until every pixel of the coarsest level has weight; then at each finer
+    level the upsampled coarser solution, blended with the level's own mean by its
+    confidence ``min(1, 4 w)`` (the weight sum of a pixel's four children), relaxed by
+    Jacobi sweeps (each free pixel to its 4-neighbours' mean, ``FILL_SWEEPS`` at the finest
+    level, doubled per coarser one).  The cost is linear in the array.
+    """
+    import cv2
+
+    h, w, c = values.shape
+    weight = known.astype(np.float32)
+    # one array per level: the values premultiplied by the weight, and the weight last
+    level = np.concatenate([values * weight[..., None], weight[..., None]], axis=2)
+    pyramid = [level]
+    while min(level.shape[:2]) > 1 and not (level[..., c] > 0).all():
+        level = cv2.pyrDown(level).reshape(-1, -(-level.shape[1] // 2), c + 1)
+        pyramid.append(level)
+    coarse = pyramid[-1]
+    estimate = coarse[..., :c] / np.maximum(coarse[..., c:], np.float32(1e-30))
+    for depth in range(len(pyramid) - 2, -1, -1):
+        level = pyramid[depth]
+        lh, lw = level.shape[:2]
+        wt = level[..., c:]
+        trust = np.minimum(np.float32(4) * wt, np.float32(1)) if depth else wt
+        held = trust * (level[..., :c] / np.maximum(wt, np.float32(1e-30)))
+        free = np.float32(1) - trust
+        estimate = held + free * cv2.pyrUp(estimate, dstsize=(lw, lh)).reshape(lh, lw, c)
+        for _ in range(min(FILL_SWEEPS << depth, FILL_SWEEPS_MAX)):
+            mean = cv2.filter2D(estimate, -1, _NEIGHBOUR_MEAN,
+                                borderType=cv2.BORDER_REPLICATE).reshape(lh, lw, c)
+            estimate = held + free * mean
+    out = values.copy()
+    out[~known] = estimate[~known]
+    return out
+
+
 def _inpaint(lin: np.ndarray, known: np.ndarray, depth: float,
              nearest: tuple[np.ndarray, np.ndarray] | None = None,
              needed: np.ndarray | None = None,
              window: tuple[slice, slice] = (slice(None), slice(None))) -> np.ndarray:
     """``lin`` with the pixels outside ``known`` reconstructed from the known ones
-    (Navier-Stokes inpainting, Bertalmio et al. 2001, as ``cv2.inpaint``; per channel) up to
-    ``depth`` pixels from them; deeper pixels, which no sample reads, take their nearest known
-    pixel (so the inpainting only walks the band that can be uncovered).  ``nearest``: the
-    distance transform of ``~known`` with its flat indices (:func:`_nearest_transform`), if
-    already computed; ``needed``: the
-    pixels any sample can read (others take their nearest known pixel too), and the
-    inpainting runs only on the bounding box of the hole they leave, plus a margin.
-    Returns the result on ``window`` only (the part the caller reads)."""
-    import cv2
-
+    (:func:`harmonic_fill`) up to ``depth`` pixels from them; deeper pixels, which no sample
+    reads, take their nearest known pixel and join the known ones for the fill.
+    ``nearest``: the distance transform of ``~known`` with its flat indices
+    (:func:`_nearest_transform`), if already computed; ``needed``: the pixels any sample can
+    read (others take their nearest known pixel too), and the fill runs only on the bounding
+    box of the hole they leave, plus a margin.  Returns the result on ``window`` only (the
+    part the caller reads)."""
     if not known.any():
         return lin[window].copy()
     dist, flat = nearest if nearest is not None else _nearest_transform(~known)
@@ -154,17 +207,15 @@ def _inpaint(lin: np.ndarray, known: np.ndarray, depth: float,
         deep |= ~needed
     hole = ~known & ~deep
     # known pixels are their own nearest known pixel: everywhere but in the hole, the
-    # nearest known pixel's light is the result (the hole's is inpainting's first guess)
+    # nearest known pixel's light is the result
     out = _at(lin, flat[window])
     if not hole.any():
         return out
-    # cv2.inpaint marches over the whole array it is given: give it only the hole's box
-    # plus the radius it reads (and one pixel of border) around it.
+    # the fill's cost grows with the array it is given: only the hole's box and a margin
     box = bounding_box(hole, INPAINT_RADIUS + 2)
-    # inpainting's input (float32): as the result outside the hole, and in it too where
-    # there is anything deep (else the image itself, as the fill has always been given)
+    # the fill's input (float32): as the result outside the hole, and in it too where there
+    # is anything deep (else the image itself)
     base = (_at(lin, flat[box]) if deep.any() else lin[box]).astype(np.float32)
-    hole8 = hole[box].astype(np.uint8)
     # the box's part of the window, in window and in box coordinates
     h, w = known.shape
     (wr0, wr1, _), (wc0, wc1, _) = window[0].indices(h), window[1].indices(w)
@@ -174,19 +225,11 @@ def _inpaint(lin: np.ndarray, known: np.ndarray, depth: float,
         return out
     in_win = (slice(r_lo - wr0, r_hi - wr0), slice(c_lo - wc0, c_hi - wc0))
     in_box = (slice(r_lo - br0, r_hi - br0), slice(c_lo - bc0, c_hi - bc0))
-    # in the box, whatever is not known comes back from cv2: inpainted (the hole) or its
+    # in the box, whatever is not known comes back from the fill: filled (the hole) or its
     # nearest known pixel's light rounded to float32 (deep); known pixels keep lin exactly
     fresh = ~known[box][in_box]
-
-    def channel(c: int) -> None:
-        filled = cv2.inpaint(np.ascontiguousarray(base[..., c]), hole8, INPAINT_RADIUS,
-                             cv2.INPAINT_NS)
-        out[in_win + (c,)][fresh] = filled[in_box][fresh]
-
-    # the channels are independent and cv2 releases the interpreter lock: one thread each
-    # (the wall time of the largest host step, on a machine with cores to spare)
-    with ThreadPoolExecutor(min(lin.shape[2], os.cpu_count() or 1)) as pool:
-        list(pool.map(channel, range(lin.shape[2])))
+    filled = harmonic_fill(base, ~hole[box])
+    out[in_win][fresh] = filled[in_box][fresh]
     return out
 
 

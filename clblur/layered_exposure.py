@@ -59,11 +59,11 @@ Conventions
   as ``D_k`` is), and a pixel's default sample count takes ``|D_k| + |C_k| / 2`` (a bound on
   the path's length over a unit time span) in place of ``|D_k|``.
 * **What is behind an object is not in the image.**  Assumption: a hidden pixel of a farther
-  layer looks like the nearest visible pixel of the layers at or behind it and moves with it
-  (nearest-neighbour extension, ``scipy.ndimage.distance_transform_edt``), within
-  ``2 R + 2`` pixels of the visible part (nothing deeper can be revealed during the shutter).
-  Pixels hidden under a nearer object join layer ``k`` only when that nearest pixel is on
-  layer ``k``.
+  layer continues the visible pixels of the layers at or behind it smoothly (its light the
+  membrane fill of ``clblur.layer_planes.harmonic_fill``) and moves with the nearest of them
+  (its vector, ``scipy.ndimage.distance_transform_edt``), within ``2 R + 2`` pixels of the
+  visible part (nothing deeper can be revealed during the shutter).  Pixels hidden under a
+  nearer object join layer ``k`` only when that nearest pixel is on layer ``k``.
 * **Mixed pixels** (within one pixel of a layer boundary) hold light of both layers.  They
   join the nearer layer with coverage ``a`` fitted to their light, ``I = a F + (1 - a) B``
   (``F`` the nearest unmixed pixel of that layer, ``B`` the reconstruction behind; least

@@ -584,3 +584,36 @@ def test_grid_components_number_as_scipy_does():
         got_n, got = _components(right, down)
         assert got_n == n
         np.testing.assert_array_equal(got, comp.reshape(h, w))
+
+
+def test_harmonic_fill_fills_holes_within_the_known_range(rng):
+    """The hidden-light fill: known pixels untouched, a constant stays constant, a ramp is
+    followed across a hole, and every filled value is a convex combination of known ones
+    (every step averages with non-negative weights)."""
+    from clblur.layer_planes import harmonic_fill
+
+    h, w = 61, 90
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    known = np.ones((h, w), bool)
+    known[20:45, 30:70] = False  # a hole
+    known[0:3, 0:5] = False  # and one at a corner
+    ramp = np.stack([xx / w, 0.25 + yy / (2 * h), np.full((h, w), 0.4, np.float32)], axis=2)
+    noisy = ramp + rng.normal(0, 0.01, ramp.shape).astype(np.float32)
+    filled = harmonic_fill(noisy, known)
+    assert filled.dtype == np.float32 and filled.shape == noisy.shape
+    np.testing.assert_array_equal(filled[known], noisy[known])
+    for c in range(3):
+        lo, hi = noisy[..., c][known].min(), noisy[..., c][known].max()
+        assert lo <= filled[..., c][~known].min() and filled[..., c][~known].max() <= hi
+    np.testing.assert_allclose(harmonic_fill(ramp[..., 2:], known), 0.4, rtol=1e-6)
+    # across the 40 x 25 px hole the fill follows the ramp (measured: off by at most 0.023,
+    # the corner hole included; the pull-push estimate alone bends towards the hole's mean,
+    # 0.06), far closer than the nearest known pixel does (0.14)
+    from scipy.ndimage import distance_transform_edt
+
+    rows, cols = distance_transform_edt(~known, return_indices=True)[1]
+    nearest = noisy[rows, cols]
+    off = np.abs(filled - ramp)[~known].max()
+    assert off < 0.03 and off < 0.25 * np.abs(nearest - ramp)[~known].max()
+    one = harmonic_fill(noisy[..., :1], known)  # a single channel keeps its axis
+    np.testing.assert_allclose(one, filled[..., :1], rtol=1e-6, atol=1e-7)
