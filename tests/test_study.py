@@ -429,3 +429,23 @@ def test_study_and_calibrate_give_the_same_curve_shape():
     assert np.abs(stops(shape) - (truth - truth.mean())).max() < 0.2
     for curve in cal.responses:
         assert np.abs(stops(shape) - stops(curve)).max() < 0.2
+
+
+def test_an_estimate_on_its_bound_lies_inside_its_interval():
+    # No black level and no vignetting in the data: fitted at their bound 0, the estimate
+    # must lie inside its interval.  The finite differences step inside the bound; the
+    # interval was once centred there and, on data this tight, excluded the estimate (black
+    # level 0 with an interval of [0.0056, 0.0097] codes)
+    from clblur.study.crossfit import assign_blocks
+    from clblur.study.effects import readable_estimate
+    from clblur.study.select import intervals
+
+    sc = scenario({}, np.random.default_rng(0))
+    assign_blocks(sc.groups)
+    p = null_params()
+    for effect in ("black_level", "vignetting", "response_imax"):
+        got = intervals(sc.groups, p, effect, 3)
+        est = readable_estimate(effect, p, 3)
+        for key, (lo, hi) in got.items():
+            assert lo <= est[key] <= hi, (effect, key, est[key], lo, hi)
+    assert intervals(sc.groups, p, "black_level", 3)["black_level_codes"][0] == 0.0

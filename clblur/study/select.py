@@ -365,8 +365,10 @@ def intervals(groups: list[Group], p: dict, effect: str, channels: int,
     ``cov = H^-1 M H^-1`` with ``H`` the Hessian of the total NLL in the effect's parameters
     (finite differences, the other parameters held at their fit) and ``M = sum_b s_b s_b^T``
     the outer product of per-block scores, so correlated residuals inside a block widen the
-    interval.  Intervals are cut to the physically possible range (parameter bounds, e.g.
-    a black level no higher than the darkest code seen).  Conditional on the other
+    interval.  Intervals are centred on the estimate and cut to the physically possible
+    range (parameter bounds, e.g. a black level no higher than the darkest code seen): an
+    estimate on its bound gets ``[bound, estimate + half width]``, the differences taken
+    one step inside.  Conditional on the other
     parameters, so somewhat narrow when parameters trade off.  ``None`` for discrete effects.
     The response's effects also give ``gamma``, the effective gamma's interval (the delta
     method, :func:`_effective_gamma_interval`), with the family's exponent as ``exponent``:
@@ -434,9 +436,12 @@ def intervals(groups: list[Group], p: dict, effect: str, channels: int,
     if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) < 0) or np.any(np.diag(hess) <= 0):
         return None
     half = 1.96 * np.sqrt(np.diag(cov))
+    # centred on the estimate itself: x0 only keeps the differences inside the bounds, and an
+    # estimate on its bound (no black level, no extra noise) gets [bound, estimate + half]
+    est = np.clip(np.array([p[n] for n in names]), lo, hi)
     out = {}
     for i, n in enumerate(names):
-        a, b = max(lo[i], x0[i] - half[i]), min(hi[i], x0[i] + half[i])
+        a, b = max(lo[i], est[i] - half[i]), min(hi[i], est[i] + half[i])
         key, fn = _READABLE.get(n, (n, None))
         a, b = (fn(a), fn(b)) if fn else (a, b)
         out[key] = [float(a), float(b)]
@@ -445,16 +450,18 @@ def intervals(groups: list[Group], p: dict, effect: str, channels: int,
         # family's own exponent is "exponent" there and here
         if "gamma" in out:
             out["exponent"] = out.pop("gamma")
-        out["gamma"] = _effective_gamma_interval({**p, **dict(zip(names, x0, strict=True))},
-                                                 names, h, cov)
+        out["gamma"] = _effective_gamma_interval(
+            {**p, **dict(zip(names, est, strict=True))},
+            {**p, **dict(zip(names, x0, strict=True))}, names, h, cov)
     return out
 
 
-def _effective_gamma_interval(p: dict, names: list[str], h: np.ndarray,
+def _effective_gamma_interval(p: dict, inside: dict, names: list[str], h: np.ndarray,
                               cov: np.ndarray) -> list[float]:
-    """95 % interval of ``effects.effective_gamma`` at ``p``: the delta method on the
-    parameters' covariance ``cov`` (the sandwich of :func:`intervals`), with the gradient by
-    central differences of step ``h``.
+    """95 % interval of ``effects.effective_gamma`` around its value at ``p``: the delta
+    method on the parameters' covariance ``cov`` (the sandwich of :func:`intervals`), with
+    the gradient by central differences of step ``h`` at ``inside`` (``p`` moved at least
+    one step inside the bounds).
 
     Why: the effective gamma is what a user reads (2.2 for a display gamma, 1 for a linear
     camera), while with the free warp the exponent alone trades with the warp and its
@@ -463,7 +470,7 @@ def _effective_gamma_interval(p: dict, names: list[str], h: np.ndarray,
 
     grad = np.zeros(len(names))
     for i, n in enumerate(names):
-        up, down = dict(p), dict(p)
+        up, down = dict(inside), dict(inside)
         up[n] += h[i]
         down[n] -= h[i]
         grad[i] = (effective_gamma(up) - effective_gamma(down)) / (2.0 * h[i])
