@@ -1,17 +1,21 @@
-"""Blur images held as Dask arrays (e.g. opened from zarr) with ``map_overlap``.
+"""Blur images held as Dask arrays (e.g. opened from zarr), chunk by chunk with halos.
 
 Conventions
 -----------
-* Each output chunk is computed from its chunk grown by ``depth`` (the halo of
-  ``clblur.tiling``: ``ceil(reach) + 2`` per axis) with ``boundary="none"``: nothing is
-  invented outside the image.  The block function locates its window in the full image from
-  the chunk grid and blurs it with ``make_plan(..., region=...)``, so positions clamp to the
-  *image* edge exactly as in the in-memory blur, and returns only its own chunk
-  (``trim=False``; output chunks = input chunks).  Result: bitwise ``clblur.blur`` on the same
-  backend.
-* Dask needs one depth for all chunks, so a flow field's depth comes from its largest vector:
-  computed here (one pass over the flow) unless ``max_displacement=(max |dx|, max |dy|)`` is
-  given.  Chunks smaller than the depth are merged by rechunking.
+* Each output chunk is computed from its chunk grown by a halo (``clblur.halo``:
+  ``ceil(reach) + 2`` per axis, clipped to the image): nothing is invented outside the image.
+  The window is blurred with ``make_plan(..., region=...)``, so positions clamp to the *image*
+  edge exactly as in the in-memory blur, and only the chunk is kept.  Result: bitwise
+  ``clblur.blur`` on the same backend.  Output chunks are the input's, except that channels
+  form one chunk.
+* A flow field's halo is each chunk's own: from the largest ``|dx|`` and ``|dy|`` among the
+  chunk's pixels (one pass over the flow, at graph time), since a pixel's samples land within
+  its own vector's reach.  A fast object then grows only the windows of the chunks it covers,
+  as ``clblur.tiling`` does for tiles, and a window may span several input chunks.
+* With ``max_displacement=(max |dx|, max |dy|)`` (no pass over the flow) or a uniform motion or
+  PSF, every chunk has the same halo and ``map_overlap`` runs (``boundary="none"``,
+  ``trim=False``); chunks smaller than that halo are merged by rechunking, since
+  ``map_overlap`` takes a halo from the adjacent chunk only.
 * Backends are chosen inside the worker (``"auto"``: OpenCL when that process has a device), so
   OpenCL objects are never created in the client nor pickled.
 """
@@ -24,7 +28,7 @@ import dask.array as da
 import numpy as np
 
 from clblur.blur import blur_plan, check_backend
-from clblur.halo import fixed_halo, halo_for_reach, tiled_motion
+from clblur.halo import fixed_halo, flow_halo, halo_for_reach, tiled_motion
 from clblur.motion import PSF, Uniform, anchor_value
 from clblur.request import make_plan
 
@@ -38,9 +42,11 @@ def blur(array, motion, response="exp", *, anchor: str = "center", samples: int 
     """Lazy photo-consistent blur of an H x W or H x W x C Dask array (see ``clblur.blur``).
 
     ``motion``: ``(dx, dy)``, a 2-D PSF, or an H x W x 2 flow (numpy, zarr or Dask array, or
-    a ``.npy`` path read chunk by chunk).  Returns a Dask array with the input's shape and
-    dtype, and its chunks except that channels form one chunk and chunks narrower than the
-    halo are merged.
+    a ``.npy`` path read chunk by chunk).  ``max_displacement``: a bound on the flow's
+    ``(|dx|, |dy|)``, which saves the pass over the flow that sizes each chunk's own halo
+    (module Conventions).  Returns a Dask array with the input's shape and dtype, and its
+    chunks except that channels form one chunk and, with one halo for all chunks (a uniform
+    motion, a PSF or ``max_displacement``), chunks narrower than it are merged.
     """
     if not isinstance(array, da.Array):
         raise TypeError(f"array must be a dask array, got {type(array).__name__}")
@@ -65,17 +71,20 @@ def blur(array, motion, response="exp", *, anchor: str = "center", samples: int 
     make_plan(np.zeros((1, 1) + array.shape[2:], array.dtype), (0.0, 0.0), response,
               anchor=anchor, samples=samples, weights=weights, saturation=saturation,
               exposure=exposure)
-    if flow is not None:
-        depth = _flow_depth(flow, a, max_displacement)
-    else:
-        depth = fixed_halo(fixed, a)
     if array.ndim == 3:
         array = array.rechunk({2: -1})
+    blur_options = dict(response=response, anchor=anchor, samples=samples, weights=weights,
+                        exposure=exposure, saturation=saturation, backend=backend,
+                        device=device)
+    if flow is not None and max_displacement is None:
+        flow = flow.rechunk((array.chunks[0], array.chunks[1], 2))
+        return _blur_own_halos(array, flow, _chunk_halos(flow, a), blur_options)
+    if flow is not None:
+        depth = _flow_depth(max_displacement, a)
+    else:
+        depth = fixed_halo(fixed, a)
     array = _rechunk_at_least(array, depth)
-    options = dict(response=response, anchor=anchor, samples=samples, weights=weights,
-                   exposure=exposure, saturation=saturation, backend=backend, device=device,
-                   fixed=fixed,
-                   halo=depth, grid=array.chunks[:2], extent=(h, w))
+    options = dict(blur_options, fixed=fixed, halo=depth, grid=array.chunks[:2], extent=(h, w))
     axes = {0: depth[0], 1: depth[1]}
     if array.ndim == 3:
         axes[2] = 0
@@ -90,19 +99,64 @@ def blur(array, motion, response="exp", *, anchor: str = "center", samples: int 
                           meta=meta, align_arrays=False)
 
 
-def _flow_depth(flow, anchor: float, max_displacement) -> tuple[int, int]:
-    if max_displacement is None:
-        amax = np.asarray(da.abs(flow.astype(np.float32)).max(axis=(0, 1)).compute(),
-                          dtype=np.float64)
-    else:
-        amax = np.abs(np.asarray(max_displacement, dtype=np.float64))
-        if amax.shape != (2,):
-            raise ValueError(f"max_displacement must be (max |dx|, max |dy|), got "
-                             f"{max_displacement!r}")
+def _flow_depth(max_displacement, anchor: float) -> tuple[int, int]:
+    """The (rows, cols) halo of every chunk from the caller's bound on the vectors."""
+    amax = np.abs(np.asarray(max_displacement, dtype=np.float64))
+    if amax.shape != (2,):
+        raise ValueError(f"max_displacement must be (max |dx|, max |dy|), got "
+                         f"{max_displacement!r}")
     if not np.isfinite(amax).all():
         raise ValueError("flow field contains NaN or infinite values")
     f = max(anchor, 1.0 - anchor)
     return halo_for_reach(amax[1] * f), halo_for_reach(amax[0] * f)
+
+
+def _chunk_halos(flow, anchor: float) -> np.ndarray:
+    """The (rows, cols) halo of each chunk of ``flow`` from its own vectors
+    (``clblur.halo.flow_halo``; rows x cols of chunks x 2 int), computed now (one pass over
+    the flow)."""
+
+    def own(block: np.ndarray) -> np.ndarray:
+        return np.array(flow_halo(block, anchor)).reshape(1, 1, 2)
+
+    return np.asarray(flow.map_blocks(own, chunks=(1, 1, 2), dtype=np.int64).compute())
+
+
+def _blur_own_halos(array, flow, halos: np.ndarray, options: dict):
+    """Each chunk blurred from a window grown by its own halo (module Conventions)."""
+    h, w = array.shape[:2]
+    starts = [np.concatenate([[0], np.cumsum(c)]).astype(int) for c in array.chunks[:2]]
+    meta = np.empty((0,) * array.ndim, array.dtype)
+    rows = []
+    for i, th in enumerate(array.chunks[0]):
+        row = []
+        for j, tw in enumerate(array.chunks[1]):
+            hy, hx = min(int(halos[i, j, 0]), h), min(int(halos[i, j, 1]), w)
+            r0, c0 = int(starts[0][i]), int(starts[1][j])
+            win = (slice(max(r0 - hy, 0), min(r0 + th + hy, h)),
+                   slice(max(c0 - hx, 0), min(c0 + tw + hx, w)))
+            # the window as one block of each array, blurred into the chunk's one block
+            image_w, flow_w = (a[win].rechunk(-1) for a in (array, flow))
+            row.append(da.map_blocks(
+                _blur_window, image_w, flow_w, origin=(win[0].start, win[1].start),
+                chunk=(r0, c0, th, tw), extent=(h, w), **options,
+                chunks=((th,), (tw,)) + tuple((n,) for n in array.shape[2:]),
+                dtype=array.dtype, meta=meta))
+        rows.append(da.concatenate(row, axis=1))
+    return da.concatenate(rows, axis=0)
+
+
+def _blur_window(image, motion, *, origin, chunk, extent, response, anchor, samples, weights,
+                 exposure, saturation, backend, device):
+    """One chunk of the blur, from its window (``origin``: the window's top-left pixel;
+    ``chunk``: (row, col, height, width) of the chunk in the image; ``motion``: the window's
+    flow, or the uniform motion or PSF)."""
+    wr0, wc0 = origin
+    r0, c0, th, tw = chunk
+    plan = make_plan(image, motion, response, anchor=anchor, samples=samples, weights=weights,
+                     saturation=saturation, region=(wr0, wc0, *extent), exposure=exposure)
+    out = blur_plan(plan, backend, device)
+    return out[r0 - wr0:r0 - wr0 + th, c0 - wc0:c0 - wc0 + tw]
 
 
 def _rechunk_at_least(array, depth: tuple[int, int]):
@@ -128,14 +182,11 @@ def _origin(index: int, chunks: tuple[int, ...], depth: int) -> tuple[int, int]:
     return max(start - depth, 0), start
 
 
-def _blur_block(image, flow=None, *, response, anchor, samples, weights, exposure, saturation,
-                backend, device, fixed: Uniform | PSF | None, halo, grid, extent,
-                block_info=None):
+def _blur_block(image, flow=None, *, fixed: Uniform | PSF | None, halo, grid, extent,
+                block_info=None, **options):
+    """One chunk of ``map_overlap``: its window located from the chunk grid."""
     loc = block_info[0]["chunk-location"]
     (wr0, r0), (wc0, c0) = (_origin(loc[i], grid[i], halo[i]) for i in (0, 1))
-    th, tw = grid[0][loc[0]], grid[1][loc[1]]
-    motion = fixed if flow is None else flow
-    plan = make_plan(image, motion, response, anchor=anchor, samples=samples, weights=weights,
-                     saturation=saturation, region=(wr0, wc0, *extent), exposure=exposure)
-    out = blur_plan(plan, backend, device)
-    return out[r0 - wr0:r0 - wr0 + th, c0 - wc0:c0 - wc0 + tw]
+    return _blur_window(image, fixed if flow is None else flow, origin=(wr0, wc0),
+                        chunk=(r0, c0, grid[0][loc[0]], grid[1][loc[1]]), extent=extent,
+                        **options)

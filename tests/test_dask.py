@@ -77,6 +77,10 @@ def test_bad_input(image):
         cdask.blur(x, da.zeros((5, 5, 2), chunks=5))
     with pytest.raises(ValueError, match="backend"):
         cdask.blur(x, (1, 0), backend="cuda")
+    bad = np.zeros(image.shape[:2] + (2,), np.float32)
+    bad[40, 30, 1] = np.nan
+    with pytest.raises(ValueError, match="NaN"):  # found by the pass that sizes the halos
+        cdask.blur(x, da.from_array(bad, chunks=16))
     with pytest.raises(ValueError):
         cdask.blur(x, (1, 0), response="nonsense")
 
@@ -88,3 +92,25 @@ def test_flow_file_is_read_per_chunk(rng, image, tmp_path):
                      backend="numpy")
     np.testing.assert_array_equal(out.compute(scheduler="sync"),
                                   clblur.blur(image, flow, backend="numpy"))
+
+
+def test_each_chunk_reads_only_its_own_halo(rng, monkeypatch):
+    """A flow's halo is per chunk: one fast corner grows only its own chunk's window (the
+    result is still the in-memory blur bit for bit)."""
+    img = rng.integers(0, 256, (64, 96, 3), dtype=np.uint8)
+    flow = np.zeros((64, 96, 2), np.float32)
+    flow[:16, :16] = (40.0, 0.0)  # reaches 20 px either way (anchor centre); the rest is still
+    seen = {}
+    real = cdask._blur_window
+
+    def spy(image, motion, **kw):
+        seen[kw["chunk"]] = image.shape[:2]
+        return real(image, motion, **kw)
+
+    monkeypatch.setattr(cdask, "_blur_window", spy)
+    out = cdask.blur(da.from_array(img, chunks=(16, 16, 3)), flow, backend="numpy")
+    np.testing.assert_array_equal(out.compute(scheduler="sync"),
+                                  clblur.blur(img, flow, backend="numpy"))
+    assert len(seen) == 4 * 6
+    assert seen[(0, 0, 16, 16)] == (16 + 2, 16 + 22)  # halo ceil(20) + 2 across, 2 down
+    assert seen[(32, 48, 16, 16)] == (2 + 16 + 2, 2 + 16 + 2)  # a still chunk: the margin
