@@ -25,9 +25,10 @@ from pathlib import Path
 
 from clblur.errors import InputError
 from clblur.io.paths import resolve_inside
+from clblur.motion import ANCHORS
 
 __all__ = ["KINDS", "BlurPair", "Exposure", "FrameStack", "Manifest", "load_manifest",
-           "write_manifest"]
+           "manifest_inputs", "write_manifest"]
 
 KINDS = ("exposure-series", "blur-pair", "frame-stack")
 
@@ -65,12 +66,23 @@ class Manifest:
     stacks: tuple[FrameStack, ...] = field(default_factory=tuple)
 
 
-def _positive(value, what: str) -> float:
+def _number(value, what: str) -> float:
+    """A JSON number as a float: not a boolean (JSON's true is no exposure), not a string,
+    and finite (an integer too large for a float is refused, not a traceback)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise InputError(f"{what} must be a number, got {str(value)[:40]!r}")
     try:
         v = float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"{what} must be a number, got {value!r}") from None
-    if not math.isfinite(v) or v <= 0:
+    except OverflowError:
+        v = math.inf
+    if not math.isfinite(v):
+        raise InputError(f"{what} must be finite, got {str(value)[:40]}")
+    return v
+
+
+def _positive(value, what: str) -> float:
+    v = _number(value, what)
+    if v <= 0:
         raise InputError(f"{what} must be positive and finite, got {value!r}")
     return v
 
@@ -119,6 +131,7 @@ def load_manifest(path: str | os.PathLike) -> Manifest:
             images.append(Exposure(_path(base, _require(e, "path", where), f"{where} path"),
                                    _positive(_require(e, "exposure", where), f"{where} exposure"),
                                    None if fn is None else _positive(fn, f"{where} f_number")))
+        _once([im.path for im in images], f"manifest {path}")
         return Manifest(kind, path, images=tuple(images))
     if kind == "blur-pair":
         pairs = []
@@ -130,17 +143,21 @@ def load_manifest(path: str | os.PathLike) -> Manifest:
             motion = None
             if "motion" in p:
                 m = p["motion"]
-                if not (isinstance(m, list) and len(m) == 2
-                        and all(isinstance(v, (int, float)) and math.isfinite(v) for v in m)):
+                if not (isinstance(m, list) and len(m) == 2):
                     raise InputError(f"{where} motion must be [dx, dy], finite numbers")
-                motion = (float(m[0]), float(m[1]))
+                motion = (_number(m[0], f"{where} motion dx"),
+                          _number(m[1], f"{where} motion dy"))
+            anchor = p.get("anchor", "center") if isinstance(p, dict) else "center"
+            if not isinstance(anchor, str) or anchor not in ANCHORS:
+                raise InputError(f"{where} anchor must be one of {', '.join(ANCHORS)}, got "
+                                 f"{str(anchor)[:40]!r}")
             pairs.append(BlurPair(
                 static=_path(base, _require(p, "static", where), f"{where} static"),
                 blurred=_path(base, _require(p, "blurred", where), f"{where} blurred"),
                 motion=motion,
                 flow=_path(base, p["flow"], f"{where} flow") if "flow" in p else None,
                 psf=_path(base, p["psf"], f"{where} psf") if "psf" in p else None,
-                anchor=p.get("anchor", "center"),
+                anchor=anchor,
                 exposure_ratio=_positive(p.get("exposure_ratio", 1.0),
                                          f"{where} exposure_ratio")))
         return Manifest(kind, path, pairs=tuple(pairs))
@@ -154,6 +171,25 @@ def load_manifest(path: str | os.PathLike) -> Manifest:
             tuple(_path(base, f, f"{where} frames[{k}]") for k, f in enumerate(frames)),
             _path(base, _require(s, "long", where), f"{where} long")))
     return Manifest(kind, path, stacks=tuple(stacks))
+
+
+def _once(paths: list[Path], where: str) -> None:
+    """Refuse a file listed twice (two exposures of one image cannot both be right)."""
+    seen: set[Path] = set()
+    for q in paths:
+        if q in seen:
+            raise InputError(f"{where} lists {q} more than once")
+        seen.add(q)
+
+
+def manifest_inputs(m: Manifest) -> list[Path]:
+    """Every file a manifest names (with the manifest itself): what no output may replace."""
+    out = [m.path, *(e.path for e in m.images)]
+    for p in m.pairs:
+        out += [q for q in (p.static, p.blurred, p.flow, p.psf) if q is not None]
+    for s in m.stacks:
+        out += [*s.frames, s.long]
+    return out
 
 
 def write_manifest(path: str | os.PathLike, doc: dict) -> None:

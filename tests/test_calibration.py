@@ -277,3 +277,15 @@ def test_spline_cross_exposure_fit_recovers_an_s_curve(rng):
     e = evaluate(series, result, gaps=(3.5,), refit=False, max_pixels=500)
     assert np.isnan(e["rmse"][3.5]) and "no two exposures are 3.5 stops apart" in \
         e["missing"][3.5]
+
+
+def test_alpha_is_dropped_from_grey_and_colour_series(rng):
+    """Grey + alpha (2 channels) and RGBA (4): the alpha channel carries no exposure, so the
+    series keeps 1 and 3 channels (a fitted 'alpha curve' was once written for grey + alpha)."""
+    grey = [rng.integers(0, 256, (6, 5), dtype=np.uint8) for _ in range(2)]
+    alpha = np.full((6, 5), 255, np.uint8)
+    two = ExposureSeries.create([np.dstack([g, alpha]) for g in grey], [1.0, 2.0])
+    assert two.channels == 1
+    np.testing.assert_array_equal(two.images[0][..., 0], grey[0])
+    rgba = ExposureSeries.create([np.dstack([g, g, g, alpha]) for g in grey], [1.0, 2.0])
+    assert rgba.channels == 3

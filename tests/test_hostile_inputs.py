@@ -238,6 +238,36 @@ def build_corpus(root: Path) -> None:
         {"path": "good.png", "exposure": -1}, {"path": "good.jpg", "exposure": 2}]})
     manifest("m_series_missing.json", {"kind": "exposure-series", "images": [
         {"path": "nope.png", "exposure": 1}, {"path": "nada.png", "exposure": 2}]})
+    # numbers JSON holds but a float cannot, booleans as numbers, one file listed twice
+    manifest("m_series_huge.json", '{"kind": "exposure-series", "images": [{"path": '
+             '"good.png", "exposure": 1' + "0" * 400 + '}, {"path": "good.jpg", '
+             '"exposure": 2}]}')
+    manifest("m_series_bool.json", {"kind": "exposure-series", "images": [
+        {"path": "good.png", "exposure": True}, {"path": "good.jpg", "exposure": 2}]})
+    manifest("m_series_twice.json", {"kind": "exposure-series", "images": [
+        {"path": "good.png", "exposure": 1}, {"path": "good.png", "exposure": 2}]})
+    manifest("m_series_inputs.json", {"kind": "exposure-series", "images": [
+        {"path": "series/a.png", "exposure": 1}, {"path": "good.png", "exposure": 2}]})
+    manifest("m_pairs_motion_huge.json", '{"kind": "blur-pair", "pairs": [{"static": '
+             '"good.png", "blurred": "good.png", "motion": [1' + "0" * 400 + ', 0]}]}')
+    manifest("m_pairs_motion_bool.json", {"kind": "blur-pair", "pairs": [
+        {**pair, "motion": [True, False]}]})
+    manifest("m_pairs_ratio_huge.json", '{"kind": "blur-pair", "pairs": [{"static": '
+             '"good.png", "blurred": "good.png", "motion": [2, 0], "exposure_ratio": 1'
+             + "0" * 400 + '}]}')
+    manifest("m_pairs_anchor_list.json", {"kind": "blur-pair", "pairs": [
+        {**pair, "anchor": ["start"]}]})
+    (d / "times_huge.txt").write_text("1e400\n")
+    for name in ("white_a.png", "white_b.png"):  # a series with nothing below white
+        write_image(d / name, np.full((48, 64, 3), 255, np.uint8))
+    manifest("m_series_white.json", {"kind": "exposure-series", "images": [
+        {"path": "white_a.png", "exposure": 1}, {"path": "white_b.png", "exposure": 2}]})
+    manifest("m_series_same_exposure.json", {"kind": "exposure-series", "images": [
+        {"path": "good.png", "exposure": 1}, {"path": "good.jpg", "exposure": 1}]})
+    manifest("m_series_fnumber_some.json", {"kind": "exposure-series", "images": [
+        {"path": "good.png", "exposure": 1, "f_number": 2.8},
+        {"path": "good.jpg", "exposure": 2}]})
+    (d / "times_twice.txt").write_text("a.png 1/100\na.png 1/50\n")
 
     # batch manifests (CSV)
     def csv(name: str, text: str | bytes) -> None:
@@ -462,7 +492,35 @@ def bad_manifest_cases() -> list[Case]:
         Case("study:splits-zero", ("study", "{in}/m_kind.json", "--report", "{out}/r.json",
                                    "--splits", "0", "--quiet"), match="--splits"),
     ]
-    calib = [("m_series_empty.json", "non-empty"), ("m_series_traversal.json", "outside"),
+    study += [("m_pairs_motion_huge.json", "finite"), ("m_pairs_motion_bool.json", "number"),
+              ("m_pairs_ratio_huge.json", "finite"), ("m_pairs_anchor_list.json", "anchor"),
+              ("m_series_white.json", "saturated"), ("m_series_same_exposure.json", "same"),
+              ("m_series_fnumber_some.json", "f-number")]
+    cases += [Case(f"study:{n}", ("study", f"{{in}}/{n}", "--report", "{out}/r.json",
+                                  "--quiet"), match=w) for n, w in study[-7:]]
+    cases += [  # no output may replace an input, nor land in a folder of inputs
+        Case("study:figures-in-inputs", ("study", "{in}/m_series_inputs.json", "--report",
+                                         "{out}/r.json", "--figures", "{in}/series",
+                                         "--quiet"), match="holds the input"),
+        Case("calibrate:output-is-an-image", ("calibrate", "{in}/series", "--times",
+                                              "{in}/times_twice.txt", "-o",
+                                              "{in}/series/a.png"), match="overwrite"),
+        Case("calibrate:manifest-output-is-an-image", ("calibrate",
+                                                       "{in}/m_series_inputs.json", "-o",
+                                                       "{in}/series/a.png"), match="overwrite"),
+        Case("calibrate:report-in-inputs", ("calibrate", "{in}/m_series_inputs.json", "-o",
+                                            "{out}/r.json", "--report", "{in}/series"),
+             match="holds the input"),
+        Case("calibrate:times-huge", ("calibrate", "{in}/series", "--times",
+                                      "{in}/times_huge.txt", "-o", "{out}/r.json"),
+             match="out of range"),
+        Case("calibrate:times-name-twice", ("calibrate", "{in}/series", "--times",
+                                            "{in}/times_twice.txt", "-o", "{out}/r.json"),
+             match="more than once"),
+    ]
+    calib = [("m_series_huge.json", "finite"), ("m_series_bool.json", "number"),
+             ("m_series_twice.json", "more than once"),
+             ("m_series_empty.json", "non-empty"), ("m_series_traversal.json", "outside"),
              ("m_series_negative.json", "positive"), ("m_series_missing.json", "not found"),
              ("m_pairs_empty.json", "non-empty"), ("zero.json", "manifest"),
              ("symseries", "outside"), ("nope", "not found")]

@@ -449,3 +449,13 @@ def test_an_estimate_on_its_bound_lies_inside_its_interval():
         for key, (lo, hi) in got.items():
             assert lo <= est[key] <= hi, (effect, key, est[key], lo, hi)
     assert intervals(sc.groups, p, "black_level", 3)["black_level_codes"][0] == 0.0
+
+
+def test_study_drops_the_alpha_of_grey_and_colour_images():
+    from clblur.study.histograms import as_hwc
+
+    grey = np.arange(12, dtype=np.uint8).reshape(3, 4)
+    alpha = np.full((3, 4), 255, np.uint8)
+    np.testing.assert_array_equal(as_hwc(np.dstack([grey, alpha]), "x"), grey[..., None])
+    assert as_hwc(np.dstack([grey, grey, grey, alpha]), "x").shape == (3, 4, 3)
+    assert as_hwc(grey, "x").shape == (3, 4, 1)

@@ -114,7 +114,9 @@ def _as_hwc(im: np.ndarray, index: int) -> np.ndarray:
         return im[:, :, None]
     if im.ndim != 3:
         raise ValueError(f"image {index}: expected H x W or H x W x C, got shape {im.shape}")
-    return im[:, :, :3] if im.shape[2] == 4 else im  # alpha carries no exposure
+    if im.shape[2] in (2, 4):  # grey + alpha, RGB + alpha: alpha carries no exposure
+        return im[:, :, :im.shape[2] - 1]
+    return im
 
 
 def _check_times(times, n: int) -> np.ndarray:
@@ -132,13 +134,17 @@ def _check_times(times, n: int) -> np.ndarray:
 
 def parse_time(value) -> float:
     """A time as a number or a string such as ``0.25``, ``1/1024`` or ``1/60s``."""
-    if isinstance(value, (int, float, np.floating, np.integer)):
-        return float(value)
-    if not isinstance(value, str):
+    if isinstance(value, (bool, np.bool_)):
         raise TypeError(f"exposure time must be a number or a string, got {value!r}")
-    text = value.strip().removesuffix("s").strip()
     try:
+        if isinstance(value, (int, float, np.floating, np.integer)):
+            return float(value)
+        if not isinstance(value, str):
+            raise TypeError(f"exposure time must be a number or a string, got {value!r}")
+        text = value.strip().removesuffix("s").strip()
         return float(Fraction(text))
+    except OverflowError:  # a number too large for a float: no exposure time
+        raise ValueError(f"exposure time {str(value)[:40]!r} is out of range") from None
     except (ValueError, ZeroDivisionError):
         raise ValueError(f"cannot read exposure time {value!r}; use e.g. 0.5 or 1/1024") from None
 
@@ -228,6 +234,10 @@ def load_series(source: str | os.PathLike, times=None) -> ExposureSeries:
         rows = read_times_file(times_path)
         if all(name is not None for name, _ in rows) and rows:
             by_name = dict(rows)
+            if len(by_name) != len(rows):
+                twice = sorted({n for n, _ in rows if sum(m == n for m, _ in rows) > 1})
+                raise ValueError(f"times file {times_path} names {', '.join(twice[:3])} "
+                                 "more than once")
             files = [p for p in files if p.name in by_name]
             missing = sorted(set(by_name) - {p.name for p in files})
             if missing:

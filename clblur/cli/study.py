@@ -33,9 +33,11 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from clblur.io import check_output
+    from clblur.manifest import load_manifest
     from clblur.study.run import DEFAULT_PIXELS, study
 
-    # every output checked before the study runs (it takes minutes)
+    # every output checked before the study runs (it takes minutes); study() refuses an
+    # output that would replace an input
     check_output(args.report, args.manifest)
     check_output(Path(args.report).with_suffix(".md"), args.manifest)
     if args.splits < 1:
@@ -43,7 +45,8 @@ def run(args: argparse.Namespace) -> int:
     if args.figures is not None and Path(args.figures).exists() \
             and not Path(args.figures).is_dir():
         raise InputError(f"--figures {args.figures} exists and is not a folder")
-    result = study(args.manifest, report=args.report, figures_dir=args.figures,
+    manifest = load_manifest(args.manifest)
+    result = study(manifest, report=args.report, figures_dir=args.figures,
                    max_pixels=args.max_pixels or DEFAULT_PIXELS, alpha=args.alpha,
                    progress=not args.quiet, splits=args.splits)
     r = result.report

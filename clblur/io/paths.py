@@ -17,7 +17,8 @@ from pathlib import Path
 
 from clblur.errors import InputError
 
-__all__ = ["check_output", "data_dir", "refuse_overwrite", "resolve_inside"]
+__all__ = ["check_output", "data_dir", "refuse_folder_of_inputs", "refuse_overwrite",
+           "resolve_inside"]
 
 PathLike = str | os.PathLike
 
@@ -70,6 +71,17 @@ def refuse_overwrite(out: PathLike, *inputs: PathLike | None) -> None:
         ip = Path(i)
         if o.resolve() == ip.resolve() or (o.exists() and ip.exists() and o.samefile(ip)):
             raise InputError(f"output {out} is the input {i}; refusing to overwrite an input")
+
+
+def refuse_folder_of_inputs(folder: PathLike, inputs: Sequence[PathLike], what: str) -> None:
+    """Raise if the output ``folder`` directly holds one of ``inputs``: what is written
+    there under fixed names could replace it, and new files would join a folder of inputs
+    (a series read from a folder would take them in on the next run)."""
+    f = Path(folder).resolve()
+    for i in inputs:
+        if Path(i).resolve().parent == f:
+            raise InputError(f"{what} {folder} holds the input {i}; write it to another "
+                             "folder")
 
 
 def check_output(out: PathLike, *inputs: PathLike | None, suffixes: Sequence[str] = ()) -> Path:

@@ -9,7 +9,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from clblur.io import atomic_write_text, read_flow, read_image, read_psf, refuse_overwrite
-from clblur.manifest import Manifest, load_manifest
+from clblur.io.paths import refuse_folder_of_inputs
+from clblur.manifest import Manifest, load_manifest, manifest_inputs
 from clblur.study.model import Group
 from clblur.study.pairs import pair_group
 from clblur.study.report import build_report, figures, markdown
@@ -28,6 +29,10 @@ class StudyResult:
     report: dict
     selection: Selection
     groups: list[Group]
+
+
+# fewest unclipped target values a study runs on (a few hundred pixels of one image)
+MIN_USABLE = 100
 
 
 def groups_from_manifest(manifest: Manifest, max_pixels: int = DEFAULT_PIXELS,
@@ -117,15 +122,20 @@ def study(manifest: str | os.PathLike | Manifest, *, report: str | os.PathLike |
     if not isinstance(max_pixels, int) or max_pixels < 1000:
         raise ValueError(f"max_pixels must be an integer >= 1000, got {max_pixels!r}")
     _check_splits(splits)
-    inputs = [m.path] + [e.path for e in m.images] + [
-        q for p in m.pairs for q in (p.static, p.blurred, p.flow, p.psf)] + [
-        q for s in m.stacks for q in (*s.frames, s.long)]
+    inputs = manifest_inputs(m)
     if report is not None:  # refuse before the work, not after
         if not Path(report).parent.is_dir():
             raise ValueError(f"output folder does not exist: {Path(report).parent}")
         refuse_overwrite(report, *inputs)
         refuse_overwrite(Path(report).with_suffix(".md"), *inputs)
+    if figures_dir is not None:  # its figures have fixed names
+        refuse_folder_of_inputs(figures_dir, inputs, "figures folder")
     groups = groups_from_manifest(m, max_pixels, progress)
+    usable = sum(int(g.valid.sum()) for g in groups)
+    if usable < MIN_USABLE:  # nothing between black and white: nothing to fit or score
+        raise ValueError(f"manifest {m.path}: only {usable} sampled pixel values lie between "
+                         "the black and white clipping codes; the images are saturated or "
+                         "black")
     result = study_groups(m.kind, groups, alpha=alpha, progress=progress, splits=splits)
     names = []
     if figures_dir is not None:

@@ -28,8 +28,14 @@ def series_groups(images: list[np.ndarray], exposures: list[float],
     if len(images) != len(exposures) or len(images) < 2:
         raise ValueError("an exposure series needs at least 2 images, one exposure each")
     f_numbers = f_numbers or [None] * len(images)
+    if len({f is None for f in f_numbers}) > 1:  # else exposures in two units get mixed
+        raise ValueError("give an F-number for every image of the series or for none")
     h = [e / (f * f if f else 1.0) for e, f in zip(exposures, f_numbers, strict=True)]
     order = np.argsort(h)[::-1]  # longest first
+    for a, b in zip(order[:-1], order[1:], strict=True):
+        if h[a] == h[b]:  # a ratio of 1 says nothing of the response
+            raise ValueError(f"images {min(a, b)} and {max(a, b)} have the same exposure "
+                             f"({h[a]:g}); each image of a series needs its own")
     imgs = [as_hwc(images[i], f"image {i}") for i in order]
     h = [h[i] for i in order]
     steps = [(k, k + gap) for gap in (1, 2) for k in range(len(imgs) - gap)]
