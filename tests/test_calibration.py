@@ -279,13 +279,40 @@ def test_spline_cross_exposure_fit_recovers_an_s_curve(rng):
         e["missing"][3.5]
 
 
-def test_alpha_is_dropped_from_grey_and_colour_series(rng):
-    """Grey + alpha (2 channels) and RGBA (4): the alpha channel carries no exposure, so the
-    series keeps 1 and 3 channels (a fitted 'alpha curve' was once written for grey + alpha)."""
-    grey = [rng.integers(0, 256, (6, 5), dtype=np.uint8) for _ in range(2)]
+def test_alpha_of_grey_and_colour_files_is_no_channel(rng, tmp_path):
+    """A grey + alpha TIFF series (2 channels) is one channel of light: a curve was once
+    fitted to its alpha.  Arrays given to the API keep every channel they have."""
+    import tifffile
+
+    from clblur.calibration.series import load_series
+
     alpha = np.full((6, 5), 255, np.uint8)
-    two = ExposureSeries.create([np.dstack([g, alpha]) for g in grey], [1.0, 2.0])
-    assert two.channels == 1
-    np.testing.assert_array_equal(two.images[0][..., 0], grey[0])
+    grey = [rng.integers(0, 256, (6, 5), dtype=np.uint8) for _ in range(2)]
+    for i, g in enumerate(grey):
+        tifffile.imwrite(tmp_path / f"e{i}.tif", np.dstack([g, alpha]),
+                         photometric="minisblack", extrasamples=["unassalpha"])
+    series = load_series(tmp_path, times=[1.0, 0.5])
+    assert series.channels == 1
+    np.testing.assert_array_equal(series.images[0][..., 0], grey[0])
+    two = ExposureSeries.create([np.dstack([g, g]) for g in grey], [1.0, 2.0])
+    assert two.channels == 2  # an array's channels are its own
     rgba = ExposureSeries.create([np.dstack([g, g, g, alpha]) for g in grey], [1.0, 2.0])
     assert rgba.channels == 3
+
+
+def test_random_pixels_that_darken_as_the_exposure_grows_are_not_fitted(rng):
+    """The spline fits single pixels; a corrupt one (brighter in a shorter exposure, as
+    Memorial's blue 255s smeared by a downscale) is dropped as a patch would be: a few of
+    them bent the least-squares curve into a step (found on Memorial at 1/4 size)."""
+    from clblur.calibration.sampling import sample_series
+
+    series, _ = make_stack(gamma_offset_curve(0.03, 2.0), rng)
+    images = [im.copy() for im in series.images]
+    bad = rng.random(images[0].shape[:2]) < 0.2
+    images[-1][bad] = 250  # the shortest exposure: far brighter than every longer one
+    corrupt = ExposureSeries.create(images, series.exposures)
+    pixels = sample_series(corrupt, 64, seed=1).pixels[0]
+    hit = bad[pixels.rows, pixels.cols]
+    assert hit.sum() > 20  # the draw took corrupt pixels ...
+    assert not pixels.valid[hit].any()  # ... and none of their values is fitted
+    assert pixels.valid[~hit].any(axis=1).mean() > 0.9  # the rest are kept

@@ -194,13 +194,17 @@ def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float =
         missing = sorted(set(range(channels)) - {int(s.channel[0]) for s in sets})
         raise ValueError(f"channel(s) {missing} have no usable samples (saturated or "
                          "under-exposed everywhere)")
-    pixels = _random_pixels(stack, footprint, n_pixels, rng)
+    pixels = _random_pixels(stack, footprint, n_pixels, rng, tau_order, monotone_tolerance)
     return Sampling(sets, footprint, patch, low, high, pixels)
 
 
 def _random_pixels(stack: np.ndarray, footprint: np.ndarray, n_pixels: int,
-                   rng: np.random.Generator) -> list[SampleSet]:
-    """``n_pixels`` random pixels outside ``footprint`` (then added to it), every channel."""
+                   rng: np.random.Generator, tau_order: np.ndarray,
+                   monotone_tolerance: float) -> list[SampleSet]:
+    """``n_pixels`` random pixels outside ``footprint`` (then added to it), every channel;
+    a pixel whose value falls by more than ``monotone_tolerance`` while the exposure grows is
+    invalid in that channel, as a patch would be rejected (corrupt or moving: no response
+    curve predicts it, and in a least-squares fit a few such values bend the curve)."""
     if not isinstance(n_pixels, (int, np.integer)) or n_pixels < 0:
         raise ValueError(f"n_pixels must be a non-negative integer, got {n_pixels!r}")
     free = np.flatnonzero(~footprint.ravel())
@@ -212,6 +216,7 @@ def _random_pixels(stack: np.ndarray, footprint: np.ndarray, n_pixels: int,
     for c in range(stack.shape[3]):
         v = stack[:, rows, cols, c].T.astype(np.float64)
         valid = (v > 0.0) & (v < 1.0)
+        valid &= _monotone(v.T, valid.T, tau_order, monotone_tolerance)[:, None]
         out.append(SampleSet(v, valid, np.full(rows.size, c), rows, cols, v, v))
     return out
 
