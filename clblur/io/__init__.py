@@ -22,6 +22,7 @@ from clblur.io.images import (
     IMAGE_FORMATS,
     check_decodable,
     image_format,
+    light_channels,
     probe_image,
     read_image,
     write_image,
@@ -31,6 +32,6 @@ from clblur.io.raster import MappedRaster, as_array_like, create_tiff, is_tiff, 
 
 __all__ = ["FLO_MAGIC", "IMAGE_FORMATS", "MappedRaster", "as_array_like", "atomic_write",
            "atomic_write_text", "check_decodable", "check_output", "create_tiff", "data_dir",
-           "image_format", "is_tiff", "open_flow", "open_image", "probe_image", "read_flow",
-           "read_depth", "read_image", "read_psf", "refuse_overwrite", "resolve_inside",
-           "tmp_beside", "write_flow", "write_image"]
+           "image_format", "is_tiff", "light_channels", "open_flow", "open_image", "probe_image",
+           "read_flow", "read_depth", "read_image", "read_psf", "refuse_overwrite",
+           "resolve_inside", "tmp_beside", "write_flow", "write_image"]

@@ -9,6 +9,9 @@ Conventions
   page shape, else Pillow's lazy open) and ``read_image`` refuses files whose decoded size
   exceeds ``max_bytes`` (default: ``MAX_DECODE_PIXELS`` pixels), so a small file whose header
   claims 100000 x 100000 pixels is refused instead of exhausting memory.
+* ``read_image`` returns pixels as they are meant to be displayed: it applies the EXIF
+  Orientation tag, which the decoders ignore.  ``probe_image`` reports the stored size
+  (the same bytes, but height and width swapped for orientations 5 to 8).
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ from clblur.errors import InputError
 from clblur.io.atomic import atomic_write
 
 __all__ = ["IMAGE_FORMATS", "MAX_DECODE_PIXELS", "ImageHeader", "image_format",
-           "probe_image", "read_image", "write_image"]
+           "light_channels", "probe_image", "read_image", "write_image"]
 
 # extension -> format name; read_image/write_image dispatch on the name
 IMAGE_FORMATS = {".png": "png", ".tif": "tiff", ".tiff": "tiff", ".jpg": "jpeg",
@@ -178,7 +181,9 @@ def read_image(path: str | os.PathLike, max_bytes: int | None = None) -> np.ndar
     Returns
     -------
     numpy.ndarray
-        uint8, uint16, float32 or float64; H x W or H x W x C in RGB(A) order.
+        uint8, uint16, float32 or float64; H x W or H x W x C in RGB(A) order, turned as the
+        EXIF Orientation tag says (JPEG, PNG, WebP, TIFF): cameras store portrait shots
+        sideways and set the tag, so a bracket would otherwise mix turned and upright frames.
     """
     path = Path(path)
     if not path.is_file():
@@ -192,14 +197,136 @@ def read_image(path: str | os.PathLike, max_bytes: int | None = None) -> np.ndar
         import tifffile
 
         try:
-            img = tifffile.imread(path)
+            with tifffile.TiffFile(path) as tif:
+                img = tif.asarray()
+                orientation = _tiff_orientation(tif)
         except Exception as e:  # tifffile raises many types for corrupt files
             raise InputError(f"cannot read image {path}: {e}".splitlines()[0]) from None
     else:
         img = _read_opencv(path)
+        # after the decode, so a corrupt file is reported by its decoder as before
+        orientation = _exif_orientation(path)
     if img.dtype not in (np.uint8, np.uint16, np.float32, np.float64) or img.ndim not in (2, 3):
         raise InputError(f"unsupported image {path}: dtype {img.dtype}, shape {img.shape}")
-    return img
+    return _orient(img, orientation)
+
+
+def light_channels(image: np.ndarray) -> np.ndarray:
+    """The channels of an image read from a file that carry light: grey + alpha (2
+    channels, as a TIFF with an extra sample stores it) and RGB + alpha (4) without their
+    alpha; anything else as it is.  For measurements (calibration, study), where alpha is
+    no exposure."""
+    if image.ndim == 3 and image.shape[2] in (2, 4):
+        return image[..., :image.shape[2] - 1]
+    return image
+
+
+def _orient(img: np.ndarray, orientation: int | None) -> np.ndarray:
+    """``img`` turned as EXIF Orientation ``orientation`` says (Pillow's ``exif_transpose``);
+    rows and columns are the first two axes, so any channels and dtype."""
+    turned = {2: lambda a: a[:, ::-1],                      # flip left-right
+              3: lambda a: a[::-1, ::-1],                   # rotate 180
+              4: lambda a: a[::-1],                         # flip top-bottom
+              5: lambda a: np.swapaxes(a, 0, 1),            # transpose
+              6: lambda a: np.rot90(a, -1),                 # rotate 90 clockwise
+              7: lambda a: np.swapaxes(a[::-1, ::-1], 0, 1),  # transverse
+              8: lambda a: np.rot90(a, 1)}.get(orientation)  # rotate 90 counter-clockwise
+    return img if turned is None else np.ascontiguousarray(turned(img))
+
+
+def _tiff_orientation(tif) -> int | None:
+    """The Orientation tag of a TIFF's first page, when its pixels are rows x columns
+    (x samples); None for stacks and planar layouts, whose first axes are not the image's."""
+    try:
+        if tif.series[0].axes not in ("YX", "YXS"):
+            return None
+        tag = tif.pages[0].tags.get(0x0112)
+        value = int(tag.value) if tag is not None else None
+    except Exception:  # a malformed tag is no orientation: the pixels decoded fine
+        return None
+    return value if value is not None and 1 <= value <= 8 else None
+
+
+def _exif_orientation(path: Path) -> int | None:
+    """The EXIF Orientation tag (1..8) of a JPEG, PNG or WebP, else None (absent, corrupt or
+    out of range).  Only the headers are read: the EXIF block is found by walking the
+    file's segments or chunks, then parsed by Pillow's ``Exif``.  (``Image.open`` is not
+    used: it refuses images over ~179 Mpixel as bombs, and a PNG's ``getexif()`` decodes
+    the whole image when the file has no eXIf chunk before its pixels.)"""
+    try:
+        with path.open("rb") as f:
+            blob = {"jpeg": _jpeg_exif, "png": _png_exif, "webp": _webp_exif}.get(
+                image_format(path), lambda f: None)(f)
+        if not blob:
+            return None
+        from PIL import Image
+
+        with warnings.catch_warnings():  # "Corrupt EXIF data" would reach stderr
+            warnings.simplefilter("ignore")
+            exif = Image.Exif()
+            exif.load(blob)
+            value = exif.get(0x0112)
+    except Exception:  # corrupt EXIF is no orientation: the pixels decoded fine
+        return None
+    return value if isinstance(value, int) and 1 <= value <= 8 else None
+
+
+def _jpeg_exif(f) -> bytes | None:
+    """The payload of a JPEG's first APP1 "Exif" segment; the markers are walked up to the
+    start of scan (only entropy-coded data follows it)."""
+    if f.read(2) != b"\xff\xd8":
+        return None
+    while True:
+        b = f.read(1)
+        while b and b != b"\xff":  # skip to the next marker
+            b = f.read(1)
+        while b == b"\xff":
+            b = f.read(1)
+        if not b or b[0] in (0xDA, 0xD9):  # start of scan, end of image
+            return None
+        marker = b[0]
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            continue
+        raw = f.read(2)
+        if len(raw) < 2:
+            return None
+        (length,) = struct.unpack(">H", raw)
+        if length < 2:
+            return None
+        if marker == 0xE1:
+            seg = f.read(length - 2)
+            if seg.startswith(b"Exif\0\0"):
+                return seg
+        else:
+            f.seek(length - 2, os.SEEK_CUR)
+
+
+def _png_exif(f) -> bytes | None:
+    """The data of a PNG's eXIf chunk.  Chunks are skipped by seeking up to IEND, as eXIf
+    may follow the image data (Pillow, the reference here, reads it there too)."""
+    if f.read(8) != b"\x89PNG\r\n\x1a\n":
+        return None
+    while len(head := f.read(8)) == 8:
+        length, kind = struct.unpack(">I4s", head)
+        if kind == b"eXIf":
+            return f.read(length)
+        if kind == b"IEND":
+            return None
+        f.seek(length + 4, os.SEEK_CUR)  # data and CRC
+    return None
+
+
+def _webp_exif(f) -> bytes | None:
+    """The data of a WebP's EXIF chunk (RIFF chunks, each padded to an even length)."""
+    head = f.read(12)
+    if len(head) < 12 or head[:4] != b"RIFF" or head[8:] != b"WEBP":
+        return None
+    while len(head := f.read(8)) == 8:
+        kind, length = struct.unpack("<4sI", head)
+        if kind == b"EXIF":
+            return f.read(length)
+        f.seek(length + (length & 1), os.SEEK_CUR)
+    return None
 
 
 def _has_jpeg_end(path: Path) -> bool:
