@@ -451,11 +451,15 @@ def test_an_estimate_on_its_bound_lies_inside_its_interval():
     assert intervals(sc.groups, p, "black_level", 3)["black_level_codes"][0] == 0.0
 
 
-def test_study_drops_the_alpha_of_grey_and_colour_images():
-    from clblur.study.histograms import as_hwc
+def test_study_reads_the_light_of_grey_and_colour_files(tmp_path):
+    import tifffile
+
+    from clblur.study.run import _read_light
 
     grey = np.arange(12, dtype=np.uint8).reshape(3, 4)
     alpha = np.full((3, 4), 255, np.uint8)
-    np.testing.assert_array_equal(as_hwc(np.dstack([grey, alpha]), "x"), grey[..., None])
-    assert as_hwc(np.dstack([grey, grey, grey, alpha]), "x").shape == (3, 4, 3)
-    assert as_hwc(grey, "x").shape == (3, 4, 1)
+    tifffile.imwrite(tmp_path / "la.tif", np.dstack([grey, alpha]), photometric="minisblack",
+                     extrasamples=["unassalpha"])
+    write_image(tmp_path / "rgba.png", np.dstack([grey, grey, grey, alpha]))
+    np.testing.assert_array_equal(_read_light(tmp_path / "la.tif"), grey[..., None])
+    assert _read_light(tmp_path / "rgba.png").shape == (3, 4, 3)

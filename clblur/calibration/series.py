@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clblur.io import read_image, resolve_inside
+from clblur.io import light_channels, read_image, resolve_inside
 from clblur.manifest import load_manifest
 from clblur.pixels import imax
 
@@ -114,9 +114,7 @@ def _as_hwc(im: np.ndarray, index: int) -> np.ndarray:
         return im[:, :, None]
     if im.ndim != 3:
         raise ValueError(f"image {index}: expected H x W or H x W x C, got shape {im.shape}")
-    if im.shape[2] in (2, 4):  # grey + alpha, RGB + alpha: alpha carries no exposure
-        return im[:, :, :im.shape[2] - 1]
-    return im
+    return im[:, :, :3] if im.shape[2] == 4 else im  # alpha carries no exposure
 
 
 def _check_times(times, n: int) -> np.ndarray:
@@ -205,7 +203,7 @@ def load_series(source: str | os.PathLike, times=None) -> ExposureSeries:
         if m.kind != "exposure-series":
             raise ValueError(f"manifest {source} is of kind {m.kind!r}, expected "
                              "'exposure-series'")
-        return ExposureSeries.create([read_image(e.path) for e in m.images],
+        return ExposureSeries.create([light_channels(read_image(e.path)) for e in m.images],
                                      [e.exposure for e in m.images],
                                      [e.f_number for e in m.images],
                                      [e.path.name for e in m.images])
@@ -250,5 +248,6 @@ def load_series(source: str | os.PathLike, times=None) -> ExposureSeries:
             if len(times) != len(files):
                 raise ValueError(f"times file {times_path} lists {len(times)} times for "
                                  f"{len(files)} images in {source}")
-    return ExposureSeries.create([read_image(p) for p in files], list(times), f_numbers,
+    return ExposureSeries.create([light_channels(read_image(p)) for p in files], list(times),
+                                 f_numbers,
                                  [p.name for p in files])

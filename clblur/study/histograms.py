@@ -161,6 +161,4 @@ def as_hwc(image: np.ndarray, what: str) -> np.ndarray:
         return image[..., None]
     if image.ndim != 3:
         raise ValueError(f"{what} must be H x W or H x W x C, got shape {image.shape}")
-    if image.shape[2] == 2:  # grey + alpha: alpha carries no light
-        return image[..., :1]
     return image[..., :3]

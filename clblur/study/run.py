@@ -8,7 +8,14 @@ from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
-from clblur.io import atomic_write_text, read_flow, read_image, read_psf, refuse_overwrite
+from clblur.io import (
+    atomic_write_text,
+    light_channels,
+    read_flow,
+    read_image,
+    read_psf,
+    refuse_overwrite,
+)
 from clblur.io.paths import refuse_folder_of_inputs
 from clblur.manifest import Manifest, load_manifest, manifest_inputs
 from clblur.study.model import Group
@@ -35,13 +42,18 @@ class StudyResult:
 MIN_USABLE = 100
 
 
+def _read_light(path: str | os.PathLike):
+    """An image file's light channels (alpha is no light: RGBA, and grey + alpha)."""
+    return light_channels(read_image(path))
+
+
 def groups_from_manifest(manifest: Manifest, max_pixels: int = DEFAULT_PIXELS,
                          progress: bool = False) -> list[Group]:
     """Read the manifest's images and build the study groups of its kind."""
     from tqdm import tqdm
 
     if manifest.kind == "exposure-series":
-        imgs = [read_image(e.path) for e in manifest.images]
+        imgs = [_read_light(e.path) for e in manifest.images]
         return series_groups(imgs, [e.exposure for e in manifest.images],
                              [e.f_number for e in manifest.images], max_pixels=max_pixels)
     if manifest.kind == "blur-pair":
@@ -54,12 +66,12 @@ def groups_from_manifest(manifest: Manifest, max_pixels: int = DEFAULT_PIXELS,
                 motion = read_flow(p.flow)
             else:
                 motion = read_psf(p.psf)
-            out.append(pair_group(read_image(p.static), read_image(p.blurred), motion,
+            out.append(pair_group(_read_light(p.static), _read_light(p.blurred), motion,
                                   anchor=p.anchor, exposure_ratio=p.exposure_ratio,
                                   max_pixels=per, name=f"pair{i}:{Path(p.blurred).name}"))
         return out
     per = max(1000, max_pixels // len(manifest.stacks))
-    return [stack_group([read_image(f) for f in s.frames], read_image(s.long), max_pixels=per,
+    return [stack_group([_read_light(f) for f in s.frames], _read_light(s.long), max_pixels=per,
                         name=f"stack{i}:{Path(s.long).name}")
             for i, s in enumerate(tqdm(manifest.stacks, desc="stacks", disable=not progress))]
 
