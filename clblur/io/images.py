@@ -74,31 +74,43 @@ def _png_header(head: bytes) -> ImageHeader | None:
 _SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
 
 
-def _jpeg_header(f) -> ImageHeader | None:
+def _jpeg_segments(f):
+    """The segments of a JPEG up to its start of scan (only entropy-coded data follows it):
+    yields ``(marker, length)`` with ``f`` at the segment's payload (``length - 2`` bytes);
+    a segment the caller does not read is skipped.  Stops at a malformed stream."""
     if f.read(2) != b"\xff\xd8":
-        return None
+        return
     while True:
         b = f.read(1)
         while b and b != b"\xff":  # skip to the next marker
             b = f.read(1)
         while b == b"\xff":
             b = f.read(1)
-        if not b:
-            return None
+        if not b or b[0] in (0xDA, 0xD9):  # start of scan, end of image
+            return
         marker = b[0]
-        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:  # markers without a length
             continue
         raw = f.read(2)
         if len(raw) < 2:
-            return None
+            return
         (length,) = struct.unpack(">H", raw)
+        if length < 2:
+            return
+        start = f.tell()
+        yield marker, length
+        f.seek(start + length - 2)
+
+
+def _jpeg_header(f) -> ImageHeader | None:
+    for marker, _ in _jpeg_segments(f):
         if marker in _SOF:
             seg = f.read(6)
             if len(seg) < 6:
                 return None
             precision, h, w, n = struct.unpack(">BHHB", seg)
             return ImageHeader(h, w, 3 if n >= 3 else 1, 2 if precision > 8 else 1)
-        f.seek(length - 2, os.SEEK_CUR)
+    return None
 
 
 def probe_image(path: str | os.PathLike) -> ImageHeader:
@@ -272,33 +284,13 @@ def _exif_orientation(path: Path) -> int | None:
 
 
 def _jpeg_exif(f) -> bytes | None:
-    """The payload of a JPEG's first APP1 "Exif" segment; the markers are walked up to the
-    start of scan (only entropy-coded data follows it)."""
-    if f.read(2) != b"\xff\xd8":
-        return None
-    while True:
-        b = f.read(1)
-        while b and b != b"\xff":  # skip to the next marker
-            b = f.read(1)
-        while b == b"\xff":
-            b = f.read(1)
-        if not b or b[0] in (0xDA, 0xD9):  # start of scan, end of image
-            return None
-        marker = b[0]
-        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
-            continue
-        raw = f.read(2)
-        if len(raw) < 2:
-            return None
-        (length,) = struct.unpack(">H", raw)
-        if length < 2:
-            return None
+    """The payload of a JPEG's first APP1 "Exif" segment."""
+    for marker, length in _jpeg_segments(f):
         if marker == 0xE1:
             seg = f.read(length - 2)
             if seg.startswith(b"Exif\0\0"):
                 return seg
-        else:
-            f.seek(length - 2, os.SEEK_CUR)
+    return None
 
 
 def _png_exif(f) -> bytes | None:
