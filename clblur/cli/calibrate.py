@@ -131,14 +131,15 @@ def run(args: argparse.Namespace) -> int:
     flat = "flat" in evaluations[best]
     print("held-out RMSE (code values) on all valid pixels, target darker / brighter / both"
           + ("; flat pixels only, darker" if flat else "") + "; AIC")
-    print("model         " + "".join(f"{str(g) + '-stop':>22}" for g in gaps)
+    # every cell starts with a space: a 16-bit series' errors run to thousands of codes
+    print("model         " + "".join(f"{str(g) + '-stop':>27}" for g in gaps)
           + ("".join(f"{str(g) + '-stop flat':>13}" for g in gaps) if flat else "")
           + "         AIC")
     for n, e in evaluations.items():
-        cells = "".join(f"{e['rmse_darker'][g]:8.2f}{e['rmse_brighter'][g]:7.2f}"
-                        f"{e['rmse'][g]:7.2f}" for g in gaps)
+        cells = "".join(f" {e['rmse_darker'][g]:8.2f} {e['rmse_brighter'][g]:8.2f}"
+                        f" {e['rmse'][g]:8.2f}" for g in gaps)
         if flat:
-            cells += "".join(f"{e['flat']['rmse_darker'][g]:13.2f}" for g in gaps)
+            cells += "".join(f" {e['flat']['rmse_darker'][g]:12.2f}" for g in gaps)
         print(f"{n:<14}{cells}  {e['aic']:10.0f}" + ("   <- best" if n == best else ""))
     for line in nan_reasons(evaluations[best]):  # say why a column is nan
         print(line)
