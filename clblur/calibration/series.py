@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections import Counter
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -26,7 +27,7 @@ from clblur.manifest import load_manifest
 from clblur.pixels import imax
 
 __all__ = ["IMAGE_SUFFIXES", "ExposureSeries", "exif_exposure", "load_series", "parse_time",
-           "read_times_file"]
+           "read_times_file", "series_files"]
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
 _EXIF_IFD, _EXPOSURE_TIME, _F_NUMBER = 0x8769, 0x829A, 0x829D
@@ -188,6 +189,11 @@ def exif_exposure(path: Path) -> tuple[float | None, float | None]:
     return get(_EXPOSURE_TIME), get(_F_NUMBER)
 
 
+def series_files(folder: Path) -> list[Path]:
+    """The images of an exposure series held in ``folder`` (by suffix, name order)."""
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+
+
 def load_series(source: str | os.PathLike, times=None) -> ExposureSeries:
     """Load an exposure series from a manifest (``.json``) or a folder of images.
 
@@ -210,7 +216,7 @@ def load_series(source: str | os.PathLike, times=None) -> ExposureSeries:
     if not source.is_dir():
         raise ValueError(f"exposure series not found: {source} (give a manifest or a folder)")
     # every image listed must lie in the folder (a symlink leading out of it is refused)
-    files = sorted(p for p in source.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    files = series_files(source)
     for p in files:
         resolve_inside(source, p.name, f"exposure series {source}: image")
     if not files:
@@ -233,7 +239,7 @@ def load_series(source: str | os.PathLike, times=None) -> ExposureSeries:
         if all(name is not None for name, _ in rows) and rows:
             by_name = dict(rows)
             if len(by_name) != len(rows):
-                twice = sorted({n for n, _ in rows if sum(m == n for m, _ in rows) > 1})
+                twice = sorted(n for n, k in Counter(n for n, _ in rows).items() if k > 1)
                 raise ValueError(f"times file {times_path} names {', '.join(twice[:3])} "
                                  "more than once")
             files = [p for p in files if p.name in by_name]

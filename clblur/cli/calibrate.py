@@ -77,20 +77,20 @@ def _tolerance(text: str) -> float | None:
 
 def check_outputs(args: argparse.Namespace) -> None:
     """Every output path must be writable before the fitting starts (it takes minutes)."""
-    from clblur.calibration.series import IMAGE_SUFFIXES
-    from clblur.io import check_output
+    from clblur.calibration.series import series_files
+    from clblur.io import check_output, refuse_overwrite
     from clblur.io.paths import refuse_folder_of_inputs
     from clblur.manifest import load_manifest, manifest_inputs
 
     check_output(args.output, args.source, args.times)
     source = Path(args.source)
     if source.is_dir():  # the images the series will read: no output may replace one
-        inputs = [q for q in source.iterdir() if q.suffix.lower() in IMAGE_SUFFIXES]
+        inputs = series_files(source)
     elif source.is_file():
         inputs = manifest_inputs(load_manifest(source))
     else:
         inputs = []
-    check_output(args.output, *inputs)
+    refuse_overwrite(args.output, *inputs)
     if args.report is not None:
         report = Path(args.report)
         if report.exists() and not report.is_dir():
