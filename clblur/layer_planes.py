@@ -160,7 +160,7 @@ def harmonic_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     """
     import cv2
 
-    h, w, c = values.shape
+    c = values.shape[2]
     weight = known.astype(np.float32)
     # one array per level: the values premultiplied by the weight, and the weight last
     level = np.concatenate([values * weight[..., None], weight[..., None]], axis=2)
