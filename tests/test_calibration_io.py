@@ -55,6 +55,33 @@ def test_times_file_naming_images(tmp_path):
     (tmp_path / "bad.txt").write_text("e00.tif 1\n0.5\n")
     with pytest.raises(ValueError, match="name every image or none"):
         load_series(tmp_path / "s", tmp_path / "bad.txt")
+    # an image the file forgets is refused, not silently left out of the series
+    (tmp_path / "partial.txt").write_text("e00.tif 1\ne01.tif 0.5\n")
+    with pytest.raises(ValueError, match="gives no time for e02.tif"):
+        load_series(tmp_path / "s", tmp_path / "partial.txt")
+
+
+def test_binary_times_file_is_named(tmp_path):
+    images, _ = ramp_stack(3)
+    write_folder(tmp_path / "s", images)
+    (tmp_path / "t.bin").write_bytes(bytes(range(256)))
+    with pytest.raises(ValueError, match="is not a text file"):
+        load_series(tmp_path / "s", tmp_path / "t.bin")
+
+
+def test_two_image_series_is_scored_with_the_full_fit(tmp_path, capsys):
+    # leaving one of two exposures out leaves nothing to refit: the full fit is scored and
+    # the table says so (it used to end in numpy's "zero-size array" error)
+    images, _ = ramp_stack(2, shape=(40, 60))
+    write_folder(tmp_path / "s", images)
+    (tmp_path / "t.txt").write_text("1\n1/2\n")
+    code = main(["calibrate", str(tmp_path / "s"), "--times", str(tmp_path / "t.txt"),
+                 "--model", "exp", "-o", str(tmp_path / "r.json"), "--samples", "64",
+                 "--gaps", "1", "--report", str(tmp_path / "rep"), "--quiet"])
+    out = capsys.readouterr().out
+    assert code == 0 and "cannot be refitted" in out
+    report = (tmp_path / "rep" / "report.md").read_text()
+    assert "the model fitted on all images" in report and "images 1 stop away" in report
 
 
 def test_manifest_with_f_numbers_and_uint16(tmp_path):

@@ -63,10 +63,12 @@ def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=(1, 4), *,
     ``max_pixels`` scores a random subset of the held-out pixels (faster; the same subset for
     every pair).  Returns ``{"model", "shared", "rmse": {gap: rmse}, "rmse_per_channel":
     {gap: [...]}, "rmse_darker": {gap: rmse}, "rmse_brighter": {gap: rmse}, "n_values":
-    {gap: n}, "n_pairs": {gap: n}, "flat": {"rmse", "rmse_darker", "rmse_brighter",
-    "n_values"} (flat pixels only; absent when ``flat_tolerance`` is None), "missing":
-    {gap: reason}, "log_likelihood", "n_params", "aic", "bic", "rmse_fit"}``; a gap with no
-    pair gets RMSE NaN and its reason in ``missing``.
+    {gap: n}, "n_pairs": {gap: n}, "refit" (False when ``refit`` is or the series has only 2
+    images), "valid" ([low, high] of full scale a scored value lies in), "flat_tolerance",
+    "flat": {"rmse", "rmse_darker", "rmse_brighter", "n_values"} (flat pixels only; absent
+    when ``flat_tolerance`` is None), "missing": {gap: reason}, "log_likelihood", "n_params",
+    "aic", "bic", "rmse_fit"}``; a gap with no pair gets RMSE NaN and its reason in
+    ``missing``.
     """
     gaps = tuple(float(g) for g in gaps)
     if not gaps or any(g <= 0 for g in gaps):
@@ -75,6 +77,9 @@ def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=(1, 4), *,
         raise ValueError(f"valid range needs 0 <= low < high <= 1, got {low}, {high}")
     stops = np.log2(series.relative_exposures())
     n, ch = len(series.images), series.channels
+    # Leaving an exposure out of a 2-image series leaves nothing to fit: score the full fit
+    # (slightly optimistic) and say so in the result rather than fail.
+    refit = refit and n > 2
     coords = np.flatnonzero(~fit_result.sampling.footprint.ravel())
     if max_pixels is not None and coords.size > max_pixels:
         coords = np.sort(np.random.default_rng(seed).choice(coords, max_pixels, replace=False))
@@ -115,7 +120,8 @@ def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=(1, 4), *,
     def rmse(s, k):
         return float(np.sqrt(s / k)) if k else float("nan")
 
-    out = {"model": fit_result.model, "shared": fit_result.shared, "rmse": {},
+    out = {"model": fit_result.model, "shared": fit_result.shared, "refit": refit,
+           "valid": [low, high], "flat_tolerance": flat_tolerance, "rmse": {},
            "rmse_per_channel": {}, "rmse_darker": {}, "rmse_brighter": {}, "n_values": {},
            "n_pairs": {}, "missing": {}}
     if flat is not None:

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from clblur.calibration.evaluate import EVAL_HIGH, EVAL_LOW, FLAT_TOLERANCE
 from clblur.calibration.fitting import LIKELIHOOD_LOW, ResponseFit, fit_radiances
 from clblur.calibration.series import ExposureSeries
 from clblur.io import atomic_write, atomic_write_text
@@ -239,16 +240,24 @@ def write_report(folder: str | Path, series: ExposureSeries, fits: dict[str, Res
         lines += ["Command:", "", "```", command, "```", ""]
     missing = {g: why for e in evaluations.values() for g, why in e.get("missing", {}).items()}
     if evaluations:
+        refitted = all(e.get("refit", True) for e in evaluations.values())
+        held_out = ("the model fitted without it (leave-one-exposure-out)" if refitted else
+                    "the model fitted on all images (no refit: `--no-refit`, or a series of "
+                    "2 images, which leaves nothing to fit without one)")
+        low, high = next(iter(evaluations.values())).get("valid", (EVAL_LOW, EVAL_HIGH))
+        full = series.full_scale
+        stops = " and ".join(f"{g:g}" for g in gaps) + (" stop" if gaps == [1] else " stops")
+        flat_dn = next(iter(evaluations.values())).get("flat_tolerance") or FLAT_TOLERANCE
         lines += [f"*{g}-stop columns are empty: {why}*" for g, why in missing.items()]
         lines += ["## Held-out prediction (code values) and information criteria", "",
                   comparison_table(evaluations, gaps), "",
-                  "RMSE in code values: predicting each image from the images 1 and 4 "
-                  "stops away through the model fitted without it (leave-one-exposure-out "
-                  "unless `--no-refit`); every pixel outside the fitting samples that is valid "
-                  "(codes 3..252 of 255) in both images, edges and textures included; the "
+                  f"RMSE in code values: predicting each image from the images {stops} "
+                  f"away through {held_out}; every pixel outside the fitting samples "
+                  f"that is valid (codes {math.ceil(low * full):g}..{math.ceil(high * full) - 1:g}"
+                  f" of {full:g}) in both images, edges and textures included; the "
                   "*flat only* columns keep pixels whose 3 x 3 neighbourhood spans at most "
-                  "8 DN in both images (`clblur.calibration.evaluate`).  *darker*: the "
-                  "target is the shorter exposure; *brighter*: "
+                  f"{flat_dn * full:.3g} DN in both images (`clblur.calibration.evaluate`).  "
+                  "*darker*: the target is the shorter exposure; *brighter*: "
                   "the longer; *both*: pooled.  AIC/BIC: forward residuals of the sampled "
                   "patches with values in [0.1, 0.98] of full scale, the same for every "
                   "model (Gaussian noise; see `clblur.calibration.fitting`).", ""]

@@ -153,8 +153,12 @@ def read_times_file(path: str | os.PathLike) -> list[tuple[str | None, float]]:
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"times file not found: {path}")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise ValueError(f"times file {path} is not a text file") from None
     rows = []
-    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+    for lineno, line in enumerate(text.splitlines(), 1):
         line = line.split("#", 1)[0].strip()
         if not line:
             continue
@@ -242,10 +246,17 @@ def load_series(source: str | os.PathLike, times=None) -> ExposureSeries:
                 twice = sorted(n for n, k in Counter(n for n, _ in rows).items() if k > 1)
                 raise ValueError(f"times file {times_path} names {', '.join(twice[:3])} "
                                  "more than once")
-            files = [p for p in files if p.name in by_name]
             missing = sorted(set(by_name) - {p.name for p in files})
             if missing:
                 raise ValueError(f"times file names images not in {source}: {missing[:3]}")
+            # An image without a time is refused, not dropped: a forgotten line would
+            # otherwise calibrate on a silently smaller series.
+            untimed = [p.name for p in files if p.name not in by_name]
+            if untimed:
+                raise ValueError(f"times file {times_path} gives no time for "
+                                 f"{', '.join(untimed[:3])}" + (" ..." if len(untimed) > 3
+                                                                 else "")
+                                 + f" in {source}; name every image of the folder")
             times = [by_name[p.name] for p in files]
         elif any(name is not None for name, _ in rows):
             raise ValueError(f"times file {times_path}: name every image or none")

@@ -143,6 +143,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"{n:<14}{cells}  {e['aic']:10.0f}" + ("   <- best" if n == best else ""))
     for line in nan_reasons(evaluations[best]):  # say why a column is nan
         print(line)
+    if not args.no_refit and not evaluations[best]["refit"]:
+        print(f"scored with the full fits: a series of {len(result.series.images)} images "
+              "cannot be refitted without one of them (held-out refits need 3 or more)")
     chosen = result.fits[best]
     if args.shared or len(chosen.responses) == 1:
         chosen.responses[0].save(args.output)
