@@ -167,13 +167,11 @@ def read_vectors(path: str | os.PathLike, convention: str,
     vector pass, as a Blender File Output node saves it).  Returns ``{"pass": ...}`` (Blender)
     or ``{"forward": ..., "backward": ...}`` (Nuke, either may be absent).  ``layer``: a
     Blender view layer of a multilayer EXR, ``<layer>.Vector.X/Y/Z/W``."""
-    from pathlib import Path
+    from clblur.io.paths import require_file
 
     if convention not in ("blender", "nuke"):
         raise ValueError(f"unknown vector convention {convention!r}; use blender or nuke")
-    path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"vector file not found: {path}")
+    path = require_file(path, "vector")
     if path.suffix.lower() == ".npy":
         try:
             a = np.load(path, allow_pickle=False)

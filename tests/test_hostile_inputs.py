@@ -88,7 +88,8 @@ def build_corpus(root: Path) -> None:
     rng = np.random.default_rng(10)
     d = root / "in"
     for sub in ("in", "outside", "cwd", "in/flows", "in/seq", "in/series", "in/symflows",
-                "in/symseq", "in/symseries", "in/symin", "in/sub"):
+                "in/symseq", "in/symseries", "in/symin", "in/sub", "in/folder.png",
+                "in/folder.npy"):
         (root / sub).mkdir(parents=True, exist_ok=True)
     img = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
     write_image(root / "outside" / "victim.png", img)
@@ -387,6 +388,12 @@ def flow_psf_cases() -> list[Case]:
     cases += [blur(g, "--psf", f"{{in}}/{k}.npy", match="psf") for k in ("zero", "trunc")]
     cases.append(blur(g, "--psf", "{in}/zero.png", match="image"))
     cases.append(blur(g, "--psf", "{in}/psf.npy", code=0))
+    cases += [  # another format under a flow's or depth's name; a folder where a file goes
+        blur(g, "--flow", g, match="not a numpy .npy file"),
+        blur(g, "--flow", "{in}/flow.npy", "--depth", g, match="depth"),
+        blur(g, "--flow", "{in}/folder.npy", match="is a folder"),
+        blur("{in}/folder.png", "--motion=1,0", match="is a folder"),
+    ]
     return cases
 
 

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clblur.io import light_channels, read_image, resolve_inside
+from clblur.io import light_channels, read_image, require_file, resolve_inside
 from clblur.manifest import load_manifest
 from clblur.pixels import imax
 
@@ -151,8 +151,7 @@ def parse_time(value) -> float:
 def read_times_file(path: str | os.PathLike) -> list[tuple[str | None, float]]:
     """Lines ``TIME`` or ``NAME TIME`` (``#`` comments, blank lines ignored)."""
     path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"times file not found: {path}")
+    require_file(path, "times")
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError:

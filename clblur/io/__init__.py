@@ -10,7 +10,8 @@ module               holds
 ``io.raster``        ``MappedRaster``, ``open_image`` (window by window), ``create_tiff``
 ``io.flows``         ``.npy``/``.flo`` flows (``read_flow``, ``open_flow``), ``read_psf``
 ``io.atomic``        ``atomic_write`` (temp file + rename)
-``io.paths``         ``resolve_inside``, ``check_output``, ``refuse_overwrite``
+``io.paths``         ``resolve_inside``, ``check_output``, ``refuse_overwrite``,
+                     ``require_file``
 ``io.video``         video files and image sequences, frame by frame (PyAV; imported on
                      use, not by ``clblur.io``)
 ===================  ==============================================================
@@ -27,11 +28,17 @@ from clblur.io.images import (
     read_image,
     write_image,
 )
-from clblur.io.paths import check_output, data_dir, refuse_overwrite, resolve_inside
+from clblur.io.paths import (
+    check_output,
+    data_dir,
+    refuse_overwrite,
+    require_file,
+    resolve_inside,
+)
 from clblur.io.raster import MappedRaster, as_array_like, create_tiff, is_tiff, open_image
 
 __all__ = ["FLO_MAGIC", "IMAGE_FORMATS", "MappedRaster", "as_array_like", "atomic_write",
            "atomic_write_text", "check_decodable", "check_output", "create_tiff", "data_dir",
            "image_format", "is_tiff", "light_channels", "open_flow", "open_image", "probe_image",
            "read_flow", "read_depth", "read_image", "read_psf", "refuse_overwrite",
-           "resolve_inside", "tmp_beside", "write_flow", "write_image"]
+           "require_file", "resolve_inside", "tmp_beside", "write_flow", "write_image"]

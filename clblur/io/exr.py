@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from clblur.errors import InputError
+from clblur.io.paths import require_file
 
 __all__ = ["probe", "read_channels", "write_channels", "read_image", "write_image", "read_depth",
            "read_flow", "write_flow", "find_channels", "FLOW_CHANNELS"]
@@ -71,8 +72,7 @@ def read_channels(path: str | os.PathLike) -> dict[str, np.ndarray]:
     (UINT channels, e.g. object IDs, stay uint32)."""
     exr = _openexr()
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"EXR file not found: {path}")
+    require_file(path, "EXR")
     try:
         with exr.File(str(path), separate_channels=True) as f:
             chans = {name: np.array(c.pixels) for name, c in f.channels().items()}

@@ -19,6 +19,7 @@ import numpy as np
 from clblur.errors import InputError
 from clblur.io.atomic import atomic_write
 from clblur.io.images import read_image
+from clblur.io.paths import require_file
 from clblur.io.raster import MappedRaster
 
 __all__ = ["FLO_MAGIC", "MAX_PSF_SIDE", "depth_source", "open_flow", "read_depth", "read_flow",
@@ -30,8 +31,11 @@ MAX_PSF_SIDE = 4096
 
 def _open_npy(path: Path, what: str) -> np.ndarray:
     """A ``.npy`` memory-mapped (nothing read yet), with a one-line error for a bad file."""
-    if not path.is_file():
-        raise InputError(f"{what} file not found: {path}")
+    require_file(path, what)
+    with path.open("rb") as f:  # numpy's own message for another format is about pickles
+        if f.read(6) != b"\x93NUMPY":
+            kinds = " (a flow is read from .npy, .flo or .exr)" if what == "flow" else ""
+            raise InputError(f"{what} {path} is not a NumPy .npy file{kinds}")
     try:
         m = np.load(path, mmap_mode="r", allow_pickle=False)
     except Exception as e:  # numpy raises several types for corrupt headers or short data
@@ -51,8 +55,7 @@ def read_flow(path: str | os.PathLike) -> np.ndarray:
     """Read a flow field (.npy H x W x 2, Middlebury .flo, or EXR flow.x/flow.y) whole, as
     float32."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"flow file not found: {path}")
+    require_file(path, "flow")
     if path.suffix.lower() == ".exr":
         from clblur.io import exr
 
@@ -155,7 +158,4 @@ def read_depth(path: str | os.PathLike) -> np.ndarray:
     if not path.lower().endswith(".npy"):
         raise InputError(f"depth must be a .npy file (H x W) or an EXR depth channel "
                          f"(FILE.exr or FILE.exr:CHANNEL), got {path}")
-    try:
-        return np.load(path, allow_pickle=False)
-    except (OSError, ValueError, EOFError) as e:
-        raise InputError(f"cannot read depth {path}: {e}") from None
+    return np.array(_open_npy(Path(path), "depth"))

@@ -26,6 +26,7 @@ import numpy as np
 
 from clblur.errors import InputError
 from clblur.io.atomic import atomic_write
+from clblur.io.paths import require_file
 
 __all__ = ["IMAGE_FORMATS", "MAX_DECODE_PIXELS", "ImageHeader", "image_format",
            "light_channels", "probe_image", "read_image", "write_image"]
@@ -117,8 +118,7 @@ def probe_image(path: str | os.PathLike) -> ImageHeader:
     """Read an image file's header only (no pixel decoding); ``InputError`` if it has none."""
     path = Path(path)
     fmt = image_format(path)
-    if not path.is_file():
-        raise InputError(f"image file not found: {path}")
+    require_file(path, "image")
     header = None
     try:
         if fmt == "tiff":
@@ -198,8 +198,7 @@ def read_image(path: str | os.PathLike, max_bytes: int | None = None) -> np.ndar
         sideways and set the tag, so a bracket would otherwise mix turned and upright frames.
     """
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"image file not found: {path}")
+    require_file(path, "image")
     check_decodable(path, max_bytes)
     if image_format(path) == "exr":  # linear float channels: clblur.io.exr
         from clblur.io import exr

@@ -18,7 +18,7 @@ from pathlib import Path
 from clblur.errors import InputError
 
 __all__ = ["check_output", "data_dir", "refuse_folder_of_inputs", "refuse_overwrite",
-           "resolve_inside"]
+           "require_file", "resolve_inside"]
 
 PathLike = str | os.PathLike
 
@@ -60,6 +60,16 @@ def resolve_inside(roots: PathLike | Sequence[PathLike], path: PathLike, what: s
         raise InputError(f"{what} {text!r} resolves to {full}, outside {where}; paths must "
                          "stay inside that folder")
     return full
+
+
+def require_file(path: PathLike, what: str) -> Path:
+    """``path`` as a ``Path``; ``InputError`` naming ``what`` if it is missing or a folder."""
+    path = Path(path)
+    if path.is_dir():
+        raise InputError(f"{what} {path} is a folder, not a file")
+    if not path.is_file():
+        raise InputError(f"{what} file not found: {path}")
+    return path
 
 
 def refuse_overwrite(out: PathLike, *inputs: PathLike | None) -> None:

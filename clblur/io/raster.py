@@ -20,6 +20,7 @@ import numpy as np
 
 from clblur.errors import InputError
 from clblur.io.images import check_decodable, image_format, read_image
+from clblur.io.paths import require_file
 
 __all__ = ["MappedRaster", "as_array_like", "create_tiff", "is_tiff", "open_image"]
 
@@ -87,8 +88,7 @@ def open_image(path: str | os.PathLike, max_bytes: int | None = None):
     uncompressed contiguous TIFF -> ``MappedRaster``; other TIFF -> zarr over tifffile's
     store (reads only the strips/tiles a window touches); anything else read whole."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"image file not found: {path}")
+    require_file(path, "image")
     if image_format(path) != "tiff":
         return read_image(path, max_bytes)
     header = check_decodable(path)  # a TIFF needs no whole decode, but its header must parse
