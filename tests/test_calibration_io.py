@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from clblur.calibration import ExposureSeries, fit, load_series
+from clblur.calibration import ExposureSeries, calibrate, fit, load_series
 from clblur.calibration.series import parse_time
 from clblur.cli import main
 from clblur.io import write_image
@@ -215,3 +215,22 @@ def test_calibrated_curves_blur_identically_on_both_backends(opencl, tmp_path):
     ref = clblur.blur(image, (7.0, 0.0), response=result.responses, backend="numpy")
     out = clblur.blur(image, (7.0, 0.0), response=result.responses, backend="opencl")
     assert np.abs(ref.astype(int) - out.astype(int)).max() <= 1
+
+
+def test_a_model_the_series_cannot_support_is_skipped_not_fatal(tmp_path, capsys):
+    # uniform grey cards: three grey levels per channel, too few for a spline's knots or an
+    # order-6 polynomial; the other families are still fitted and ranked
+    cards = [np.full((24, 24, 3), v, np.uint8) for v in (40, 80, 160)]
+    series = ExposureSeries.create(cards, [1.0, 2.0, 4.0])
+    result = calibrate(series, ["exp", "spline", "polynomial"], gaps=(1,), n_samples=64)
+    assert set(result.skipped) == {"spline", "polynomial"}
+    assert "spline" in result.skipped["spline"] and result.best == "exp"
+    assert set(result.evaluations) == {"exp"}
+    with pytest.raises(ValueError, match="spline"):  # asked for alone, it is an error
+        calibrate(series, ["spline"], gaps=(1,), n_samples=64)
+    write_folder(tmp_path / "s", cards)
+    (tmp_path / "t.txt").write_text("1\n2\n4\n")
+    code = main(["calibrate", str(tmp_path / "s"), "--times", str(tmp_path / "t.txt"),
+                 "--model", "exp", "spline", "-o", str(tmp_path / "r.json"), "--gaps", "1",
+                 "--samples", "64", "--quiet"])
+    assert code == 0 and "skipped spline: too few" in capsys.readouterr().out

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import os
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from tqdm import tqdm
@@ -27,6 +27,7 @@ class Calibration:
     fits: dict[str, ResponseFit]
     evaluations: dict[str, dict]
     best: str
+    skipped: dict[str, str] = field(default_factory=dict)  # model -> why it could not be fit
 
     @property
     def responses(self):
@@ -60,7 +61,8 @@ def calibrate(source: ExposureSeries | str | os.PathLike, models=None, *, times=
               progress: bool = False) -> Calibration:
     """Fit ``models`` (default: all available) on the same patches, evaluate each by held-out
     prediction (``clblur.calibration.evaluate``) and pick the lowest mean RMSE over ``gaps``
-    (both directions pooled)."""
+    (both directions pooled).  A model the series cannot support is skipped, its reason in
+    ``Calibration.skipped``, unless it is the only one asked for."""
     series = source if isinstance(source, ExposureSeries) else load_series(source, times)
     names = list(dict.fromkeys(models)) if models else available_models(emor_dir)
     unknown = [m for m in names if m not in MODELS]
@@ -68,14 +70,25 @@ def calibrate(source: ExposureSeries | str | os.PathLike, models=None, *, times=
         raise ValueError(f"unknown response model(s) {unknown}; choose from {', '.join(MODELS)}")
     low = VALID_LOW if fit_low is None else min(fit_low, VALID_LOW)
     sampling = sample_series(series, n_samples, patch=patch, low=low, seed=seed)
-    fits, evaluations = {}, {}
+    fits, evaluations, skipped = {}, {}, {}
     for name in tqdm(names, desc="models", disable=not progress):
         opts = {"emor_dir": emor_dir} if name == "emor" else {}
-        fits[name] = fit(series, name, shared=shared, sampling=sampling, low=fit_low,
-                         refine_times=refine_times, progress=progress, **opts)
-        evaluations[name] = evaluate(series, fits[name], gaps=gaps, refit=refit,
-                                     max_pixels=max_pixels, low=eval_low,
-                                     flat_tolerance=flat_tolerance, seed=seed,
-                                     progress=progress)
-    best = min(names, key=lambda n: float(np.nanmean(list(evaluations[n]["rmse"].values()))))
-    return Calibration(series, fits, evaluations, best)
+        try:
+            fits[name] = fit(series, name, shared=shared, sampling=sampling, low=fit_low,
+                             refine_times=refine_times, progress=progress, **opts)
+            evaluations[name] = evaluate(series, fits[name], gaps=gaps, refit=refit,
+                                         max_pixels=max_pixels, low=eval_low,
+                                         flat_tolerance=flat_tolerance, seed=seed,
+                                         progress=progress)
+        except ValueError as e:
+            # A family the series cannot support (a spline's knots on a scene of a few grey
+            # levels) is left out of the ranking with its reason; the others still compete.
+            if len(names) == 1:
+                raise
+            fits.pop(name, None)
+            skipped[name] = str(e)
+    if not evaluations:
+        raise ValueError(f"no model could be fitted; {names[0]}: {skipped[names[0]]}")
+    fitted = [n for n in names if n in evaluations]
+    best = min(fitted, key=lambda n: float(np.nanmean(list(evaluations[n]["rmse"].values()))))
+    return Calibration(series, fits, evaluations, best, skipped)

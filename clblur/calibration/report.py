@@ -215,8 +215,10 @@ def curve_table(series: ExposureSeries, fits: dict[str, ResponseFit]) -> str:
 
 
 def write_report(folder: str | Path, series: ExposureSeries, fits: dict[str, ResponseFit],
-                 evaluations: dict[str, dict], best: str, command: str = "") -> Path:
-    """Write ``report.md``, ``evaluation.json`` and the figures into ``folder`` (created)."""
+                 evaluations: dict[str, dict], best: str, command: str = "",
+                 skipped: dict[str, str] | None = None) -> Path:
+    """Write ``report.md``, ``evaluation.json`` and the figures into ``folder`` (created);
+    ``skipped``: models that could not be fitted, with the reason."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     reference = best if best in fits else next(iter(fits))
@@ -249,6 +251,7 @@ def write_report(folder: str | Path, series: ExposureSeries, fits: dict[str, Res
         stops = " and ".join(f"{g:g}" for g in gaps) + (" stop" if gaps == [1] else " stops")
         flat_dn = next(iter(evaluations.values())).get("flat_tolerance") or FLAT_TOLERANCE
         lines += [f"*{g}-stop columns are empty: {why}*" for g, why in missing.items()]
+        lines += [f"*{name} is not ranked: {why}*" for name, why in (skipped or {}).items()]
         lines += ["## Held-out prediction (code values) and information criteria", "",
                   comparison_table(evaluations, gaps), "",
                   f"RMSE in code values: predicting each image from the images {stops} "

@@ -141,6 +141,8 @@ def run(args: argparse.Namespace) -> int:
         if flat:
             cells += "".join(f" {e['flat']['rmse_darker'][g]:12.2f}" for g in gaps)
         print(f"{n:<14}{cells}  {e['aic']:10.0f}" + ("   <- best" if n == best else ""))
+    for name, why in result.skipped.items():
+        print(f"skipped {name}: {why}")
     for line in nan_reasons(evaluations[best]):  # say why a column is nan
         print(line)
     if not args.no_refit and not evaluations[best]["refit"]:
@@ -158,6 +160,6 @@ def run(args: argparse.Namespace) -> int:
         argv = sys.argv[sys.argv.index("calibrate") + 1:] if "calibrate" in sys.argv else []
         command = "clblur calibrate " + " ".join(shlex.quote(a) for a in argv) if argv else ""
         path = write_report(args.report, result.series, result.fits, evaluations, best,
-                            command)
+                            command, result.skipped)
         print(f"wrote {path}")
     return 0
