@@ -116,6 +116,11 @@ def test_exif_fallback(tmp_path):
     write_folder(tmp_path / "png", images)
     with pytest.raises(ValueError, match="exposure times missing"):
         load_series(tmp_path / "png")
+    exif = Image.Exif()
+    exif[0x829A] = float("nan")  # a corrupt tag is named with its file
+    Image.fromarray(images[1]).save(folder / "e1.jpg", exif=exif, quality=95)
+    with pytest.raises(ValueError, match=r"not a positive time in e1.jpg \(nan\)"):
+        load_series(folder)
 
 
 @pytest.mark.parametrize("images, times, match", [

@@ -232,6 +232,11 @@ def load_series(source: str | os.PathLike, times=None) -> ExposureSeries:
             raise ValueError(f"exposure times missing: no times file given and no EXIF "
                              f"ExposureTime in {', '.join(missing[:3])}"
                              + (" ..." if len(missing) > 3 else ""))
+        bad = [f"{p.name} ({t:g})" for p, (t, _) in zip(files, found, strict=True)
+               if not (math.isfinite(t) and t > 0)]
+        if bad:
+            raise ValueError(f"EXIF ExposureTime is not a positive time in {', '.join(bad[:3])}"
+                             "; give a times file (--times)")
         times = [t for t, _ in found]
         fns = [f for _, f in found]
         f_numbers = fns if all(f is not None and math.isfinite(f) and f > 0 for f in fns) \
