@@ -152,11 +152,20 @@ def _bilinear(x, y, h, w):
 
 
 def as_hwc(image: np.ndarray, what: str) -> np.ndarray:
-    """8-bit H x W x C view of an image; the study works on 8-bit codes."""
+    """8-bit H x W x C codes of an image; the study's likelihood is written in 8-bit codes.
+
+    A 16-bit image is rounded to the nearest 8-bit code (``x / 257``): exact for 16-bit
+    files written from 8-bit data (``x * 257``); for true 16-bit data the rounding adds the
+    quantisation the model's 1/12-code variance already assumes, and the finer codes are not
+    used.
+    """
     if not isinstance(image, np.ndarray):
         raise TypeError(f"{what} must be a numpy array")
+    if image.dtype == np.uint16:
+        image = ((image.astype(np.uint32) + 128) // 257).astype(np.uint8)  # round(x / 257)
     if image.dtype != np.uint8:
-        raise ValueError(f"{what} is {image.dtype}; the study needs 8-bit images (uint8)")
+        raise ValueError(f"{what} is {image.dtype}; the study reads integer codes (uint8 or "
+                         "uint16)")
     if image.ndim == 2:
         return image[..., None]
     if image.ndim != 3:

@@ -8,6 +8,8 @@ from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from clblur.io import (
     atomic_write_text,
     light_channels,
@@ -42,15 +44,18 @@ class StudyResult:
 MIN_USABLE = 100
 
 
-def _read_light(path: str | os.PathLike):
-    """An image file's light channels (alpha is no light: RGBA, and grey + alpha)."""
-    return light_channels(read_image(path))
-
-
 def groups_from_manifest(manifest: Manifest, max_pixels: int = DEFAULT_PIXELS,
-                         progress: bool = False) -> list[Group]:
-    """Read the manifest's images and build the study groups of its kind."""
+                         progress: bool = False, dtypes: set | None = None) -> list[Group]:
+    """Read the manifest's images and build the study groups of its kind; ``dtypes``, when
+    given, collects the images' stored dtypes (the report says when 16-bit was rounded)."""
     from tqdm import tqdm
+
+    def _read_light(path: str | os.PathLike) -> np.ndarray:
+        """An image file's light channels (alpha is no light: RGBA, and grey + alpha)."""
+        image = light_channels(read_image(path))
+        if dtypes is not None:
+            dtypes.add(image.dtype.name)
+        return image
 
     if manifest.kind == "exposure-series":
         imgs = [_read_light(e.path) for e in manifest.images]
@@ -142,13 +147,17 @@ def study(manifest: str | os.PathLike | Manifest, *, report: str | os.PathLike |
         refuse_overwrite(Path(report).with_suffix(".md"), *inputs)
     if figures_dir is not None:  # its figures have fixed names
         refuse_folder_of_inputs(figures_dir, inputs, "figures folder")
-    groups = groups_from_manifest(m, max_pixels, progress)
+    dtypes: set[str] = set()
+    groups = groups_from_manifest(m, max_pixels, progress, dtypes)
     usable = sum(int(g.valid.sum()) for g in groups)
     if usable < MIN_USABLE:  # nothing between black and white: nothing to fit or score
         raise ValueError(f"manifest {m.path}: only {usable} sampled pixel values lie between "
                          "the black and white clipping codes; the images are saturated or "
                          "black")
     result = study_groups(m.kind, groups, alpha=alpha, progress=progress, splits=splits)
+    if "uint16" in dtypes:
+        result.report["codes"] = ("16-bit images rounded to 8-bit codes (x / 257) at entry; "
+                                  "the study's likelihood is written in 8-bit codes")
     names = []
     if figures_dir is not None:
         names = [str(Path(figures_dir) / n) for n in
