@@ -44,21 +44,26 @@ class StudyResult:
 MIN_USABLE = 100
 
 
+def _read_light(path: str | os.PathLike, dtypes: set[str] | None = None) -> np.ndarray:
+    """An image file's light channels (alpha is no light: RGBA, and grey + alpha); its dtype
+    is added to ``dtypes`` when given."""
+    image = light_channels(read_image(path))
+    if dtypes is not None:
+        dtypes.add(image.dtype.name)
+    return image
+
+
 def groups_from_manifest(manifest: Manifest, max_pixels: int = DEFAULT_PIXELS,
-                         progress: bool = False, dtypes: set | None = None) -> list[Group]:
+                         progress: bool = False, dtypes: set[str] | None = None) -> list[Group]:
     """Read the manifest's images and build the study groups of its kind; ``dtypes``, when
     given, collects the images' stored dtypes (the report says when 16-bit was rounded)."""
     from tqdm import tqdm
 
-    def _read_light(path: str | os.PathLike) -> np.ndarray:
-        """An image file's light channels (alpha is no light: RGBA, and grey + alpha)."""
-        image = light_channels(read_image(path))
-        if dtypes is not None:
-            dtypes.add(image.dtype.name)
-        return image
+    def read(path: str | os.PathLike) -> np.ndarray:
+        return _read_light(path, dtypes)
 
     if manifest.kind == "exposure-series":
-        imgs = [_read_light(e.path) for e in manifest.images]
+        imgs = [read(e.path) for e in manifest.images]
         return series_groups(imgs, [e.exposure for e in manifest.images],
                              [e.f_number for e in manifest.images], max_pixels=max_pixels)
     if manifest.kind == "blur-pair":
@@ -71,12 +76,12 @@ def groups_from_manifest(manifest: Manifest, max_pixels: int = DEFAULT_PIXELS,
                 motion = read_flow(p.flow)
             else:
                 motion = read_psf(p.psf)
-            out.append(pair_group(_read_light(p.static), _read_light(p.blurred), motion,
+            out.append(pair_group(read(p.static), read(p.blurred), motion,
                                   anchor=p.anchor, exposure_ratio=p.exposure_ratio,
                                   max_pixels=per, name=f"pair{i}:{Path(p.blurred).name}"))
         return out
     per = max(1000, max_pixels // len(manifest.stacks))
-    return [stack_group([_read_light(f) for f in s.frames], _read_light(s.long), max_pixels=per,
+    return [stack_group([read(f) for f in s.frames], read(s.long), max_pixels=per,
                         name=f"stack{i}:{Path(s.long).name}")
             for i, s in enumerate(tqdm(manifest.stacks, desc="stacks", disable=not progress))]
 
