@@ -170,3 +170,29 @@ def test_truncated_exif_chunk_reads_quietly(tmp_path, recwarn, capfd):
     np.testing.assert_array_equal(read_image(path), _rgb(90))
     assert not [str(w.message) for w in recwarn]
     assert capfd.readouterr().err == ""
+
+
+@pytest.mark.parametrize("layout", ["contiguous", "tiled"])
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_tiff_windows_read_upright(tmp_path, orientation, layout):
+    # open_image (the window-by-window path of large images) turns a TIFF as read_image does,
+    # window by window: mapped (uncompressed) and through zarr (tiled, compressed)
+    tifffile = pytest.importorskip("tifffile")
+    if layout == "tiled":
+        pytest.importorskip("zarr")
+    from clblur.io import open_image
+
+    stored = np.random.default_rng(orientation).integers(0, 65536, (40, 56, 3), np.uint16)
+    path = tmp_path / f"o{orientation}.tif"
+    extra = {"tile": (16, 16), "compression": "zlib"} if layout == "tiled" else {}
+    tifffile.imwrite(path, stored, photometric="rgb", **extra,
+                     extratags=[(0x0112, "H", 1, orientation, True)])
+    whole = read_image(path)
+    raster = open_image(path)
+    assert tuple(raster.shape) == whole.shape and np.dtype(raster.dtype) == whole.dtype
+    windows = [(slice(None), slice(None)), (slice(3, 17), slice(5, 30)),
+               (slice(0, 1), slice(-9, None)), (slice(20, 20), slice(2, 9)),
+               (7, slice(4, 11)), (slice(1, 6), -2), (slice(2, 13), slice(3, 8), 1),
+               (slice(2, 13), slice(3, 8), slice(0, 2))]
+    for key in windows:
+        np.testing.assert_array_equal(raster[key], whole[key], err_msg=str(key))

@@ -183,6 +183,23 @@ def test_blur_file_compressed_tiff_and_png(rng, tmp_path):
     np.testing.assert_array_equal(read_image(tmp_path / "p_out.tif"), ref)
 
 
+def test_blur_file_turns_a_sideways_tiff_window_by_window(rng, tmp_path):
+    # a TIFF stored sideways (Orientation 6: rotate 90 clockwise) is blurred upright, as the
+    # in-memory blur of read_image sees it, with the flow given in the upright frame
+    stored = _image(rng, (38, 45, 3))
+    src = tmp_path / "side.tif"
+    tifffile.imwrite(src, stored, photometric="rgb", extratags=[(0x0112, "H", 1, 6, True)])
+    upright = read_image(src)
+    assert upright.shape == (45, 38, 3)
+    flow = _cross_tile_flow(rng, 45, 38)
+    write_flow(tmp_path / "f.npy", flow)
+    run = blur_file(src, tmp_path / "out.tif", str(tmp_path / "f.npy"), backend="numpy",
+                    tile=16)
+    assert run.tiles == 9
+    np.testing.assert_array_equal(read_image(tmp_path / "out.tif"),
+                                  clblur.blur(upright, flow, backend="numpy"))
+
+
 def test_blur_file_failure_leaves_no_output(rng, tmp_path):
     img = _image(rng, (20, 20, 3))
     tifffile.imwrite(tmp_path / "in.tif", img)

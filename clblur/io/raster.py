@@ -19,10 +19,17 @@ from pathlib import Path
 import numpy as np
 
 from clblur.errors import InputError
-from clblur.io.images import check_decodable, image_format, read_image
+from clblur.io.images import (
+    _orient,
+    _tiff_orientation,
+    check_decodable,
+    image_format,
+    read_image,
+)
 from clblur.io.paths import require_file
 
-__all__ = ["MappedRaster", "as_array_like", "create_tiff", "is_tiff", "open_image"]
+__all__ = ["MappedRaster", "OrientedRaster", "as_array_like", "create_tiff", "is_tiff",
+           "open_image"]
 
 
 class MappedRaster:
@@ -67,6 +74,60 @@ class MappedRaster:
             del m
 
 
+class OrientedRaster:
+    """A stored raster seen turned as its EXIF/TIFF Orientation tag says (2..8), window by
+    window: a window of the turned image is read as the one stored window it comes from,
+    then turned (``clblur.io.images._orient``), so a sideways-stored TIFF reads upright
+    without being decoded whole.  Keys: slices of step 1 (or integers) on rows and columns,
+    then anything for the channels."""
+
+    # orientation -> (rows and columns swapped, stored rows reversed, stored columns reversed)
+    _TURN = {2: (False, False, True), 3: (False, True, True), 4: (False, True, False),
+             5: (True, False, False), 6: (True, True, False), 7: (True, True, True),
+             8: (True, False, True)}
+
+    def __init__(self, base, orientation: int):
+        if orientation not in self._TURN:
+            raise ValueError(f"orientation must be 2..8, got {orientation!r}")
+        self.base, self.orientation = base, orientation
+        self.dtype = np.dtype(base.dtype)
+        shape = tuple(int(s) for s in base.shape)
+        swap = self._TURN[orientation][0]
+        self.shape = ((shape[1], shape[0]) if swap else shape[:2]) + shape[2:]
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
+
+    def __getitem__(self, key) -> np.ndarray:
+        key = key if isinstance(key, tuple) else (key,)
+        if Ellipsis in key[:2]:
+            raise TypeError("OrientedRaster takes row and column slices, not Ellipsis")
+        key = key + (slice(None),) * max(0, 2 - len(key))
+        spans, squeeze = [], []
+        for axis, k in enumerate(key[:2]):
+            if isinstance(k, (int, np.integer)):
+                k = int(k) + self.shape[axis] if k < 0 else int(k)
+                if not 0 <= k < self.shape[axis]:
+                    raise IndexError(f"index {k} is out of bounds for axis {axis}")
+                k, _ = slice(k, k + 1), squeeze.append(axis)
+            start, stop, step = k.indices(self.shape[axis])
+            if step != 1:
+                raise TypeError("OrientedRaster reads windows of step 1")
+            spans.append((start, max(start, stop)))
+        swap, flip_rows, flip_cols = self._TURN[self.orientation]
+        stored = spans[::-1] if swap else spans  # stored rows, stored columns
+        h, w = self.base.shape[:2]
+        (r0, r1), (c0, c1) = stored
+        if flip_rows:
+            r0, r1 = h - r1, h - r0
+        if flip_cols:
+            c0, c1 = w - c1, w - c0
+        block = np.asarray(self.base[r0:r1, c0:c1])
+        out = _orient(block, self.orientation)[(slice(None), slice(None)) + key[2:]]
+        return out.squeeze(axis=tuple(squeeze)) if squeeze else out
+
+
 def as_array_like(array):
     """A long-lived ``np.memmap`` becomes a ``MappedRaster`` of the same file; others pass."""
     if isinstance(array, np.memmap) and getattr(array, "filename", None) \
@@ -86,7 +147,9 @@ def is_tiff(path: str | os.PathLike) -> bool:
 def open_image(path: str | os.PathLike, max_bytes: int | None = None):
     """An image file as an array-like, read window by window where the format allows:
     uncompressed contiguous TIFF -> ``MappedRaster``; other TIFF -> zarr over tifffile's
-    store (reads only the strips/tiles a window touches); anything else read whole."""
+    store (reads only the strips/tiles a window touches); anything else read whole.  A TIFF
+    whose Orientation tag turns it is seen upright through ``OrientedRaster``, as
+    ``read_image`` returns it."""
     path = Path(path)
     require_file(path, "image")
     if image_format(path) != "tiff":
@@ -96,6 +159,7 @@ def open_image(path: str | os.PathLike, max_bytes: int | None = None):
 
     try:
         with tifffile.TiffFile(path) as tif:
+            orientation = _tiff_orientation(tif)
             axes = tif.series[0].axes
             page = tif.series[0].pages[0]
             end = max((o + c for o, c in zip(page.dataoffsets, page.databytecounts,
@@ -108,11 +172,14 @@ def open_image(path: str | os.PathLike, max_bytes: int | None = None):
     if axes not in ("YX", "YXS"):  # e.g. planar RGB (SYX), stacks, pyramids' extra axes
         raise InputError(f"{path}: unsupported TIFF layout {axes!r}; expected rows x columns "
                          "(x samples), i.e. YX or YXS")
+    def turned(raster):  # a sideways-stored TIFF is read upright, as read_image reads it
+        return raster if orientation in (None, 1) else OrientedRaster(raster, orientation)
+
     try:
         m = tifffile.memmap(path, mode="r")
         raster = MappedRaster(path, m.dtype, m.shape, m.offset)
         del m
-        return raster
+        return turned(raster)
     except InputError:  # the pixel data runs past the end of the file
         raise InputError(f"cannot read image {path}: truncated TIFF") from None
     except ValueError:  # compressed, tiled or otherwise not mappable
@@ -122,7 +189,7 @@ def open_image(path: str | os.PathLike, max_bytes: int | None = None):
     try:
         import zarr
 
-        return zarr.open(tifffile.imread(path, aszarr=True), mode="r")
+        return turned(zarr.open(tifffile.imread(path, aszarr=True), mode="r"))
     except Exception:  # no zarr, or a layout its store cannot index: read it whole
         if max_bytes is not None and header.nbytes > max_bytes:
             raise InputError(f"{path} cannot be read window by window and decodes to "
