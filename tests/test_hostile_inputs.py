@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import tifffile
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -126,6 +127,23 @@ def build_corpus(root: Path) -> None:
         (d / f"trunc.{ext}").write_bytes(data[:len(data) // 2])
         (d / f"magic.{ext}").write_bytes(b"GIF89a\x00\x01" + bytes(rng.integers(0, 256, 300,
                                                                            dtype=np.uint8)))
+    # damage inside the pixel data, where a header check does not look
+    crc = bytearray(good["png"])
+    crc[crc.find(b"IDAT") + 10] ^= 0x55  # one flipped byte: the chunk fails its CRC
+    (d / "crc.png").write_bytes(bytes(crc))
+    texture = rng.integers(0, 256, (64, 64, 3), dtype=np.uint8)
+    write_image(d / "tex.jpg", texture)
+    scan = bytearray((d / "tex.jpg").read_bytes())
+    mid = scan.find(b"\xff\xda") + (len(scan) - scan.find(b"\xff\xda")) // 2
+    scan[mid:mid + 24] = b"\xff" * 23 + b"\x5a"  # a stray marker inside the scan
+    (d / "scan.jpg").write_bytes(bytes(scan))
+    tifffile.imwrite(d / "lzw.tif", texture, photometric="rgb", tile=(16, 16),
+                     compression="lzw")
+    lzw = bytearray((d / "lzw.tif").read_bytes())
+    with tifffile.TiffFile(d / "lzw.tif") as tif:
+        at = int(tif.pages[0].dataoffsets[5])
+    lzw[at:at + 32] = bytes(range(160, 192))
+    (d / "lzwbad.tif").write_bytes(bytes(lzw))
     (d / "headonly.png").write_bytes(good["png"][:40])
     (d / "pngas.jpg").write_bytes(good["png"])  # mislabelled: a PNG named .jpg
     (d / "bomb.png").write_bytes(_png_claiming(100000, 100000))
@@ -335,6 +353,12 @@ def image_cases() -> list[Case]:
         cases.append(blur(f"{{in}}/good.{ext}", "--motion=2,1", code=0))
     cases += [
         blur("{in}/headonly.png", "--motion=1,0", match="image"),
+        blur("{in}/crc.png", "--motion=1,0", match="crc"),
+        blur("{in}/scan.jpg", "--motion=1,0", match="jpeg"),
+        blur("{in}/lzw.tif", "--motion=1,0", code=0),
+        blur("{in}/lzw.tif", "--motion=1,0", code=0, out="{out}/o.tif"),
+        blur("{in}/lzwbad.tif", "--motion=1,0", match="corrupt tiff segment"),
+        blur("{in}/lzwbad.tif", "--motion=1,0", match="corrupt tiff segment", out="{out}/o.tif"),
         blur("{in}/bomb.png", "--motion=1,0", match="decompression bomb"),
         blur("{in}/bomb.jpg", "--motion=1,0", match="decompression bomb"),
         blur("{in}/big.png", "--motion=1,0", match="memory budget"),

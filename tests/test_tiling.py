@@ -262,3 +262,41 @@ def test_tiled_equals_untiled_property(h, w, th, tw, anchor, dx, dy, per_pixel, 
     blur_tiled(img, out, motion, anchor=anchor, backend="numpy", tile=(th, tw))
     np.testing.assert_array_equal(out, clblur.blur(img, motion, anchor=anchor,
                                                    backend="numpy"))
+
+
+@pytest.mark.parametrize("layout", [
+    {"tile": (16, 16), "compression": "lzw"}, {"rowsperstrip": 7, "compression": "zlib"},
+    {"tile": (16, 32), "compression": "jpeg"}, {"rowsperstrip": 5, "compression": "packbits"},
+])
+@pytest.mark.parametrize("channels", [1, 3])
+def test_compressed_tiff_windows_equal_the_whole_decode(rng, tmp_path, layout, channels):
+    # TiffWindows: only the segments a window touches are decoded, with any codec
+    if layout["compression"] == "jpeg" and channels == 1:
+        pytest.skip("one JPEG case is enough")
+    img = _image(rng, (45, 70, 3))[..., :channels].squeeze()
+    path = tmp_path / "c.tif"
+    tifffile.imwrite(path, img, photometric="rgb" if channels == 3 else "minisblack", **layout)
+    raster = io.open_image(path)
+    whole = read_image(path)
+    assert isinstance(raster, io.TiffWindows) and tuple(raster.shape) == whole.shape
+    for key in [(slice(None), slice(None)), (slice(3, 40), slice(17, 50)), (slice(44, 45), 5),
+                (slice(10, 10), slice(0, 9)), (-1, slice(None)), (slice(0, 20), slice(66, 99))]:
+        np.testing.assert_array_equal(raster[key], whole[key], err_msg=str(key))
+
+
+def test_a_corrupt_tiff_segment_is_named_when_its_window_is_read(rng, tmp_path):
+    img = _image(rng, (48, 48, 3))
+    path = tmp_path / "c.tif"
+    tifffile.imwrite(path, img, photometric="rgb", tile=(16, 16), compression="lzw")
+    with tifffile.TiffFile(path) as tif:
+        offset = int(tif.pages[0].dataoffsets[4])  # the middle tile
+    data = bytearray(path.read_bytes())
+    data[offset:offset + 40] = bytes(range(200, 240))
+    path.write_bytes(bytes(data))
+    raster = io.open_image(path)
+    np.testing.assert_array_equal(raster[:16, :], img[:16, :])  # its neighbours still read
+    with pytest.raises(ValueError, match="corrupt TIFF segment 4"):
+        raster[20:30, 20:30]
+    with pytest.raises(ValueError, match="c.tif"):
+        blur_file(path, tmp_path / "o.tif", (3.0, 0.0), backend="numpy", tile=16)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.tif"]

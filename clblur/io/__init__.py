@@ -7,7 +7,8 @@ module               holds
 ===================  ==============================================================
 ``io.images``        ``read_image``/``write_image`` (dispatch by ``image_format``),
                      ``probe_image``/``check_decodable`` (header only, bomb check)
-``io.raster``        ``MappedRaster``, ``open_image`` (window by window), ``create_tiff``
+``io.raster``        ``MappedRaster``, ``TiffWindows``, ``OrientedRaster``, ``open_image``
+                     (window by window), ``create_tiff``
 ``io.flows``         ``.npy``/``.flo`` flows (``read_flow``, ``open_flow``), ``read_psf``
 ``io.atomic``        ``atomic_write`` (temp file + rename)
 ``io.paths``         ``resolve_inside``, ``check_output``, ``refuse_overwrite``,
@@ -35,9 +36,18 @@ from clblur.io.paths import (
     require_file,
     resolve_inside,
 )
-from clblur.io.raster import MappedRaster, as_array_like, create_tiff, is_tiff, open_image
+from clblur.io.raster import (
+    MappedRaster,
+    OrientedRaster,
+    TiffWindows,
+    as_array_like,
+    create_tiff,
+    is_tiff,
+    open_image,
+)
 
-__all__ = ["FLO_MAGIC", "IMAGE_FORMATS", "MappedRaster", "as_array_like", "atomic_write",
+__all__ = ["FLO_MAGIC", "IMAGE_FORMATS", "MappedRaster", "OrientedRaster", "TiffWindows",
+           "as_array_like", "atomic_write",
            "atomic_write_text", "check_decodable", "check_output", "create_tiff", "data_dir",
            "image_format", "is_tiff", "light_channels", "open_flow", "open_image", "probe_image",
            "read_flow", "read_depth", "read_image", "read_psf", "refuse_overwrite",

@@ -16,9 +16,13 @@ Conventions
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import os
+import re
 import struct
 import warnings
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -114,17 +118,54 @@ def _jpeg_header(f) -> ImageHeader | None:
     return None
 
 
+class _Collect(logging.Handler):
+    def __init__(self, into: list[str]):
+        super().__init__(logging.WARNING)
+        self.into = into
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.into.append(record.getMessage().splitlines()[0] if record.getMessage() else "")
+
+
+@contextlib.contextmanager
+def tiff_log():
+    """Collect tifffile's warnings while a TIFF is read (a list of messages).
+
+    tifffile logs what it finds wrong in a file (e.g. "invalid offset to first page") and
+    raises something less telling afterwards (an IndexError); with a handler of our own on
+    its logger the warning is not printed on stderr by Python's last-resort handler, and the
+    error can quote it."""
+    messages: list[str] = []
+    handler = _Collect(messages)
+    logger = logging.getLogger("tifffile")
+    logger.addHandler(handler)
+    try:
+        yield messages
+    finally:
+        logger.removeHandler(handler)
+
+
+def _decoder_error(path: Path, fmt: str, e: Exception, logged: list[str] = ()) -> InputError:
+    """A decoder library's exception as our one-line error (its log's first line if any)."""
+    # tifffile's messages start with the object that logs them: "<tifffile.TiffPages @8> "
+    why = re.sub(r"^<[^>]*>\s*", "", logged[0]) if logged and logged[0] else \
+        f"{type(e).__name__}: {e}"
+    return InputError(f"cannot read image {path}: corrupt or truncated {fmt.upper()} "
+                      f"({why})".splitlines()[0])
+
+
 def probe_image(path: str | os.PathLike) -> ImageHeader:
     """Read an image file's header only (no pixel decoding); ``InputError`` if it has none."""
     path = Path(path)
     fmt = image_format(path)
     require_file(path, "image")
     header = None
+    logged: list[str] = []
     try:
         if fmt == "tiff":
             import tifffile
 
-            with tifffile.TiffFile(path) as tif:
+            with tiff_log() as logged, tifffile.TiffFile(path) as tif:
                 s = tif.series[0]
                 shape = tuple(int(d) for d in s.shape)
                 header = ImageHeader(shape[0] if len(shape) > 1 else 1,
@@ -152,8 +193,7 @@ def probe_image(path: str | os.PathLike) -> ImageHeader:
     except InputError:
         raise
     except Exception as e:  # every decoder library raises its own types for corrupt files
-        raise InputError(f"cannot read image {path}: {type(e).__name__}: {e}".splitlines()[0]) \
-            from None
+        raise _decoder_error(path, fmt, e, logged) from None
     if header is None:
         raise InputError(f"cannot read image {path}: not a {fmt.upper()} file or a corrupt "
                          "header")
@@ -207,12 +247,13 @@ def read_image(path: str | os.PathLike, max_bytes: int | None = None) -> np.ndar
     if image_format(path) == "tiff":
         import tifffile
 
-        try:
-            with tifffile.TiffFile(path) as tif:
-                img = tif.asarray()
-                orientation = _tiff_orientation(tif)
-        except Exception as e:  # tifffile raises many types for corrupt files
-            raise InputError(f"cannot read image {path}: {e}".splitlines()[0]) from None
+        with tiff_log() as logged:
+            try:
+                with tifffile.TiffFile(path) as tif:
+                    img = tif.asarray()
+                    orientation = _tiff_orientation(tif)
+            except Exception as e:  # tifffile raises many types for corrupt files
+                raise _decoder_error(path, "tiff", e, logged) from None
     else:
         img = _read_opencv(path)
         # after the decode, so a corrupt file is reported by its decoder as before
@@ -292,19 +333,52 @@ def _jpeg_exif(f) -> bytes | None:
     return None
 
 
+def _png_chunks(f):
+    """The chunks of a PNG up to IEND: yields ``(kind, length)`` with ``f`` at the chunk's
+    data; a chunk the caller does not read is skipped by seeking.  Nothing for a file that is
+    not a PNG; stops at the end of the file."""
+    if f.read(8) != b"\x89PNG\r\n\x1a\n":
+        return
+    while len(head := f.read(8)) == 8:
+        length, kind = struct.unpack(">I4s", head)
+        start = f.tell()
+        yield kind, length
+        if kind == b"IEND":
+            return
+        f.seek(start + length + 4)  # data and CRC
+
+
 def _png_exif(f) -> bytes | None:
     """The data of a PNG's eXIf chunk.  Chunks are skipped by seeking up to IEND, as eXIf
     may follow the image data (Pillow, the reference here, reads it there too)."""
-    if f.read(8) != b"\x89PNG\r\n\x1a\n":
-        return None
-    while len(head := f.read(8)) == 8:
-        length, kind = struct.unpack(">I4s", head)
+    for kind, length in _png_chunks(f):
         if kind == b"eXIf":
             return f.read(length)
-        if kind == b"IEND":
-            return None
-        f.seek(length + 4, os.SEEK_CUR)  # data and CRC
     return None
+
+
+def _png_damage(path: Path) -> str | None:
+    """What is wrong with a PNG's chunk stream (truncated, a chunk failing its CRC), or None.
+
+    Checked before libpng sees the file: libpng prints its own error line on stderr, which
+    would come before ours."""
+    size = path.stat().st_size
+    with path.open("rb") as f:
+        for kind, length in _png_chunks(f):
+            name = kind.decode("latin-1")
+            if f.tell() + length + 4 > size:
+                return f"truncated PNG (the file ends inside chunk {name!r})"
+            crc = zlib.crc32(kind)
+            left = length
+            while left:
+                block = f.read(min(left, 1 << 20))
+                crc = zlib.crc32(block, crc)
+                left -= len(block)
+            if struct.unpack(">I", f.read(4))[0] != crc:
+                return f"corrupt PNG (chunk {name!r} fails its CRC check)"
+            if kind == b"IEND":
+                return None
+    return "truncated PNG (no IEND chunk)"
 
 
 def _webp_exif(f) -> bytes | None:
@@ -337,12 +411,40 @@ def _has_jpeg_end(path: Path) -> bool:
     return False
 
 
+def _read_jpeg(path: Path) -> np.ndarray | None:
+    """A grey or RGB JPEG decoded by Pillow (libjpeg-turbo, the same pixels as OpenCV's
+    decode), or None for what Pillow does not decode the way OpenCV does (CMYK, images over
+    its decompression-bomb limit, which ours has already passed).
+
+    Why not OpenCV: libjpeg treats corrupt entropy-coded data ("premature end of data
+    segment") as a warning, which OpenCV prints on stderr before returning a damaged image;
+    Pillow raises it, so the file is refused with one line."""
+    from PIL import Image
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # Pillow's bomb warning: our own limit applies
+            with Image.open(path) as im:
+                if im.mode not in ("L", "RGB"):
+                    return None
+                im.load()
+                return np.asarray(im)
+    except Image.DecompressionBombError:
+        return None
+    except Exception as e:  # Pillow raises OSError, SyntaxError, ValueError... on bad data
+        raise _decoder_error(path, "jpeg", e) from None
+
+
 def _read_opencv(path: Path) -> np.ndarray:
     import cv2
 
     if image_format(path) == "jpeg" and not _has_jpeg_end(path):
         # libjpeg decodes a truncated file to grey and only warns on stderr
         raise InputError(f"cannot read image {path}: truncated JPEG (no end marker)")
+    if image_format(path) == "png" and (damage := _png_damage(path)):
+        raise InputError(f"cannot read image {path}: {damage}")
+    if image_format(path) == "jpeg" and (img := _read_jpeg(path)) is not None:
+        return img
     level = cv2.utils.logging.getLogLevel()
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)  # we report it ourselves
     try:
