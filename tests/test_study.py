@@ -420,6 +420,40 @@ def _film_series(rng, exposures: int = 6, channels: int = 3):
     return images, times
 
 
+def test_study_of_a_folder_is_the_study_of_its_manifest(tmp_path, capsys, monkeypatch):
+    # `clblur study FOLDER --times FILE` reads an exposure series as calibrate does: the
+    # study gets the manifest that lists the folder's images with those times
+    from clblur.calibration.series import folder_series
+    from clblur.cli import main
+    from clblur.errors import InputError
+    from clblur.manifest import load_manifest
+    from clblur.study import run as study_run
+
+    images, times = _film_series(np.random.default_rng(3), exposures=3, channels=1)
+    (tmp_path / "s").mkdir()
+    for i, im in enumerate(images):
+        write_image(tmp_path / "s" / f"e{i}.png", im)
+    (tmp_path / "t.txt").write_text("".join(f"e{i}.png {t}\n" for i, t in enumerate(times)))
+    write_manifest(tmp_path / "m.json", {"kind": "exposure-series", "images": [
+        {"path": f"s/e{i}.png", "exposure": t} for i, t in enumerate(times)]})
+    listed = load_manifest(tmp_path / "m.json")
+    assert folder_series(tmp_path / "s", tmp_path / "t.txt").images == listed.images
+    seen = []
+
+    def fake_study(manifest, **kwargs):
+        seen.append(manifest)
+        raise InputError("stop here")
+
+    monkeypatch.setattr(study_run, "study", fake_study)
+    assert main(["study", str(tmp_path / "s"), "--times", str(tmp_path / "t.txt"),
+                 "--report", str(tmp_path / "f.json"), "--quiet"]) == 2
+    assert seen[0].kind == "exposure-series" and seen[0].images == listed.images
+    capsys.readouterr()
+    assert main(["study", str(tmp_path / "m.json"), "--times", str(tmp_path / "t.txt"),
+                 "--report", str(tmp_path / "x.json"), "--quiet"]) == 2
+    assert "--times is for a folder" in capsys.readouterr().err
+
+
 def test_study_and_calibrate_give_the_same_curve_shape():
     # issue 9: one response model; on one exposure series the study's response_shape and
     # `clblur calibrate`'s best curve agree (log exposure up to a common unit, in stops)

@@ -23,11 +23,11 @@ from pathlib import Path
 import numpy as np
 
 from clblur.io import light_channels, read_image, require_file, resolve_inside
-from clblur.manifest import load_manifest
+from clblur.manifest import Exposure, Manifest, load_manifest
 from clblur.pixels import imax
 
-__all__ = ["IMAGE_SUFFIXES", "ExposureSeries", "exif_exposure", "load_series", "parse_time",
-           "read_times_file", "series_files"]
+__all__ = ["IMAGE_SUFFIXES", "ExposureSeries", "exif_exposure", "folder_series", "load_series",
+           "parse_time", "read_times_file", "series_files"]
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
 _EXIF_IFD, _EXPOSURE_TIME, _F_NUMBER = 0x8769, 0x829A, 0x829D
@@ -212,10 +212,20 @@ def load_series(source: str | os.PathLike, times=None) -> ExposureSeries:
         if m.kind != "exposure-series":
             raise ValueError(f"manifest {source} is of kind {m.kind!r}, expected "
                              "'exposure-series'")
-        return ExposureSeries.create([light_channels(read_image(e.path)) for e in m.images],
-                                     [e.exposure for e in m.images],
-                                     [e.f_number for e in m.images],
-                                     [e.path.name for e in m.images])
+    else:
+        m = folder_series(source, times)
+    return ExposureSeries.create([light_channels(read_image(e.path)) for e in m.images],
+                                 [e.exposure for e in m.images],
+                                 [e.f_number for e in m.images],
+                                 [e.path.name for e in m.images])
+
+
+def folder_series(source: str | os.PathLike, times=None) -> Manifest:
+    """The exposure-series manifest of a folder of images (nothing decoded yet).
+
+    ``times``: a times file path, or a sequence of times in the images' sorted name order;
+    without, each image's EXIF ExposureTime (and FNumber, when every image has one)."""
+    source = Path(source)
     if not source.is_dir():
         raise ValueError(f"exposure series not found: {source} (give a manifest or a folder)")
     # every image listed must lie in the folder (a symlink leading out of it is refused)
@@ -224,7 +234,7 @@ def load_series(source: str | os.PathLike, times=None) -> ExposureSeries:
         resolve_inside(source, p.name, f"exposure series {source}: image")
     if not files:
         raise ValueError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in folder {source}")
-    f_numbers = None
+    f_numbers = [None] * len(files)
     if times is None:
         found = [exif_exposure(p) for p in files]
         missing = [p.name for p, (t, _) in zip(files, found, strict=True) if t is None]
@@ -239,8 +249,8 @@ def load_series(source: str | os.PathLike, times=None) -> ExposureSeries:
                              "; give a times file (--times)")
         times = [t for t, _ in found]
         fns = [f for _, f in found]
-        f_numbers = fns if all(f is not None and math.isfinite(f) and f > 0 for f in fns) \
-            else None
+        if all(f is not None and math.isfinite(f) and f > 0 for f in fns):
+            f_numbers = fns
     elif isinstance(times, (str, os.PathLike)):
         times_path = Path(times)
         rows = read_times_file(times_path)
@@ -269,6 +279,11 @@ def load_series(source: str | os.PathLike, times=None) -> ExposureSeries:
             if len(times) != len(files):
                 raise ValueError(f"times file {times_path} lists {len(times)} times for "
                                  f"{len(files)} images in {source}")
-    return ExposureSeries.create([light_channels(read_image(p)) for p in files], list(times),
-                                 f_numbers,
-                                 [p.name for p in files])
+    times = list(times)
+    if len(times) != len(files):
+        raise ValueError(f"{len(times)} exposure times for {len(files)} images in {source}")
+    if not all(isinstance(t, (int, float, np.number)) and not isinstance(t, bool)
+               and math.isfinite(t) and t > 0 for t in times):
+        raise ValueError(f"exposure times must be positive numbers, got {times[:4]}")
+    return Manifest("exposure-series", source, images=tuple(
+        Exposure(p, t, f) for p, t, f in zip(files, times, f_numbers, strict=True)))

@@ -1,4 +1,5 @@
-"""``clblur study MANIFEST --report report.json [--figures DIR] [--splits N]``."""
+"""``clblur study MANIFEST|FOLDER --report report.json [--times FILE] [--figures DIR]
+[--splits N]``."""
 
 from __future__ import annotations
 
@@ -16,7 +17,13 @@ def register(subparsers) -> None:
         description="Fit the paper's model (Eq. 3 + Eq. 9) to measured data, test each effect "
                     "of the vocabulary on held-out pixels, extend the model with the "
                     "significant ones and report the held-out gain.")
-    p.add_argument("manifest", help="manifest JSON (exposure-series, blur-pair, frame-stack)")
+    p.add_argument("manifest", metavar="source",
+                   help="manifest JSON (exposure-series, blur-pair, frame-stack), or a folder "
+                        "of images of one scene at several exposures (as clblur calibrate "
+                        "takes it)")
+    p.add_argument("--times", metavar="FILE",
+                   help="for a folder: exposure times, one per line in file-name order, or "
+                        "'NAME TIME' lines (default: EXIF)")
     p.add_argument("--report", required=True, help="output report JSON (a .md beside it)")
     p.add_argument("--figures", help="folder for the figures (created if missing)")
     p.add_argument("--max-pixels", type=int, default=None,
@@ -32,6 +39,7 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from clblur.calibration.series import folder_series
     from clblur.io import check_output
     from clblur.manifest import load_manifest
     from clblur.study.run import DEFAULT_PIXELS, study
@@ -45,7 +53,12 @@ def run(args: argparse.Namespace) -> int:
     if args.figures is not None and Path(args.figures).exists() \
             and not Path(args.figures).is_dir():
         raise InputError(f"--figures {args.figures} exists and is not a folder")
-    manifest = load_manifest(args.manifest)
+    if Path(args.manifest).is_dir():  # an exposure series, read as calibrate reads it
+        manifest = folder_series(args.manifest, args.times)
+    elif args.times is not None:
+        raise InputError("--times is for a folder; a manifest gives its own exposures")
+    else:
+        manifest = load_manifest(args.manifest)
     result = study(manifest, report=args.report, figures_dir=args.figures,
                    max_pixels=args.max_pixels or DEFAULT_PIXELS, alpha=args.alpha,
                    progress=not args.quiet, splits=args.splits)
