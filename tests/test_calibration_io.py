@@ -116,6 +116,14 @@ def test_exif_fallback(tmp_path):
     write_folder(tmp_path / "png", images)
     with pytest.raises(ValueError, match="exposure times missing"):
         load_series(tmp_path / "png")
+    # an auto-ISO bracket: one shutter time, the gain stepping by a stop
+    iso = tmp_path / "iso"
+    iso.mkdir()
+    for i, im in enumerate(images):
+        exif = Image.Exif()
+        exif.get_ifd(0x8769).update({0x829A: 0.01, 0x8827: 100 * 2 ** i})
+        Image.fromarray(im).save(iso / f"e{i}.jpg", exif=exif, quality=95)
+    assert load_series(iso).exposures.tolist() == pytest.approx([0.01, 0.02, 0.04])
     exif = Image.Exif()
     exif[0x829A] = float("nan")  # a corrupt tag is named with its file
     Image.fromarray(images[1]).save(folder / "e1.jpg", exif=exif, quality=95)

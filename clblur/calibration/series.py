@@ -26,11 +26,11 @@ from clblur.io import light_channels, read_image, require_file, resolve_inside
 from clblur.manifest import Exposure, Manifest, load_manifest
 from clblur.pixels import imax
 
-__all__ = ["IMAGE_SUFFIXES", "ExposureSeries", "exif_exposure", "folder_series", "load_series",
-           "parse_time", "read_times_file", "series_files"]
+__all__ = ["IMAGE_SUFFIXES", "ExposureSeries", "exif_exposure", "exif_iso", "folder_series",
+           "load_series", "parse_time", "read_times_file", "series_files"]
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
-_EXIF_IFD, _EXPOSURE_TIME, _F_NUMBER = 0x8769, 0x829A, 0x829D
+_EXIF_IFD, _EXPOSURE_TIME, _F_NUMBER, _ISO = 0x8769, 0x829A, 0x829D, 0x8827
 
 
 @dataclass(frozen=True, eq=False)  # holds arrays: compare series by identity
@@ -171,8 +171,9 @@ def read_times_file(path: str | os.PathLike) -> list[tuple[str | None, float]]:
     return rows
 
 
-def exif_exposure(path: Path) -> tuple[float | None, float | None]:
-    """(ExposureTime, FNumber) from an image's EXIF, None where absent."""
+def _exif_numbers(path: Path, tags: tuple[int, ...]) -> list[float | None]:
+    """Numeric EXIF tags of an image (the Exif IFD, else IFD0), None where absent or not a
+    number; the first value of a tuple (ISO may be stored as one)."""
     from PIL import Image
 
     try:
@@ -180,16 +181,29 @@ def exif_exposure(path: Path) -> tuple[float | None, float | None]:
             exif = im.getexif()
             sub = exif.get_ifd(_EXIF_IFD)
     except OSError:
-        return None, None
+        return [None] * len(tags)
 
     def get(tag):
         v = sub.get(tag, exif.get(tag))
+        if isinstance(v, (tuple, list)):
+            v = v[0] if v else None
         try:
             return None if v is None else float(v)
         except (TypeError, ValueError, ZeroDivisionError):
             return None
 
-    return get(_EXPOSURE_TIME), get(_F_NUMBER)
+    return [get(tag) for tag in tags]
+
+
+def exif_exposure(path: Path) -> tuple[float | None, float | None]:
+    """(ExposureTime, FNumber) from an image's EXIF, None where absent."""
+    t, n = _exif_numbers(path, (_EXPOSURE_TIME, _F_NUMBER))
+    return t, n
+
+
+def exif_iso(path: Path) -> float | None:
+    """The ISO speed (PhotographicSensitivity) from an image's EXIF, None where absent."""
+    return _exif_numbers(path, (_ISO,))[0]
 
 
 def series_files(folder: Path) -> list[Path]:
@@ -224,7 +238,9 @@ def folder_series(source: str | os.PathLike, times=None) -> Manifest:
     """The exposure-series manifest of a folder of images (nothing decoded yet).
 
     ``times``: a times file path, or a sequence of times in the images' sorted name order;
-    without, each image's EXIF ExposureTime (and FNumber, when every image has one)."""
+    without, each image's EXIF ExposureTime (and FNumber, when every image has one); where the
+    EXIF ISO differs between images, the times are scaled by ISO to the lowest one (seconds
+    at that ISO)."""
     source = Path(source)
     if not source.is_dir():
         raise ValueError(f"exposure series not found: {source} (give a manifest or a folder)")
@@ -248,6 +264,12 @@ def folder_series(source: str | os.PathLike, times=None) -> Manifest:
             raise ValueError(f"EXIF ExposureTime is not a positive time in {', '.join(bad[:3])}"
                              "; give a times file (--times)")
         times = [t for t, _ in found]
+        # Auto-ISO brackets (phones) change the gain as well as the time: the exposure that
+        # reaches the codes is t * ISO / N^2, so times are scaled to the lowest ISO.
+        isos = [exif_iso(p) for p in files]
+        if all(i is not None and math.isfinite(i) and i > 0 for i in isos) \
+                and max(isos) > min(isos):
+            times = [t * i / min(isos) for t, i in zip(times, isos, strict=True)]
         fns = [f for _, f in found]
         if all(f is not None and math.isfinite(f) and f > 0 for f in fns):
             f_numbers = fns

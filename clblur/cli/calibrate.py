@@ -30,7 +30,8 @@ def register(subparsers) -> None:
     p.add_argument("source", help="exposure-series manifest (.json) or folder of images")
     p.add_argument("--times", metavar="FILE",
                    help="exposure times for a folder: one per line in file-name order, or "
-                        "'NAME TIME' lines; fractions like 1/1024 allowed (default: EXIF)")
+                        "'NAME TIME' lines; fractions like 1/1024 allowed (default: EXIF "
+                        "ExposureTime, FNumber, and ISO where it varies)")
     p.add_argument("--model", nargs="+", choices=MODELS, metavar="M",
                    help=f"models to fit: {', '.join(MODELS)} (default: all; emor only when "
                         "its basis files are found)")

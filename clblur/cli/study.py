@@ -23,7 +23,8 @@ def register(subparsers) -> None:
                         "takes it)")
     p.add_argument("--times", metavar="FILE",
                    help="for a folder: exposure times, one per line in file-name order, or "
-                        "'NAME TIME' lines (default: EXIF)")
+                        "'NAME TIME' lines (default: EXIF ExposureTime, FNumber, and ISO where "
+                        "it varies)")
     p.add_argument("--report", required=True, help="output report JSON (a .md beside it)")
     p.add_argument("--figures", help="folder for the figures (created if missing)")
     p.add_argument("--max-pixels", type=int, default=None,
