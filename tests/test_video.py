@@ -315,6 +315,37 @@ def test_odd_frame_size_and_single_frame(tmp_path):
     assert result.frames == 1 and probe(tmp_path / "out.mkv")["size"] == (15, 21)
 
 
+@pytest.mark.parametrize("turn", [90, -90, 180])
+def test_a_phone_video_with_a_display_matrix_is_blurred_upright(tmp_path, turn):
+    # phones store portrait video sideways with a display matrix; the output has none, so
+    # the frames are turned upright as they are read (as ffmpeg's autorotate does)
+    from clblur.io.video import VideoFileSource
+
+    frames = moving_frames(3, h=16, w=24)
+    src = tmp_path / "phone.mp4"
+    c = av.open(str(src), "w")
+    vs = c.add_stream("libx264", rate=24)
+    vs.height, vs.width, vs.pix_fmt = 16, 24, "yuv444p"
+    if not hasattr(vs, "set_display_rotation"):
+        pytest.skip("this PyAV cannot write a display matrix")
+    vs.set_display_rotation(turn)
+    for i, img in enumerate(frames):
+        f = av.VideoFrame.from_ndarray(img, format="rgb24")
+        f.pts, f.time_base = i, Fraction(1, 24)
+        c.mux(vs.encode(f))
+    c.mux(vs.encode(None))
+    c.close()
+    source = VideoFileSource(src)
+    got = [f.image for f in source.frames()]
+    source.close()
+    plain = probe(src)["frames"]  # as stored, sideways
+    for stored, upright in zip(plain, got, strict=True):
+        np.testing.assert_array_equal(upright, np.rot90(stored, turn // 90))
+    result = blur_video(src, tmp_path / "out.mkv", backend="numpy")
+    assert result.frames == 3
+    assert probe(tmp_path / "out.mkv")["size"] == got[0].shape[:2]
+
+
 def test_truncated_video_keeps_frames_written(tmp_path):
     src = tmp_path / "in.mkv"
     write_video(src, moving_frames(12), audio=True)

@@ -3,8 +3,9 @@
 Conventions
 -----------
 * Frames are H x W x 3 RGB arrays (H x W for grey image files).  Video files decode to uint8
-  (``rgb24``); image folders keep the dtype and layout of their files (uint8, uint16, float32
-  TIFF; alpha is dropped), and an image-folder output keeps them too (PNG, or TIFF for
+  (``rgb24``), turned upright as their display matrix says (phones' portrait videos); image
+  folders keep the dtype and layout of their files (uint8, uint16, float32 TIFF; alpha is
+  dropped), and an image-folder output keeps them too (PNG, or TIFF for
   floats).  Encoding to video converts to 8-bit RGB.
 * A path is an image sequence when it is a folder (or, for output, has no suffix or ends with
   a path separator); otherwise it is a video file and its suffix picks the container.
@@ -178,8 +179,7 @@ class VideoFileSource:
                 for vf in packet.decode():
                     if vf.time is not None:
                         last_end = vf.time + 1 / float(self.fps)
-                    yield Frame(n, vf.to_ndarray(format="rgb24"), pts=vf.pts,
-                                time_base=vf.time_base)
+                    yield Frame(n, _upright(vf), pts=vf.pts, time_base=vf.time_base)
                     n += 1
         except av.FFmpegError as e:
             raise VideoReadError(f"{self.path}: decoding failed after {n} frame(s): {e}",
@@ -200,6 +200,22 @@ class VideoFileSource:
 
     def close(self) -> None:
         self.container.close()
+
+
+def _upright(vf) -> np.ndarray:
+    """A decoded frame as RGB, turned as its display matrix says.
+
+    Phones store a portrait video's frames sideways and add a display matrix that players
+    apply; without it the blurred output (written without one) would play sideways.  PyAV's
+    ``rotation`` is the matrix's counter-clockwise turn in degrees (ffmpeg's autorotate
+    applies the same); turns that are not quarter turns are left alone, as is an older PyAV
+    without the attribute."""
+    image = vf.to_ndarray(format="rgb24")
+    turn = getattr(vf, "rotation", 0) or 0
+    quarters = round(turn / 90)
+    if quarters % 4 and abs(turn - 90 * quarters) < 1:
+        image = np.ascontiguousarray(np.rot90(image, quarters))
+    return image
 
 
 def open_source(path: str | os.PathLike, fps: float | None = None):
