@@ -4,6 +4,7 @@
     python bench/bench_study.py limits [--seeds 3] [--noise A] [--results FILE]
     python bench/bench_study.py series [--data DIR] [--results FILE]
     python bench/bench_study.py null   [--seeds 40] [--results bench/results_study_null.md]
+    python bench/bench_study.py memory [--trees BEFORE .] [--results FILE]
 
 ``speed``: renders a 1000 x 1000 RGB pair with the virtual camera (uniform motion (14, 5) px,
 a 15 % exposure-gain mismatch, then a 1000 x 1000 PSF pair), writes PNGs and a manifest in a
@@ -12,7 +13,9 @@ report and figures).  ``limits``: for each effect, the fraction of seeds on whic
 ranks the hidden effect first and significant, at magnitudes below and inside the realistic
 range of ``clblur.study.synthetic.RANGES`` (48 x 64 scenes, as in the tests).  ``series``:
 the 7 JPEGs of ``$CLBLUR_DATA/canon400d_road`` downscaled to 0.3 MP, timing ``calibrate``
-(every model) and ``study`` end to end (target: study under 2 minutes).
+(every model) and ``study`` end to end (target: study under 2 minutes).  ``memory``: peak
+resident memory and time of ``clblur calibrate`` on the full-size bracket (7 x 10 MP JPEGs,
+models exp and spline), each tree of ``--trees`` in a process of its own, interleaved.
 """
 
 from __future__ import annotations
@@ -125,6 +128,59 @@ def series(results: Path, data: Path | None, megapixels: float = 0.3) -> None:
     _write(results, lines)
 
 
+_MEMORY_RUN = """
+import resource, sys, time
+from clblur.calibration import calibrate, load_series
+t, c = time.perf_counter(), time.process_time()
+series = load_series(sys.argv[1])
+own = sum(im.nbytes for im in series.images)
+cal = calibrate(series, ["exp", "spline"])
+e = cal.evaluations[cal.best]["rmse_darker"]
+print(own, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+      time.perf_counter() - t, time.process_time() - c, cal.best, e.get(1), e.get(4))
+"""
+
+
+def memory(results: Path, data: Path | None, trees: list[str], rounds: int = 2) -> None:
+    """Peak memory of calibrating the full-size Canon bracket, per tree (a process each)."""
+    import subprocess
+    import sys
+
+    from clblur.io import data_dir
+
+    root = data or data_dir()
+    folder = None if root is None else Path(root) / "canon400d_road"
+    if folder is None or not folder.is_dir():
+        raise SystemExit("bench_study memory: canon400d_road not found (set CLBLUR_DATA)")
+    rows = {tree: [] for tree in trees}
+    with tempfile.TemporaryDirectory() as neutral:  # `python -c` puts its cwd first on the path
+        for _ in range(rounds):
+            for tree in trees:
+                env = {**os.environ, "PYTHONPATH": str(Path(tree).resolve())}
+                out = subprocess.run([sys.executable, "-c", _MEMORY_RUN, str(folder)],
+                                     env=env, cwd=neutral, capture_output=True, text=True,
+                                     check=True).stdout.split()
+                rows[tree].append(out)
+                print(tree, out, flush=True)
+    count = len(list(folder.glob("*.JPG")))
+    lines = [_header("memory --trees " + " ".join(trees)),
+             f"`clblur.calibration.calibrate` (models exp, spline) on the {count} "
+             f"full-size JPEGs of `canon400d_road`, read with EXIF times; best of {rounds} "
+             "interleaved runs per tree, each in a process of its own.", "",
+             "| tree | images (MiB) | peak resident (MiB) | peak / images | wall (s) "
+             "| CPU (s) | best model: darker target, 1 / 4 stops (DN) |",
+             "|---|---:|---:|---:|---:|---:|---|"]
+    for tree, runs in rows.items():
+        own = int(runs[0][0])
+        peak = min(int(r[1]) for r in runs)
+        wall = min(float(r[2]) for r in runs)
+        cpu = min(float(r[3]) for r in runs)
+        best, d1, d4 = runs[0][4], float(runs[0][5]), float(runs[0][6])
+        lines.append(f"| `{tree}` | {own / 2**20:.0f} | {peak / 2**20:.0f} | {peak / own:.1f} "
+                     f"| {wall:.1f} | {cpu:.1f} | {best}: {d1:.2f} / {d4:.2f} |")
+    _write(results, lines)
+
+
 def _f(v) -> str:
     return "n/a" if v is None or v != v else f"{v:.2f}"
 
@@ -204,7 +260,9 @@ def _write(path: Path, lines: list[str]) -> None:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("mode", choices=("speed", "limits", "series", "null"))
+    p.add_argument("mode", choices=("speed", "limits", "series", "null", "memory"))
+    p.add_argument("--trees", nargs="+", default=["."],
+                   help="memory: source trees to compare (PYTHONPATH of each run)")
     p.add_argument("--data", type=Path, help="series: shared data folder (default CLBLUR_DATA)")
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--noise", type=float, default=0.0,
@@ -215,6 +273,8 @@ def main() -> None:
         speed(a.results or Path("bench/results_study.md"))
     elif a.mode == "series":
         series(a.results or Path("bench/results_study_series.md"), a.data)
+    elif a.mode == "memory":
+        memory(a.results or Path("bench/results_calibrate_memory.md"), a.data, a.trees)
     elif a.mode == "null":
         null(a.results or Path("bench/results_study_null.md"), a.seeds)
     else:

@@ -83,9 +83,18 @@ def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=(1, 4), *,
     coords = np.flatnonzero(~fit_result.sampling.footprint.ravel())
     if max_pixels is not None and coords.size > max_pixels:
         coords = np.sort(np.random.default_rng(seed).choice(coords, max_pixels, replace=False))
-    values = [im.reshape(-1, ch)[coords].astype(np.float64) / series.full_scale
-              for im in series.images]
-    usable = [(v > low) & (v < high) for v in values]
+    # the held-out pixels as codes (a byte each for 8-bit series), made values per pair and
+    # channel: as float64 values of every pixel of every image they took 8 times the series
+    codes = [im.reshape(-1, ch)[coords] for im in series.images]
+
+    def values(i: int, m: np.ndarray, c: int) -> np.ndarray:
+        return codes[i][m, c].astype(np.float64) / series.full_scale
+
+    usable = []
+    for k in codes:
+        v = k.astype(np.float64) / series.full_scale
+        usable.append((v > low) & (v < high))
+        del v
     flat = None if flat_tolerance is None else [
         _local_range(im, coords) <= flat_tolerance * series.full_scale for im in series.images]
     kinds = ("all",) if flat is None else ("all", "flat")
@@ -108,8 +117,8 @@ def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=(1, 4), *,
             both_flat = None if flat is None else flat[i] & flat[j]
             for c in range(ch):
                 m = ok[:, c]
-                pred = transfer(model.responses[c], values[i][m, c], ratio)
-                err2 = ((pred - values[j][m, c]) * series.full_scale) ** 2
+                pred = transfer(model.responses[c], values(i, m, c), ratio)
+                err2 = ((pred - values(j, m, c)) * series.full_scale) ** 2
                 sse[g, direction, "all"][c] += float(np.sum(err2))
                 cnt[g, direction, "all"][c] += int(m.sum())
                 if both_flat is not None:

@@ -134,11 +134,23 @@ def _box_max(img: np.ndarray, patch: int) -> np.ndarray:
 
 
 def _monotone(means: np.ndarray, ok: np.ndarray, order: np.ndarray, tol: float) -> np.ndarray:
-    """True where the valid values never fall by more than ``tol`` as the exposure grows."""
-    v = np.where(ok, means, np.nan)[order]
-    best_so_far = np.fmax.accumulate(np.where(np.isnan(v), -np.inf, v), axis=0)
-    drop = np.where(np.isnan(v), 0.0, best_so_far - v)
-    return drop.max(axis=0) <= tol
+    """True where the valid values never fall by more than ``tol`` as the exposure grows.
+
+    ``means`` and ``ok``: (n, ...) over the exposures; walked in exposure ``order`` one
+    exposure at a time, so the memory is one exposure's, not the stack's."""
+    best = np.full(means.shape[1:], -np.inf, means.dtype)  # the largest valid value so far
+    worst = np.zeros(means.shape[1:], means.dtype)  # the largest fall below it
+    with np.errstate(invalid="ignore"):  # -inf - -inf where nothing is valid yet: not used
+        for i in order:
+            v = np.where(ok[i], means[i], -np.inf)
+            np.fmax(best, v, out=best)
+            np.fmax(worst, np.where(ok[i], best - v, 0.0), out=worst)
+    return worst <= tol
+
+
+def _normalised(channel: np.ndarray, full_scale: float) -> np.ndarray:
+    """Codes of one channel as float32 in [0, 1], as ``ExposureSeries.values`` makes them."""
+    return channel.astype(np.float32) / np.float32(full_scale)
 
 
 def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float = VALID_LOW,
@@ -155,23 +167,31 @@ def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float =
         raise ValueError(f"valid range needs 0 <= low < high <= 1, got {low}, {high}")
     rng = np.random.default_rng(seed)
     tau_order = np.argsort(series.relative_exposures())
-    stack = series.values()  # (n, H, W, C) float32
-    n, h, w, channels = stack.shape
+    # One channel of one image at a time: a stack of float copies of the whole series (and
+    # its temporaries) took 15 times the images' own size, 3.3 GB for seven 10 MP JPEGs.
+    images, fs = series.images, series.full_scale
+    n, (h, w), channels = len(images), series.shape, series.channels
     r = patch // 2
     if h <= 2 * r or w <= 2 * r:
         raise ValueError(f"images of {h} x {w} are too small for {patch} x {patch} patches")
     footprint = np.zeros((h, w), dtype=bool)
     sets = []
     for c in range(channels):
-        chan = stack[..., c]
-        means = np.stack([_box_mean(chan[i], patch) for i in range(n)])
+        means = np.empty((n, h, w), np.float32)
         # a patch is valid only if every pixel in it is: one clipped pixel biases the mean
-        lowest = np.stack([_box_min(chan[i], patch) for i in range(n)])
-        highest = np.stack([_box_max(chan[i], patch) for i in range(n)])
-        ok = (lowest > low) & (highest < high)
+        # (its least and largest codes are kept as codes: a byte a pixel for 8-bit series)
+        lowest = np.empty((n, h, w), series.dtype)
+        highest = np.empty((n, h, w), series.dtype)
+        ok = np.empty((n, h, w), bool)
+        for i, image in enumerate(images):
+            codes = np.ascontiguousarray(image[..., c])
+            means[i] = _box_mean(_normalised(codes, fs), patch)
+            lowest[i] = _box_min(codes, patch)
+            highest[i] = _box_max(codes, patch)
+            ok[i] = (_normalised(lowest[i], fs) > low) & (_normalised(highest[i], fs) < high)
         # flatness judged on the image with most valid pixels (best exposed overall)
         ref = int(np.argmax(ok.reshape(n, -1).sum(axis=1)))
-        var = _box_mean(chan[ref] ** 2, patch) - means[ref] ** 2
+        var = _box_mean(_normalised(images[ref][..., c], fs) ** 2, patch) - means[ref] ** 2
         std = np.sqrt(np.maximum(var, 0.0))
         usable = (ok.sum(axis=0) >= 2) & _monotone(means, ok, tau_order, monotone_tolerance)
         usable[:r, :] = usable[h - r:, :] = False
@@ -181,8 +201,8 @@ def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float =
             continue
         v = means[:, rows, cols].T.astype(np.float64)
         sets.append(SampleSet(v, ok[:, rows, cols].T, np.full(rows.size, c), rows, cols,
-                              lowest[:, rows, cols].T.astype(np.float64),
-                              highest[:, rows, cols].T.astype(np.float64)))
+                              _normalised(lowest[:, rows, cols].T, fs).astype(np.float64),
+                              _normalised(highest[:, rows, cols].T, fs).astype(np.float64)))
         for dy in range(-r, r + 1):
             for dx in range(-r, r + 1):
                 footprint[rows + dy, cols + dx] = True
@@ -194,12 +214,13 @@ def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float =
         missing = sorted(set(range(channels)) - {int(s.channel[0]) for s in sets})
         raise ValueError(f"channel(s) {missing} have no usable samples (saturated or "
                          "under-exposed everywhere)")
-    pixels = _random_pixels(stack, footprint, n_pixels, rng, tau_order, monotone_tolerance)
+    pixels = _random_pixels(images, fs, footprint, n_pixels, rng, tau_order,
+                            monotone_tolerance)
     return Sampling(sets, footprint, patch, low, high, pixels)
 
 
-def _random_pixels(stack: np.ndarray, footprint: np.ndarray, n_pixels: int,
-                   rng: np.random.Generator, tau_order: np.ndarray,
+def _random_pixels(images: list[np.ndarray], full_scale: float, footprint: np.ndarray,
+                   n_pixels: int, rng: np.random.Generator, tau_order: np.ndarray,
                    monotone_tolerance: float) -> list[SampleSet]:
     """``n_pixels`` random pixels outside ``footprint`` (then added to it), every channel;
     a pixel whose value falls by more than ``monotone_tolerance`` while the exposure grows is
@@ -213,8 +234,9 @@ def _random_pixels(stack: np.ndarray, footprint: np.ndarray, n_pixels: int,
     rows, cols = np.unravel_index(idx, footprint.shape)
     footprint[rows, cols] = True
     out = []
-    for c in range(stack.shape[3]):
-        v = stack[:, rows, cols, c].T.astype(np.float64)
+    for c in range(images[0].shape[2]):
+        v = np.stack([_normalised(im[rows, cols, c], full_scale)
+                      for im in images]).T.astype(np.float64)
         valid = (v > 0.0) & (v < 1.0)
         valid &= _monotone(v.T, valid.T, tau_order, monotone_tolerance)[:, None]
         out.append(SampleSet(v, valid, np.full(rows.size, c), rows, cols, v, v))
