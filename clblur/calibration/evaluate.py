@@ -63,8 +63,8 @@ def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=(1, 4), *,
     ``max_pixels`` scores a random subset of the held-out pixels (faster; the same subset for
     every pair).  Returns ``{"model", "shared", "rmse": {gap: rmse}, "rmse_per_channel":
     {gap: [...]}, "rmse_darker": {gap: rmse}, "rmse_brighter": {gap: rmse}, "n_values":
-    {gap: n}, "n_pairs": {gap: n}, "refit" (False when ``refit`` is or the series has only 2
-    images), "valid" ([low, high] of full scale a scored value lies in), "flat_tolerance",
+    {gap: n}, "n_pairs": {gap: n}, "refit" (False when ``refit`` is False or the series has
+    only 2 images), "valid" ([low, high] of full scale a scored value lies in), "flat_tolerance",
     "flat": {"rmse", "rmse_darker", "rmse_brighter", "n_values"} (flat pixels only; absent
     when ``flat_tolerance`` is None), "missing": {gap: reason}, "log_likelihood", "n_params",
     "aic", "bic", "rmse_fit"}``; a gap with no pair gets RMSE NaN and its reason in
@@ -91,10 +91,9 @@ def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=(1, 4), *,
         return codes[i][m, c].astype(np.float64) / series.full_scale
 
     usable = []
-    for k in codes:
+    for k in codes:  # one image's float values at a time
         v = k.astype(np.float64) / series.full_scale
         usable.append((v > low) & (v < high))
-        del v
     flat = None if flat_tolerance is None else [
         _local_range(im, coords) <= flat_tolerance * series.full_scale for im in series.images]
     kinds = ("all",) if flat is None else ("all", "flat")
