@@ -255,7 +255,7 @@ def read_image(path: str | os.PathLike, max_bytes: int | None = None) -> np.ndar
             except Exception as e:  # tifffile raises many types for corrupt files
                 raise _decoder_error(path, "tiff", e, logged) from None
     else:
-        img = _read_opencv(path)
+        img = _read_other(path)
         # after the decode, so a corrupt file is reported by its decoder as before
         orientation = _exif_orientation(path)
     if img.dtype not in (np.uint8, np.uint16, np.float32, np.float64) or img.ndim not in (2, 3):
@@ -435,16 +435,25 @@ def _read_jpeg(path: Path) -> np.ndarray | None:
         raise _decoder_error(path, "jpeg", e) from None
 
 
+def _read_other(path: Path) -> np.ndarray:
+    """A PNG, JPEG, BMP or WebP, checked first for the damage its C decoder would only print
+    on stderr; grey and RGB JPEGs decoded by Pillow (``_read_jpeg``), the rest by OpenCV."""
+    fmt = image_format(path)
+    if fmt == "jpeg":
+        if not _has_jpeg_end(path):
+            # libjpeg decodes a truncated file to grey and only warns on stderr
+            raise InputError(f"cannot read image {path}: truncated JPEG (no end marker)")
+        img = _read_jpeg(path)
+        if img is not None:
+            return img
+    if fmt == "png" and (damage := _png_damage(path)):
+        raise InputError(f"cannot read image {path}: {damage}")
+    return _read_opencv(path)
+
+
 def _read_opencv(path: Path) -> np.ndarray:
     import cv2
 
-    if image_format(path) == "jpeg" and not _has_jpeg_end(path):
-        # libjpeg decodes a truncated file to grey and only warns on stderr
-        raise InputError(f"cannot read image {path}: truncated JPEG (no end marker)")
-    if image_format(path) == "png" and (damage := _png_damage(path)):
-        raise InputError(f"cannot read image {path}: {damage}")
-    if image_format(path) == "jpeg" and (img := _read_jpeg(path)) is not None:
-        return img
     level = cv2.utils.logging.getLogLevel()
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)  # we report it ourselves
     try:
