@@ -58,12 +58,15 @@ def calibrate(source: ExposureSeries | str | os.PathLike, models=None, *, times=
               patch: int = 3, seed: int = 0, fit_low: float | None = None,
               emor_dir=None, gaps=(1, 4), refit: bool = True, eval_low: float = EVAL_LOW,
               flat_tolerance: float | None = FLAT_TOLERANCE, max_pixels: int | None = None,
-              progress: bool = False) -> Calibration:
+              progress: bool = False, align: bool = True) -> Calibration:
     """Fit ``models`` (default: all available) on the same patches, evaluate each by held-out
     prediction (``clblur.calibration.evaluate``) and pick the lowest mean RMSE over ``gaps``
     (both directions pooled).  A model the series cannot support is skipped, its reason in
-    ``Calibration.skipped``, unless it is the only one asked for."""
-    series = source if isinstance(source, ExposureSeries) else load_series(source, times)
+    ``Calibration.skipped``, unless it is the only one asked for.  ``align``: register a
+    series read from ``source`` (``load_series``); a given ``ExposureSeries`` is taken as it
+    is (``ExposureSeries.aligned`` registers one)."""
+    series = source if isinstance(source, ExposureSeries) else load_series(source, times,
+                                                                            align=align)
     names = list(dict.fromkeys(models)) if models else available_models(emor_dir)
     unknown = [m for m in names if m not in MODELS]
     if unknown:

@@ -19,6 +19,7 @@ from clblur.calibration.evaluate import EVAL_HIGH, EVAL_LOW, FLAT_TOLERANCE
 from clblur.calibration.fitting import LIKELIHOOD_LOW, ResponseFit, fit_radiances
 from clblur.calibration.series import ExposureSeries
 from clblur.io import atomic_write, atomic_write_text
+from clblur.registration import summary
 
 __all__ = ["CHANNEL_NAMES", "COLOURS", "comparison_table", "curve_table",
            "figure_normalised_curves", "figure_residuals", "figure_values_vs_time", "series_table",
@@ -231,11 +232,14 @@ def write_report(folder: str | Path, series: ExposureSeries, fits: dict[str, Res
     atomic_write_text(folder / "evaluation.json", json.dumps(doc, indent=1, default=float)
                       + "\n")
     t = series.exposures
+    registered = ([] if series.registration is None else
+                  ["R" + summary(series.registration, series.names)[1:]
+                   + " (`clblur.registration`)."])
     lines = [
         "# Calibration report", "",
         f"Series: {len(series.images)} images, {series.shape[1]} x {series.shape[0]} "
         f"(W x H) x {series.channels} {series.dtype}, exposures {t.min():g} s ... "
-        f"{t.max():g} s.",
+        f"{t.max():g} s.", *registered,
         f"Best model (lowest mean held-out RMSE over the gaps): **{best}**.", "",
     ]
     if command:

@@ -9,6 +9,10 @@ Conventions
   C = 1).  Values are normalised by the dtype's full scale (``clblur.pixels.imax``).
 * Sources, in order of precedence: a manifest of kind ``exposure-series``; a folder of images
   plus a times file or sequence; EXIF ``ExposureTime`` / ``FNumber`` of the images.
+* Registration: ``load_series`` registers the images (``clblur.registration``: the
+  whole-pixel translation between hand-held exposures) and crops them to the window all of
+  them cover; ``ExposureSeries.registration`` records it.  A series built from arrays is
+  taken as it is; ``aligned()`` registers it.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ import numpy as np
 from clblur.io import light_channels, read_image, require_file, resolve_inside
 from clblur.manifest import Exposure, Manifest, load_manifest
 from clblur.pixels import imax
+from clblur.registration import Registration, align_series
 
 __all__ = ["IMAGE_SUFFIXES", "ExposureSeries", "exif_exposure", "exif_iso", "folder_series",
            "load_series", "parse_time", "read_times_file", "series_files"]
@@ -41,6 +46,7 @@ class ExposureSeries:
     exposures: np.ndarray
     f_numbers: np.ndarray | None
     names: list[str]
+    registration: Registration | None = None  # set by aligned(): how the images were cut
 
     @classmethod
     def create(cls, images, exposures, f_numbers=None, names=None) -> ExposureSeries:
@@ -99,6 +105,14 @@ class ExposureSeries:
         """All images normalised to [0, 1], float32, shape (n, H, W, C)."""
         return np.stack([im.astype(np.float32) for im in self.images]) / np.float32(
             self.full_scale)
+
+    def aligned(self) -> ExposureSeries:
+        """The series registered and cropped to the window every image covers (views of the
+        images; the same images when nothing moved), with ``registration`` set."""
+        reg = align_series(self.images, self.relative_exposures())
+        images = ([reg.crop(im, i) for i, im in enumerate(self.images)] if reg.moved
+                  else self.images)
+        return ExposureSeries(images, self.exposures, self.f_numbers, self.names, reg)
 
     def subset(self, keep) -> ExposureSeries:
         """The series restricted to the images whose indices are in ``keep`` (order kept)."""
@@ -211,12 +225,13 @@ def series_files(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
 
 
-def load_series(source: str | os.PathLike, times=None) -> ExposureSeries:
+def load_series(source: str | os.PathLike, times=None, align: bool = True) -> ExposureSeries:
     """Load an exposure series from a manifest (``.json``) or a folder of images.
 
     ``times``: for a folder, a times file path or a sequence of times in the images' sorted
     name order; a file may also name each image (``NAME TIME``).  Without times, each image's
-    EXIF ExposureTime (and FNumber) is used.
+    EXIF ExposureTime (and FNumber) is used.  ``align``: register the images and crop them to
+    their common window (module Conventions); False takes them as they are.
     """
     source = Path(source)
     if source.is_file():
@@ -228,10 +243,11 @@ def load_series(source: str | os.PathLike, times=None) -> ExposureSeries:
                              "'exposure-series'")
     else:
         m = folder_series(source, times)
-    return ExposureSeries.create([light_channels(read_image(e.path)) for e in m.images],
-                                 [e.exposure for e in m.images],
-                                 [e.f_number for e in m.images],
-                                 [e.path.name for e in m.images])
+    series = ExposureSeries.create([light_channels(read_image(e.path)) for e in m.images],
+                                   [e.exposure for e in m.images],
+                                   [e.f_number for e in m.images],
+                                   [e.path.name for e in m.images])
+    return series.aligned() if align else series
 
 
 def folder_series(source: str | os.PathLike, times=None) -> Manifest:

@@ -63,6 +63,10 @@ def register(subparsers) -> None:
                         f"full scale in both images; 'none' drops it (default {FLAT_TOLERANCE})")
     p.add_argument("--eval-pixels", type=int, default=None, metavar="N",
                    help="score a random subset of N held-out pixels (default: all)")
+    p.add_argument("--no-align", action="store_true",
+                   help="take the images as they are; by default the whole-pixel shift "
+                        "between exposures (a hand-held bracket) is measured and the images "
+                        "cropped to the window all of them cover")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
 
@@ -126,8 +130,13 @@ def run(args: argparse.Namespace) -> int:
                        patch=args.patch, seed=args.seed, fit_low=args.fit_low,
                        emor_dir=args.emor_dir, gaps=args.gaps, refit=not args.no_refit,
                        eval_low=args.eval_low, flat_tolerance=args.flat_tolerance,
-                       max_pixels=args.eval_pixels, progress=not args.quiet)
+                       max_pixels=args.eval_pixels, progress=not args.quiet,
+                       align=not args.no_align)
     best, evaluations = result.best, result.evaluations
+    if result.series.registration is not None:
+        from clblur.registration import summary
+
+        print(summary(result.series.registration, result.series.names))
     gaps = list(evaluations[best]["rmse"])
     flat = "flat" in evaluations[best]
     print("held-out RMSE (code values) on all valid pixels, target darker / brighter / both"
