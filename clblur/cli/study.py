@@ -35,6 +35,10 @@ def register(subparsers) -> None:
                    help="repeat the diagnosis on N splits of the data into two folds and "
                         "report how often each effect is selected (default 1; N times the "
                         "time)")
+    p.add_argument("--no-align", action="store_true",
+                   help="exposure series: take the images as they are; by default the "
+                        "whole-pixel shift between exposures is measured and the images "
+                        "cropped to the window all of them cover")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
 
@@ -62,8 +66,10 @@ def run(args: argparse.Namespace) -> int:
         manifest = load_manifest(args.manifest)
     result = study(manifest, report=args.report, figures_dir=args.figures,
                    max_pixels=args.max_pixels or DEFAULT_PIXELS, alpha=args.alpha,
-                   progress=not args.quiet, splits=args.splits)
+                   progress=not args.quiet, splits=args.splits, align=not args.no_align)
     r = result.report
+    if "registration" in r:
+        print(r["registration"]["summary"])
     found = ", ".join(r["extended"]["effects"]) or "none"
     print(f"significant effects: {found}; held-out RMSE {r['baseline']['heldout_rmse']:.3f} "
           f"-> {r['extended']['heldout_rmse']:.3f} codes")

@@ -58,11 +58,17 @@ def _plain(v):
     return float(v)
 
 
+def _sentence(text: str) -> str:
+    return text[:1].upper() + text[1:] + "."
+
+
 def markdown(report: dict, title: str = "Study", figures: list[str] | None = None) -> str:
     """A short markdown summary of a report (tables of findings and the gain)."""
     b, x = report["baseline"], report["extended"]
     lines = [f"# {title}", "", f"Data kind: `{report['kind']}`."
-             + (f" Codes: {report['codes']}." if "codes" in report else ""), "",
+             + (f" Codes: {report['codes']}." if "codes" in report else "")
+             + (" " + _sentence(report["registration"]["summary"]) if "registration" in report
+                else ""), "",
              "| model | held-out RMSE (codes) | held-out NLL (nats/value) |", "|---|---|---|",
              f"| paper (baseline) | {b['heldout_rmse']:.3f} | {b['heldout_nll']:.3f} |",
              f"| {x['model']} | {x['heldout_rmse']:.3f} | {x['heldout_nll']:.3f} |", "",

@@ -20,6 +20,7 @@ from clblur.io import (
 )
 from clblur.io.paths import refuse_folder_of_inputs
 from clblur.manifest import Manifest, load_manifest, manifest_inputs
+from clblur.registration import align_series, describe
 from clblur.study.model import Group
 from clblur.study.pairs import pair_group
 from clblur.study.report import build_report, figures, markdown
@@ -42,6 +43,8 @@ class StudyResult:
 
 # fewest unclipped target values a study runs on (a few hundred pixels of one image)
 MIN_USABLE = 100
+# the largest shift (px, per axis) the misregistration effect fits (clblur.study.variants)
+MISREGISTRATION_REACH_PX = 1
 
 
 def _read_light(path: str | os.PathLike, dtypes: set[str] | None = None) -> np.ndarray:
@@ -54,9 +57,14 @@ def _read_light(path: str | os.PathLike, dtypes: set[str] | None = None) -> np.n
 
 
 def groups_from_manifest(manifest: Manifest, max_pixels: int = DEFAULT_PIXELS,
-                         progress: bool = False, dtypes: set[str] | None = None) -> list[Group]:
+                         progress: bool = False, dtypes: set[str] | None = None,
+                         align: bool = True, notes: dict | None = None) -> list[Group]:
     """Read the manifest's images and build the study groups of its kind; ``dtypes``, when
-    given, collects the images' stored dtypes (the report says when 16-bit was rounded)."""
+    given, collects the images' stored dtypes (the report says when 16-bit was rounded).
+    ``align``: register an exposure series' images and, where some image moved by more than
+    the ``misregistration`` effect can fit (``MISREGISTRATION_REACH_PX``), crop them to their
+    common window (``clblur.registration``, as ``clblur calibrate`` does); ``notes``, when given, receives
+    the registration (``notes["registration"]``, ``clblur.registration.describe``)."""
     from tqdm import tqdm
 
     def read(path: str | os.PathLike) -> np.ndarray:
@@ -64,6 +72,17 @@ def groups_from_manifest(manifest: Manifest, max_pixels: int = DEFAULT_PIXELS,
 
     if manifest.kind == "exposure-series":
         imgs = [read(e.path) for e in manifest.images]
+        if align:
+            reg = align_series(imgs, [e.exposure / (e.f_number or 1.0) ** 2
+                                      for e in manifest.images])
+            # a move of at most a pixel is the misregistration effect's to test and name
+            # (it fits sub-pixel shifts up to 1 px); only a larger one is cut away first
+            applied = int(np.abs(reg.shifts).max(initial=0)) > MISREGISTRATION_REACH_PX
+            if applied:
+                imgs = [reg.crop(im, i) for i, im in enumerate(imgs)]
+            if notes is not None:
+                notes["registration"] = describe(reg, [e.path.name for e in manifest.images],
+                                                 applied)
         return series_groups(imgs, [e.exposure for e in manifest.images],
                              [e.f_number for e in manifest.images], max_pixels=max_pixels)
     if manifest.kind == "blur-pair":
@@ -137,9 +156,11 @@ def split_summary(chosen: list[list[str]]) -> dict:
 
 def study(manifest: str | os.PathLike | Manifest, *, report: str | os.PathLike | None = None,
           figures_dir: str | os.PathLike | None = None, max_pixels: int = DEFAULT_PIXELS,
-          alpha: float = 0.05, progress: bool = False, splits: int = 1) -> StudyResult:
+          alpha: float = 0.05, progress: bool = False, splits: int = 1,
+          align: bool = True) -> StudyResult:
     """The API equivalent of ``clblur study``: run, and write the report (JSON, plus a
-    ``.md`` summary beside it) and figures when asked.  ``splits``: see ``study_groups``."""
+    ``.md`` summary beside it) and figures when asked.  ``splits``: see ``study_groups``;
+    ``align``: see ``groups_from_manifest`` (the report's ``registration``)."""
     m = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)
     if not isinstance(max_pixels, int) or max_pixels < 1000:
         raise ValueError(f"max_pixels must be an integer >= 1000, got {max_pixels!r}")
@@ -153,13 +174,15 @@ def study(manifest: str | os.PathLike | Manifest, *, report: str | os.PathLike |
     if figures_dir is not None:  # its figures have fixed names
         refuse_folder_of_inputs(figures_dir, inputs, "figures folder")
     dtypes: set[str] = set()
-    groups = groups_from_manifest(m, max_pixels, progress, dtypes)
+    notes: dict = {}
+    groups = groups_from_manifest(m, max_pixels, progress, dtypes, align, notes)
     usable = sum(int(g.valid.sum()) for g in groups)
     if usable < MIN_USABLE:  # nothing between black and white: nothing to fit or score
         raise ValueError(f"manifest {m.path}: only {usable} sampled pixel values lie between "
                          "the black and white clipping codes; the images are saturated or "
                          "black")
     result = study_groups(m.kind, groups, alpha=alpha, progress=progress, splits=splits)
+    result.report.update(notes)
     if "uint16" in dtypes:
         result.report["codes"] = ("16-bit images rounded to 8-bit codes (x / 257) at entry; "
                                   "the study's likelihood is written in 8-bit codes")
