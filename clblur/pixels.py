@@ -15,6 +15,8 @@ Conventions
     (1/255 for uint8, 1/65535 for uint16 and floats): a finite exposure whose value lies inside
     the top code bin with a margin for float32 arithmetic, so a constant saturated region stays
     at full scale.
+* Clipping below full scale (``clip_level``): a camera whose highlights stop under full
+  scale; measurement code (calibration, the study) treats that level as the clip point.
 * Quantise: integer outputs are ``rint(clip(v, 0, 1) * Imax)``, round half to even (the IEEE
   default, identical in numpy and OpenCL).  Float outputs are not rounded; bounded responses
   already land in [0, 1].
@@ -28,8 +30,9 @@ import numpy as np
 
 from clblur.responses import Response
 
-__all__ = ["SUPPORTED_DTYPES", "code_step", "full_scale_exposure", "imax", "linearisation_table",
-           "linearise", "normalise", "quantise", "top_value", "validate_saturation"]
+__all__ = ["SUPPORTED_DTYPES", "clip_level", "code_step", "full_scale_exposure", "imax",
+           "linearisation_table", "linearise", "normalise", "quantise", "top_value",
+           "validate_saturation"]
 
 SUPPORTED_DTYPES = (np.uint8, np.uint16, np.float32, np.float64)
 
@@ -107,3 +110,48 @@ def validate_saturation(saturation: float) -> float:
         raise ValueError(f"saturation must be a finite number >= 1 (a clipped pixel is at "
                          f"least as bright as full scale), got {saturation}")
     return s
+
+
+# a pile-up at the highest code: at least this share of the pixels (and 50), and this many
+# times the mean count of the 8 codes below it (a scene's own highlights taper off)
+_PILE_SHARE = 5e-4
+_PILE_RATIO = 4.0
+# clipped pixels hold many radiances: one exposure shorter they spread over at least this
+# fraction of full scale (10th to 90th percentile), or sit at the same top code again
+_CLIP_SPREAD = 8.0 / 255.0
+
+
+def clip_level(brightest: np.ndarray, darker: np.ndarray | None = None) -> float:
+    """The fraction of full scale at which an integer image clips, 1.0 when it clips at full
+    scale or shows no clipping (float images: 1.0).
+
+    A clipped channel piles its pixels up at one highest code.  A channel whose highest code
+    is below full scale and holds such a pile-up (``_PILE_SHARE`` of the pixels and
+    ``_PILE_RATIO`` times the codes just below) clips there, if ``darker`` (the same scene
+    at a shorter exposure, when there is one) agrees: a clipped code stands for every
+    radiance above the clip point, so in the darker image those pixels spread over at least
+    ``_CLIP_SPREAD`` or are clipped again, where a flat patch that is merely the brightest
+    thing in view (a test chart) stays one value.  The lowest such level over the channels
+    is returned (one valid range serves every channel)."""
+    if brightest.dtype.kind != "u":
+        return 1.0
+    if brightest.ndim == 2:
+        brightest = brightest[..., None]
+        darker = None if darker is None else darker.reshape(brightest.shape)
+    full = imax(brightest.dtype)
+    level = 1.0
+    for c in range(brightest.shape[2]):
+        plane = brightest[..., c]
+        counts = np.bincount(plane.ravel())
+        top = counts.size - 1
+        if top >= full or top < 16:
+            continue
+        piled = (counts[top] >= max(50, _PILE_SHARE * plane.size)
+                 and counts[top] >= _PILE_RATIO * counts[top - 8:top].mean())
+        if piled and darker is not None:
+            there = darker[..., c][plane == top].astype(np.float64)
+            lo, hi = np.percentile(there, [10, 90])
+            piled = hi - lo >= _CLIP_SPREAD * full or np.mean(there == top) >= 0.5
+        if piled:
+            level = min(level, top / full)
+    return level

@@ -5,53 +5,29 @@ images as if they had been shot on a tripod."""
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from bracket_scenes import exposure, scene  # tests/ is on the path (pytest rootdir)
 
 from clblur.calibration.series import ExposureSeries, load_series
 from clblur.registration import align_series, pair_shift
 
-DATA = Path(os.environ.get("CLBLUR_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 MARGIN = 12
-
-
-def _scene(h: int, w: int, seed: int) -> np.ndarray:
-    """Radiance of a textured scene over about 6 stops (blobs at several scales, a few
-    hard-edged rectangles), H x W x 3."""
-    rng = np.random.default_rng(seed)
-    log_l = np.zeros((h, w), np.float32)
-    for scale in (4, 16, 64):
-        small = rng.normal(size=(h // scale + 2, w // scale + 2)).astype(np.float32)
-        log_l += cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC)[:h, :w]
-    for _ in range(12):
-        y, x = rng.integers(0, h - 8), rng.integers(0, w - 8)
-        log_l[y:y + rng.integers(4, 40), x:x + rng.integers(4, 40)] += rng.normal(0, 1.5)
-    lum = np.exp(1.2 * log_l)
-    tint = np.array([0.8, 1.0, 1.2], np.float32)
-    return lum[..., None] * tint / np.float32(np.median(lum))
-
-
-def _exposure(radiance: np.ndarray, t: float, rng, pedestal: float = 0.0) -> np.ndarray:
-    """8-bit codes of a gamma-2.2 camera with read noise and a pedestal, clipped."""
-    v = np.clip(radiance * t, 0, 1) ** (1 / 2.2) + pedestal
-    v = v + rng.normal(0, 0.004, v.shape)
-    return np.clip(np.rint(v * 255), 0, 255).astype(np.uint8)
 
 
 def _handheld(seed: int, times=(8.0, 4.0, 2.0, 1.0, 0.5, 0.25, 0.125), h=180, w=240):
     """A bracket whose frames are windows of one scene at random whole-pixel offsets (up to
     ``MARGIN``): (frames, offsets, the frames cut to the common window)."""
     rng = np.random.default_rng(seed)
-    radiance = _scene(h + 2 * MARGIN, w + 2 * MARGIN, seed)
+    radiance = scene(h + 2 * MARGIN, w + 2 * MARGIN, seed)
     offsets = rng.integers(-MARGIN, MARGIN + 1, (len(times), 2))
     frames, whole = [], []
     for t, (dy, dx) in zip(times, offsets, strict=True):
         # the shortest frame sits on a pedestal with noise, as Memorial's do
-        full = _exposure(radiance, t, rng, pedestal=0.05 if t == min(times) else 0.0)
+        full = exposure(radiance, t, rng, pedestal=0.05 if t == min(times) else 0.0)
         whole.append(full)
         frames.append(full[MARGIN + dy:MARGIN + dy + h, MARGIN + dx:MARGIN + dx + w])
     lo, hi = offsets.max(axis=0), offsets.min(axis=0)
@@ -138,10 +114,11 @@ def test_the_study_registers_an_exposure_series(tmp_path):
     json.dumps(notes)  # the report is JSON
 
 
-@pytest.mark.skipif(not (DATA / "memorial").is_dir(), reason="shared data not available")
-def test_memorial_is_registered_as_shot_and_shifted_copies_are_recovered():
-    series = load_series(DATA / "memorial", DATA / "memorial" / "shutter_times.txt",
-                         align=False)
+def test_memorial_is_registered_as_shot_and_shifted_copies_are_recovered(shared_data):
+    folder = shared_data / "memorial"
+    if not folder.is_dir():
+        pytest.skip("memorial stack not in the shared data")
+    series = load_series(folder, folder / "shutter_times.txt", align=False)
     exposures = series.relative_exposures()
     reg = align_series(series.images, exposures)
     assert not reg.moved and not reg.unregistered  # Debevec's stack is registered

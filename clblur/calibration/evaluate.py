@@ -11,7 +11,8 @@ Conventions
   ``j`` (same samples, same options) before predicting it, so the target never informed the
   curve.  Pixels inside any sampled patch are never scored (held-out pixels only).
 * Scored values (headline): *every* pixel-channel valid in both images, i.e. codes 3..252 of
-  255 (``low < v < high`` with the defaults; neither clipped at the top nor at code 0..2 in
+  255 (``low < v < high`` with the defaults, ``high`` scaled by the series' ``white_level``
+  where its camera clips below full scale; neither clipped at the top nor at code 0..2 in
   the dark), random pixels, edges and textures included.  A secondary column keeps only
   *flat* pixels: their 3 x 3 neighbourhood spans at most ``flat_tolerance`` of full scale in
   both images (8 DN in uint8), where a sub-pixel misregistration between the exposures cannot
@@ -55,7 +56,7 @@ def _refit_without(series: ExposureSeries, f: ResponseFit, j: int) -> ResponseFi
 
 def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=(1, 4), *,
              refit: bool = True, tolerance: float = 0.25, max_pixels: int | None = None,
-             low: float = EVAL_LOW, high: float = EVAL_HIGH,
+             low: float = EVAL_LOW, high: float | None = None,
              flat_tolerance: float | None = FLAT_TOLERANCE, seed: int = 0,
              progress: bool = False) -> dict:
     """Held-out RMSE (code values) for each gap in stops, plus the fit's AIC/BIC.
@@ -70,6 +71,8 @@ def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=(1, 4), *,
     "aic", "bic", "rmse_fit"}``; a gap with no pair gets RMSE NaN and its reason in
     ``missing``.
     """
+    if high is None:  # a camera that clips below full scale: its clipped codes are not light
+        high = EVAL_HIGH * series.white_level
     gaps = tuple(float(g) for g in gaps)
     if not gaps or any(g <= 0 for g in gaps):
         raise ValueError(f"gaps must be positive numbers of stops, got {gaps}")

@@ -95,7 +95,7 @@ def transfer(resp: Response, values: np.ndarray, ratio: float) -> np.ndarray:
 
 
 def fit(series: ExposureSeries, model: str, *, shared: bool = False, n_samples: int = 1000,
-        patch: int = 3, low: float | None = None, high: float = VALID_HIGH, seed: int = 0,
+        patch: int = 3, low: float | None = None, high: float | None = None, seed: int = 0,
         refine_times: bool = False, sampling: Sampling | None = None, progress: bool = False,
         **opts) -> ResponseFit:
     """Fit response family ``model`` (one of ``MODELS``) to ``series``.
@@ -104,7 +104,8 @@ def fit(series: ExposureSeries, model: str, *, shared: bool = False, n_samples: 
     per channel.  ``n_samples``, ``patch``, ``seed``: sample selection (see
     ``clblur.calibration.sampling``); pass ``sampling`` to reuse a selection (the same patches
     for every model, so their held-out pixels match).  ``low``/``high``: the valid range of
-    fitted values; ``low`` defaults to the family's ``default_low``.
+    fitted values; ``low`` defaults to the family's ``default_low``, ``high`` to
+    ``VALID_HIGH`` times the series' ``white_level`` (a camera that clips below full scale).
     ``refine_times``: re-estimate the exposures (uncertain shutter times).  Further keyword
     options go to the family (``order`` for polynomial, ``smoothness``/``levels``/
     ``time_sigma`` for nonparametric, ``components``/``emor_dir`` for emor).
@@ -122,6 +123,8 @@ def fit(series: ExposureSeries, model: str, *, shared: bool = False, n_samples: 
     family = FAMILIES[model]
     if low is None:
         low = family.default_low
+    if high is None:
+        high = VALID_HIGH * series.white_level
     if sampling is None:
         sampling = sample_series(series, n_samples, patch=patch, low=min(low, VALID_LOW),
                                  high=high, seed=seed)
@@ -188,9 +191,12 @@ def _on_paper_axis(series: ExposureSeries, f: FamilyFit, channels: list[int]) ->
 
 
 def radiance_map(series: ExposureSeries, resp: Response, channel: int = 0,
-                 low: float = VALID_LOW, high: float = VALID_HIGH) -> np.ndarray:
+                 low: float = VALID_LOW, high: float | None = None) -> np.ndarray:
     """Hat-weighted merge of ``ln(I^-1(v) / tau)`` over the exposures (H x W; NaN where no
-    exposure is valid), in the response's exposure unit at relative exposure 1."""
+    exposure is valid), in the response's exposure unit at relative exposure 1.  ``high``:
+    default ``VALID_HIGH`` times the series' ``white_level``."""
+    if high is None:
+        high = VALID_HIGH * series.white_level
     tau = series.relative_exposures()
     num = np.zeros(series.shape)
     den = np.zeros(series.shape)

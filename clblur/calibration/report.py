@@ -235,6 +235,8 @@ def write_report(folder: str | Path, series: ExposureSeries, fits: dict[str, Res
     registered = ([] if series.registration is None else
                   ["R" + summary(series.registration, series.names)[1:]
                    + " (`clblur.registration`)."])
+    if (note := series.clipping_note()) is not None:
+        registered.append(f"The series {note}.")
     lines = [
         "# Calibration report", "",
         f"Series: {len(series.images)} images, {series.shape[1]} x {series.shape[0]} "

@@ -154,11 +154,14 @@ def _normalised(channel: np.ndarray, full_scale: float) -> np.ndarray:
 
 
 def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float = VALID_LOW,
-                  high: float = VALID_HIGH, seed: int = 0,
+                  high: float | None = None, seed: int = 0,
                   monotone_tolerance: float = MONOTONE_TOLERANCE,
                   n_pixels: int = N_PIXELS) -> Sampling:
     """Choose up to ``n_samples`` flat patches per channel, spread over the value range, and
-    ``n_pixels`` random single pixels (see the module doc)."""
+    ``n_pixels`` random single pixels (see the module doc).  ``high``: default
+    ``VALID_HIGH`` times the series' ``white_level``."""
+    if high is None:
+        high = VALID_HIGH * series.white_level
     if not isinstance(n_samples, (int, np.integer)) or n_samples < 8:
         raise ValueError(f"n_samples must be an integer >= 8, got {n_samples!r}")
     if not isinstance(patch, (int, np.integer)) or patch < 1 or patch % 2 == 0:

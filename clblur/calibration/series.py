@@ -9,6 +9,11 @@ Conventions
   C = 1).  Values are normalised by the dtype's full scale (``clblur.pixels.imax``).
 * Sources, in order of precedence: a manifest of kind ``exposure-series``; a folder of images
   plus a times file or sequence; EXIF ``ExposureTime`` / ``FNumber`` of the images.
+* Clipping below full scale: a camera whose highlights stop at a code under full scale (a
+  JPEG engine that clips at 230, video-range levels, raw data in a wider container) would
+  have its clipped pixels taken for light.  ``ExposureSeries.white_level`` finds such a
+  level (``clblur.pixels.clip_level``) and the valid ranges of sampling, fitting and
+  evaluation scale with it; a series that clips at full scale is untouched.
 * Registration: ``load_series`` registers the images (``clblur.registration``: the
   whole-pixel translation between hand-held exposures) and crops them to the window all of
   them cover; ``ExposureSeries.registration`` records it.  A series built from arrays is
@@ -22,13 +27,14 @@ import os
 from collections import Counter
 from dataclasses import dataclass
 from fractions import Fraction
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
 
 from clblur.io import light_channels, read_image, require_file, resolve_inside
 from clblur.manifest import Exposure, Manifest, load_manifest
-from clblur.pixels import imax
+from clblur.pixels import clip_level, imax
 from clblur.registration import Registration, align_series
 
 __all__ = ["IMAGE_SUFFIXES", "ExposureSeries", "exif_exposure", "exif_iso", "folder_series",
@@ -95,6 +101,22 @@ class ExposureSeries:
     @property
     def shape(self) -> tuple[int, int]:
         return self.images[0].shape[:2]
+
+    @cached_property
+    def white_level(self) -> float:
+        """The value (fraction of full scale) at which the series clips:
+        ``clblur.pixels.clip_level`` of its longest exposure, which clips the most, checked on
+        the next longest; 1.0 for clipping at full scale."""
+        order = np.argsort(self.relative_exposures())[::-1]
+        return clip_level(self.images[order[0]], self.images[order[1]])
+
+    def clipping_note(self) -> str | None:
+        """A line saying that the series clips below full scale, or None."""
+        if self.white_level >= 1.0:
+            return None
+        return (f"clips below full scale: the longest exposure piles up at code "
+                f"{self.white_level * self.full_scale:g} of {self.full_scale:g}; the valid "
+                "ranges of sampling and evaluation end below it")
 
     def relative_exposures(self) -> np.ndarray:
         """Photometric exposure ``t / N**2`` divided by its maximum (the longest is 1)."""

@@ -137,6 +137,8 @@ def run(args: argparse.Namespace) -> int:
         from clblur.registration import summary
 
         print(summary(result.series.registration, result.series.names))
+    if (note := result.series.clipping_note()) is not None:
+        print(f"the series {note}")
     gaps = list(evaluations[best]["rmse"])
     flat = "flat" in evaluations[best]
     print("held-out RMSE (code values) on all valid pixels, target darker / brighter / both"

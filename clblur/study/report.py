@@ -68,7 +68,8 @@ def markdown(report: dict, title: str = "Study", figures: list[str] | None = Non
     lines = [f"# {title}", "", f"Data kind: `{report['kind']}`."
              + (f" Codes: {report['codes']}." if "codes" in report else "")
              + (" " + _sentence(report["registration"]["summary"]) if "registration" in report
-                else ""), "",
+                else "")
+             + (" " + _sentence(report["clipping"]) if "clipping" in report else ""), "",
              "| model | held-out RMSE (codes) | held-out NLL (nats/value) |", "|---|---|---|",
              f"| paper (baseline) | {b['heldout_rmse']:.3f} | {b['heldout_nll']:.3f} |",
              f"| {x['model']} | {x['heldout_rmse']:.3f} | {x['heldout_nll']:.3f} |", "",

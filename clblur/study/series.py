@@ -2,7 +2,9 @@
 
 With the paper's response the prediction is ``I(r I^-1(v))`` with ``r`` the nominal exposure
 ratio (``exposure / f_number^2``); the longer image is the source, so its clipped highlights
-are what the shorter image reveals (the ``saturation`` effect).
+are what the shorter image reveals (the ``saturation`` effect).  A camera that clips below
+full scale (:func:`clip_code`) has its pixels at or above the clip point censored, in the
+target and at the source pixel.
 
 Why two gaps: a bracket in whole stops has one ratio ``r`` between neighbours, and with one
 ratio a response is known only up to a power (``I^-1`` and ``(I^-1)^a`` predict alike once
@@ -15,11 +17,21 @@ from __future__ import annotations
 
 import numpy as np
 
+from clblur.pixels import clip_level
 from clblur.study.histograms import Taps, as_hwc, build_group, sample_grid, shifted
 from clblur.study.model import Group
 from clblur.study.variants import SHIFTS
 
-__all__ = ["series_groups"]
+__all__ = ["clip_code", "series_groups"]
+
+
+def clip_code(images: list[np.ndarray], exposures: list[float]) -> int:
+    """The 8-bit code at which a series clips (``clblur.pixels.clip_level`` of its longest
+    exposure, checked on the next longest): 255, or lower for a camera that clips below full
+    scale."""
+    order = np.argsort(exposures)[::-1]
+    imgs = [as_hwc(images[i], f"image {i}") for i in order[:2]]
+    return round(255 * clip_level(imgs[0], imgs[1] if len(imgs) > 1 else None))
 
 
 def series_groups(images: list[np.ndarray], exposures: list[float],
@@ -37,6 +49,7 @@ def series_groups(images: list[np.ndarray], exposures: list[float],
             raise ValueError(f"images {min(a, b)} and {max(a, b)} have the same exposure "
                              f"({h[a]:g}); each image of a series needs its own")
     imgs = [as_hwc(images[i], f"image {i}") for i in order]
+    top = clip_code(imgs, [h[i] for i in order])
     h = [h[i] for i in order]
     steps = [(k, k + gap) for gap in (1, 2) for k in range(len(imgs) - gap)]
     per = max(1000, max_pixels // len(steps))
@@ -50,8 +63,12 @@ def series_groups(images: list[np.ndarray], exposures: list[float],
         def taps(yy, xx):
             yield Taps(0, 0.0, 0.0, 1.0, None)
 
-        groups.append(build_group(f"step{k:02d}-{j:02d}", [src], tgt, rows, cols, taps,
-                                  h[j] / h[k], vignetting=False, timed=False,
-                                  variants={"misregistration": {sh: shifted(taps, *sh)
-                                                                for sh in SHIFTS}}))
+        g = build_group(f"step{k:02d}-{j:02d}", [src], tgt, rows, cols, taps,
+                        h[j] / h[k], vignetting=False, timed=False,
+                        variants={"misregistration": {sh: shifted(taps, *sh) for sh in SHIFTS}})
+        if top < 255:
+            # a camera that clips below full scale: a code at its clip point is no measure
+            # of light, in the target (censored like 255) nor in the source
+            g.valid &= (g.target < top) & (src[g.rows, g.cols] < top)
+        groups.append(g)
     return groups
