@@ -137,11 +137,15 @@ class ExposureSeries:
         return ExposureSeries(images, self.exposures, self.f_numbers, self.names, reg)
 
     def subset(self, keep) -> ExposureSeries:
-        """The series restricted to the images whose indices are in ``keep`` (order kept)."""
+        """The series restricted to the images whose indices are in ``keep`` (order kept); it
+        keeps the series' ``white_level`` (the camera clips where it clips, whichever images
+        are left to show it)."""
         keep = [int(i) for i in keep]
         fn = None if self.f_numbers is None else self.f_numbers[keep]
-        return ExposureSeries([self.images[i] for i in keep], self.exposures[keep], fn,
-                              [self.names[i] for i in keep])
+        out = ExposureSeries([self.images[i] for i in keep], self.exposures[keep], fn,
+                             [self.names[i] for i in keep])
+        out.__dict__["white_level"] = self.white_level  # the cached_property's slot
+        return out
 
 
 def _as_hwc(im: np.ndarray, index: int) -> np.ndarray:
