@@ -17,6 +17,8 @@ Conventions
     at full scale.
 * Clipping below full scale (``clip_level``): a camera whose highlights stop under full
   scale; measurement code (calibration, the study) treats that level as the clip point.
+  Padding (``series_padding``): a constant-colour border a registration or crop added, which
+  holds no light; the study leaves it out.
 * Quantise: integer outputs are ``rint(clip(v, 0, 1) * Imax)``, round half to even (the IEEE
   default, identical in numpy and OpenCL).  Float outputs are not rounded; bounded responses
   already land in [0, 1].
@@ -31,8 +33,8 @@ import numpy as np
 from clblur.responses import Response
 
 __all__ = ["SUPPORTED_DTYPES", "clip_level", "code_step", "full_scale_exposure", "imax",
-           "linearisation_table", "linearise", "normalise", "quantise", "top_value",
-           "validate_saturation"]
+           "linearisation_table", "linearise", "normalise", "quantise", "series_padding",
+           "top_value", "validate_saturation"]
 
 SUPPORTED_DTYPES = (np.uint8, np.uint16, np.float32, np.float64)
 
@@ -155,3 +157,94 @@ def clip_level(brightest: np.ndarray, darker: np.ndarray | None = None) -> float
         if piled:
             level = min(level, top / full)
     return level
+
+
+# a run of one exact colour along an image edge at least this long may be padding
+_PAD_RUN = 16
+# ... and is, when its pixels break the order of exposures by this much (fraction of full
+# scale, the median over the region): brighter than a longer exposure or darker than a
+# shorter one, which light cannot be
+_PAD_BREAK = 0.03
+_PAD_SAMPLES = 4096
+
+
+def _border_runs(image: np.ndarray) -> list[np.ndarray]:
+    """Candidate padding of an H x W x C image: for each exact colour that runs along an edge
+    for at least ``_PAD_RUN`` pixels, the pixels of that colour connected to the run."""
+    import cv2
+
+    h, w, c = image.shape
+    seeds: dict[tuple, list[tuple[int, int]]] = {}
+    for e, line in enumerate([image[0], image[-1], image[:, 0], image[:, -1]]):
+        # runs of one exact colour along the edge: where the colour changes, a run ends
+        change = np.flatnonzero((line[1:] != line[:-1]).any(axis=1)) + 1
+        for a, b in zip(np.r_[0, change], np.r_[change, line.shape[0]], strict=True):
+            if b - a >= _PAD_RUN:
+                pos = ((0, a), (h - 1, a), (a, 0), (a, w - 1))[e]
+                seeds.setdefault(tuple(line[a].tolist()), []).append(pos)
+    if not seeds:
+        return []
+    # one number per pixel for its colour (exact for integer codes; float images compare
+    # their channels), so that each candidate colour costs one comparison
+    if image.dtype.kind == "u" and c * image.dtype.itemsize <= 8:
+        key = np.zeros((h, w), np.uint64)
+        for k in range(c):
+            key = (key << np.uint64(8 * image.dtype.itemsize)) | image[..., k]
+
+        def same(colour):
+            return key == np.uint64(sum(int(v) << (8 * image.dtype.itemsize * (c - 1 - k))
+                                        for k, v in enumerate(colour)))
+    else:
+        def same(colour):
+            return (image == np.asarray(colour, image.dtype)).all(axis=2)
+    regions = []
+    for colour, points in seeds.items():
+        grown = same(colour).astype(np.uint8)
+        mask = np.zeros((h + 2, w + 2), np.uint8)
+        for y, x in points:  # the pixels of this colour 4-connected to a run, marked 2
+            if grown[y, x] == 1:
+                cv2.floodFill(grown, mask, (int(x), int(y)), 2, 0, 0, 4)
+        regions.append(grown == 2)
+    return regions
+
+
+def series_padding(images: list[np.ndarray], exposures) -> list[np.ndarray]:
+    """For each frame of an exposure series, the pixels of a constant-colour border that
+    holds no light of the scene (H x W bool): what a registration or a crop padded it with.
+
+    Why: registered stacks are often padded where a frame was shifted; Memorial's frames
+    carry bands of pure blue (0, 0, 255) along their edges, 0.2 to 4.4 % of each frame,
+    whose zeros a study would read as the camera's darkest code and whose 255s as clipped
+    light.  A candidate is one exact colour running along an edge for at least ``_PAD_RUN``
+    pixels, with every pixel of that colour connected to the run.  Exact runs also occur in
+    the scene (crushed blacks, a clipped sky, the flat floor of a dark frame), so a
+    candidate is padding only where it breaks the order of exposures: in the median over
+    its pixels, brighter than some longer frame or darker than some shorter one by
+    ``_PAD_BREAK`` of full scale in some channel, the other frames read where they are not
+    candidates themselves (their own padding proves nothing)."""
+    ims = [im if im.ndim == 3 else im[..., None] for im in images]
+    x = np.asarray(exposures, np.float64)
+    out = [np.zeros(im.shape[:2], bool) for im in ims]
+    if len(ims) < 2 or min(ims[0].shape[:2]) < 2:
+        return out
+    candidates = [_border_runs(im) for im in ims]
+    loose = [np.logical_or.reduce(c) if c else np.zeros(im.shape[:2], bool)
+             for c, im in zip(candidates, ims, strict=True)]
+    limit = _PAD_BREAK * (imax(ims[0].dtype) if ims[0].dtype.kind == "u" else 1.0)
+    for i, regions in enumerate(candidates):
+        for region in regions:
+            # the median over the region, from at most _PAD_SAMPLES of its pixels
+            at = np.flatnonzero(region)
+            at = at[np.linspace(0, at.size - 1, min(at.size, _PAD_SAMPLES)).astype(np.intp)]
+            here = ims[i].reshape(-1, ims[i].shape[2])[at].astype(np.float64)
+            breaks = np.zeros(at.size)
+            for j, other in enumerate(ims):
+                if j == i or x[j] == x[i]:
+                    continue
+                sign = 1.0 if x[j] < x[i] else -1.0  # darker than shorter, brighter than longer
+                there = other.reshape(-1, other.shape[2])[at].astype(np.float64)
+                gap = (sign * (there - here)).max(axis=1)
+                breaks = np.maximum(breaks, np.where(loose[j].ravel()[at], 0.0, gap))
+            if np.median(breaks) > limit:
+                out[i] |= region
+    return out

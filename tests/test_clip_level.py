@@ -74,3 +74,66 @@ def test_a_subset_keeps_the_clip_level_of_its_series():
     darkest = clipped.subset([len(frames), len(frames) + 1])
     assert ExposureSeries.create(dim, (0.0625, 0.03125)).white_level == 1.0
     assert darkest.white_level == clipped.white_level == pytest.approx(230 / 255)
+
+
+# where each frame of a registered bracket was padded: (frame, edge, width), as Memorial's
+# frames are padded along different edges by different widths
+PADS = ((1, "top", 6), (3, "left", 5), (4, "bottom", 7), (5, "right", 8))
+
+
+def _band(shape, edge: str, width: int) -> np.ndarray:
+    band = np.zeros(shape[:2], bool)
+    band[{"top": np.s_[:width], "bottom": np.s_[-width:], "left": np.s_[:, :width],
+          "right": np.s_[:, -width:]}[edge]] = True
+    return band
+
+
+def _padded(frames: list[np.ndarray]) -> list[np.ndarray]:
+    """The frames with their ``PADS`` painted pure blue, as Memorial's are."""
+    out = [f.copy() for f in frames]
+    for i, edge, width in PADS:
+        out[i][_band(out[i].shape, edge, width)] = (0, 0, 255)
+    return out
+
+
+def test_a_padded_border_is_found_and_a_scene_run_is_not():
+    from clblur.pixels import series_padding
+
+    frames = series_frames(None)
+    pads = series_padding(_padded(frames), TIMES)
+    truth = [np.zeros(f.shape[:2], bool) for f in frames]
+    for i, edge, width in PADS:
+        truth[i] = _band(frames[i].shape, edge, width)
+    for p, t in zip(pads, truth, strict=True):
+        np.testing.assert_array_equal(p, t)
+    # a run of one colour along an edge that obeys the exposures is scene, not padding
+    flat = [f.copy() for f in frames]
+    for f, t in zip(flat, TIMES, strict=True):
+        f[:, :20] = min(255, round(40 * t))  # a flat strip, brighter with exposure
+    assert not any(p.any() for p in series_padding(flat, TIMES))
+
+
+def test_the_study_leaves_padding_out_and_bounds_the_black_level_by_box_means():
+    from clblur.study.series import series_groups
+
+    frames = series_frames(None)
+    notes: dict = {}
+    padded = _padded(frames)
+    groups = series_groups(padded, list(TIMES), max_pixels=4000, notes=notes)
+    assert sorted(notes["padding"]) == [i for i, _, _ in PADS]
+    bands = {i: _band(frames[i].shape, e, wd) for i, e, wd in PADS}
+    for g in groups:  # no pixel padded in the step's source or target is sampled
+        k, j = (int(v) for v in g.name.removeprefix("step").split("-"))  # longest first
+        for i in (k, j):
+            if i in bands:
+                assert not bands[i][g.rows, g.cols].any()
+    # a frame on a pedestal of 12 codes whose single pixels scatter down to 0: the bound is
+    # the floor of its box means, not its darkest pixel
+    rng = np.random.default_rng(3)
+    dark = np.clip(np.rint(12 + 3 * rng.standard_normal((64, 80, 3))), 0, 255).astype(np.uint8)
+    dark[10, 10] = 0
+    brighter = np.clip(dark.astype(int) * 2, 0, 255).astype(np.uint8)
+    from clblur.study.variants import darkest_code
+
+    g = series_groups([brighter, dark], [2.0, 1.0], max_pixels=1000)[0]
+    assert 9 <= darkest_code(g) <= 12

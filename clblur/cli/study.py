@@ -70,8 +70,9 @@ def run(args: argparse.Namespace) -> int:
     r = result.report
     if "registration" in r:
         print(r["registration"]["summary"])
-    if "clipping" in r:
-        print(r["clipping"])
+    for line in ("clipping", "padding"):
+        if line in r:
+            print(r[line])
     found = ", ".join(r["extended"]["effects"]) or "none"
     print(f"significant effects: {found}; held-out RMSE {r['baseline']['heldout_rmse']:.3f} "
           f"-> {r['extended']['heldout_rmse']:.3f} codes")

@@ -47,13 +47,15 @@ def build_group(name: str, sources: list[np.ndarray], target: np.ndarray,
                 rows: np.ndarray, cols: np.ndarray,
                 taps: Callable[[np.ndarray, np.ndarray], Iterable[Taps]], ratio: float,
                 vignetting: bool, timed: bool,
-                variants: dict[str, dict] | None = None) -> Group:
+                variants: dict[str, dict] | None = None,
+                darkest: int | None = None) -> Group:
     """Collapse the taps of pixels (rows, cols) into code histograms (see ``model``).
 
     ``variants`` (``{effect: {key: taps}}``) are alternative tap sets for the geometric
     effects (``clblur.study.variants``): their histograms are built on the same pixels (a
     pixel is kept only if every variant's taps stay inside the image) and attached to the
-    group.
+    group.  ``darkest``: the bound a black level may not exceed (codes), for sources and
+    target both; default the darkest code of the sources and of the target pixels.
     """
     h, w, nc = target.shape
     hw = h * w
@@ -122,7 +124,8 @@ def build_group(name: str, sources: list[np.ndarray], target: np.ndarray,
     from clblur.study.variants import attach
 
     attach(g, {eff: {key: hists(m) for key, m in d.items()} for eff, d in alt.items()},
-           min(int(s.min()) for s in sources))
+           min(int(s.min()) for s in sources) if darkest is None else darkest,
+           with_target=darkest is None)
     return g
 
 

@@ -25,7 +25,7 @@ from clblur.study.model import Group
 from clblur.study.pairs import pair_group
 from clblur.study.report import build_report, figures, markdown
 from clblur.study.select import Selection, select
-from clblur.study.series import clip_code, series_groups
+from clblur.study.series import series_groups
 from clblur.study.stacks import stack_group
 
 __all__ = ["DEFAULT_PIXELS", "StudyResult", "groups_from_manifest", "split_summary", "study",
@@ -65,8 +65,9 @@ def groups_from_manifest(manifest: Manifest, max_pixels: int = DEFAULT_PIXELS,
     the ``misregistration`` effect can fit (``MISREGISTRATION_REACH_PX``), crop them to their
     common window (``clblur.registration``, as ``clblur calibrate`` does); ``notes``, when
     given, receives the registration (``notes["registration"]``,
-    ``clblur.registration.describe``) and, for a series that clips below full scale, a line
-    saying so (``notes["clipping"]``, ``clblur.study.series.clip_code``)."""
+    ``clblur.registration.describe``) and lines on what was left out as no light:
+    ``notes["clipping"]`` (a camera that clips below full scale) and ``notes["padding"]``
+    (constant borders, ``clblur.study.series.series_groups``)."""
     from tqdm import tqdm
 
     def read(path: str | os.PathLike) -> np.ndarray:
@@ -74,9 +75,9 @@ def groups_from_manifest(manifest: Manifest, max_pixels: int = DEFAULT_PIXELS,
 
     if manifest.kind == "exposure-series":
         imgs = [read(e.path) for e in manifest.images]
-        exposures = [e.exposure / (e.f_number or 1.0) ** 2 for e in manifest.images]
         if align:
-            reg = align_series(imgs, exposures)
+            reg = align_series(imgs, [e.exposure / (e.f_number or 1.0) ** 2
+                                      for e in manifest.images])
             # a move of at most a pixel is the misregistration effect's to test and name
             # (it fits sub-pixel shifts up to 1 px); only a larger one is cut away first
             applied = int(np.abs(reg.shifts).max(initial=0)) > MISREGISTRATION_REACH_PX
@@ -85,11 +86,19 @@ def groups_from_manifest(manifest: Manifest, max_pixels: int = DEFAULT_PIXELS,
             if notes is not None:
                 notes["registration"] = describe(reg, [e.path.name for e in manifest.images],
                                                  applied)
-        if notes is not None and (top := clip_code(imgs, exposures)) < 255:
-            notes["clipping"] = (f"the series clips at code {top} of 255 (below full "
-                                 "scale): pixels at or above it are censored")
-        return series_groups(imgs, [e.exposure for e in manifest.images],
-                             [e.f_number for e in manifest.images], max_pixels=max_pixels)
+        left_out: dict = {}
+        groups = series_groups(imgs, [e.exposure for e in manifest.images],
+                               [e.f_number for e in manifest.images], max_pixels=max_pixels,
+                               notes=left_out)
+        if notes is not None and left_out["clip_code"] < 255:
+            notes["clipping"] = (f"the series clips at code {left_out['clip_code']} of 255 "
+                                 "(below full scale): pixels at or above it are censored")
+        if notes is not None and left_out["padding"]:
+            frames = ", ".join(f"{manifest.images[i].path.name} {100 * f:.1f} %"
+                               for i, f in sorted(left_out["padding"].items()))
+            notes["padding"] = (f"constant borders padded into the frames hold no light and "
+                                f"are left out: {frames}")
+        return groups
     if manifest.kind == "blur-pair":
         per = max(1000, max_pixels // len(manifest.pairs))
         out = []

@@ -41,10 +41,13 @@ SCALES = (0.8, 1.25)  # psf_scale histograms besides 1
 SHIFTS = ((1, 0), (-1, 0), (0, 1), (0, -1))  # misregistration histograms besides (0, 0)
 
 
-def attach(g: Group, variants: dict[str, dict], darkest: int) -> None:
-    """Store variant histograms (``{effect: {key: hist}}``) and the darkest source code."""
+def attach(g: Group, variants: dict[str, dict], darkest: int,
+           with_target: bool = True) -> None:
+    """Store variant histograms (``{effect: {key: hist}}``) and the darkest source code
+    (with ``with_target``, or the group's darkest target code if darker)."""
     g.__dict__["variants"] = variants
-    g.__dict__["darkest"] = min(darkest, int(g.target.min()) if g.target.size else 255)
+    g.__dict__["darkest"] = (min(darkest, int(g.target.min()) if g.target.size else 255)
+                             if with_target else int(darkest))
 
 
 def darkest_code(g: Group) -> int:
