@@ -33,8 +33,8 @@ import numpy as np
 from clblur.responses import Response
 
 __all__ = ["SUPPORTED_DTYPES", "clip_level", "code_step", "full_scale_exposure", "imax",
-           "linearisation_table", "linearise", "normalise", "quantise", "series_padding",
-           "top_value", "validate_saturation"]
+           "linearisation_table", "linearise", "normalise", "quantise", "series_clip_level",
+           "series_padding", "top_value", "validate_saturation"]
 
 SUPPORTED_DTYPES = (np.uint8, np.uint16, np.float32, np.float64)
 
@@ -157,6 +157,13 @@ def clip_level(brightest: np.ndarray, darker: np.ndarray | None = None) -> float
         if piled:
             level = min(level, top / full)
     return level
+
+
+def series_clip_level(images: list[np.ndarray], exposures) -> float:
+    """:func:`clip_level` of an exposure series: its longest exposure, which clips the most,
+    checked on the next longest (``exposures`` in any consistent unit)."""
+    order = np.argsort(np.asarray(exposures, np.float64))[::-1]
+    return clip_level(images[order[0]], images[order[1]] if len(order) > 1 else None)
 
 
 # a run of one exact colour along an image edge at least this long may be padding

@@ -12,7 +12,7 @@ Conventions
 * Clipping below full scale: a camera whose highlights stop at a code under full scale (a
   JPEG engine that clips at 230, video-range levels, raw data in a wider container) would
   have its clipped pixels taken for light.  ``ExposureSeries.white_level`` finds such a
-  level (``clblur.pixels.clip_level``) and the valid ranges of sampling, fitting and
+  level (``clblur.pixels.series_clip_level``) and the valid ranges of sampling, fitting and
   evaluation scale with it; a series that clips at full scale is untouched.
 * Registration: ``load_series`` registers the images (``clblur.registration``: the
   whole-pixel translation between hand-held exposures) and crops them to the window all of
@@ -34,7 +34,7 @@ import numpy as np
 
 from clblur.io import light_channels, read_image, require_file, resolve_inside
 from clblur.manifest import Exposure, Manifest, load_manifest
-from clblur.pixels import clip_level, imax
+from clblur.pixels import imax, series_clip_level
 from clblur.registration import Registration, align_series
 
 __all__ = ["IMAGE_SUFFIXES", "ExposureSeries", "exif_exposure", "exif_iso", "folder_series",
@@ -104,11 +104,9 @@ class ExposureSeries:
 
     @cached_property
     def white_level(self) -> float:
-        """The value (fraction of full scale) at which the series clips:
-        ``clblur.pixels.clip_level`` of its longest exposure, which clips the most, checked on
-        the next longest; 1.0 for clipping at full scale."""
-        order = np.argsort(self.relative_exposures())[::-1]
-        return clip_level(self.images[order[0]], self.images[order[1]])
+        """The value (fraction of full scale) at which the series clips
+        (``clblur.pixels.series_clip_level``); 1.0 for clipping at full scale."""
+        return series_clip_level(self.images, self.relative_exposures())
 
     def clipping_note(self) -> str | None:
         """A line saying that the series clips below full scale, or None."""

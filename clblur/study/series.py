@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from clblur.pixels import clip_level, series_padding
+from clblur.pixels import series_clip_level, series_padding
 from clblur.study.histograms import Taps, as_hwc, build_group, sample_grid, shifted
 from clblur.study.model import Group
 from clblur.study.variants import SHIFTS
@@ -29,12 +29,10 @@ __all__ = ["clip_code", "series_groups"]
 
 
 def clip_code(images: list[np.ndarray], exposures: list[float]) -> int:
-    """The 8-bit code at which a series clips (``clblur.pixels.clip_level`` of its longest
-    exposure, checked on the next longest): 255, or lower for a camera that clips below full
-    scale."""
-    order = np.argsort(exposures)[::-1]
-    imgs = [as_hwc(images[i], f"image {i}") for i in order[:2]]
-    return round(255 * clip_level(imgs[0], imgs[1] if len(imgs) > 1 else None))
+    """The 8-bit code at which a series clips (``clblur.pixels.series_clip_level`` of its
+    8-bit codes): 255, or lower for a camera that clips below full scale."""
+    codes = [as_hwc(im, f"image {i}") for i, im in enumerate(images)]
+    return round(255 * series_clip_level(codes, exposures))
 
 
 # px: the side of the box whose mean code bounds a black level (module doc)
