@@ -20,10 +20,11 @@ Conventions
 * Noise (Foi et al. 2008): ``y_noisy = a * Poisson(y / a) + N(0, b)`` (variance ``a y + b``),
   added in the linear domain before clipping and the response; pixels at or above the full
   well are clipped and carry no noise.
-* The response maps ``y`` to a normalised value; a black level ``beta`` lifts it:
-  ``v = beta + (1 - beta) * I(y)``; then ``clblur.pixels.quantise`` (round half to even),
-  or, with ``storage="floor"``, truncation ``floor(v * full)`` (a -0.5 code bias), and with
-  ``code_offset`` a constant offset of that many codes added before quantising.
+* The response maps ``y`` to a normalised value; a black level ``beta`` (one, or one per
+  channel) lifts it: ``v = beta + (1 - beta) * I(y)``; then ``clblur.pixels.quantise``
+  (round half to even), or, with ``storage="floor"``, truncation ``floor(v * full)`` (a
+  -0.5 code bias), and with ``code_offset`` a constant offset of that many codes added
+  before quantising.
 * ``shift=(sx, sy)`` (``capture``): the sensor image is displaced by a sub-pixel amount after
   the blur, ``y(p) <- y(p - s)`` (bilinear, edge clamped), i.e. a misregistration between
   this capture and another.
@@ -50,7 +51,7 @@ class Camera:
     """Sensor and processing of one camera (see the module docstring for the physics)."""
 
     response: Response | str = Exp(3.0)
-    black_level: float = 0.0  # normalised value of zero exposure
+    black_level: float | tuple[float, ...] = 0.0  # normalised value of zero exposure
     noise_a: float = 0.0  # Poisson part of the variance, full-well units
     noise_b: float = 0.0  # Gaussian part of the variance, full-well units squared
     full_well: bool = False  # clip the linear exposure at 1
@@ -65,8 +66,10 @@ class Camera:
             raise ValueError(f"storage must be 'round' or 'floor', got {self.storage!r}")
         if not (math.isfinite(self.code_offset) and abs(self.code_offset) <= 8):
             raise ValueError(f"code_offset must be within +-8 codes, got {self.code_offset}")
-        if not 0.0 <= self.black_level < 1.0:
-            raise ValueError(f"black_level must be in [0, 1), got {self.black_level}")
+        levels = np.atleast_1d(np.asarray(self.black_level, dtype=np.float64))
+        if levels.ndim != 1 or not np.all((levels >= 0.0) & (levels < 1.0)):
+            raise ValueError(f"black_level must be in [0, 1) (one, or one per channel), "
+                             f"got {self.black_level}")
         for name in ("noise_a", "noise_b", "vignetting"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
@@ -109,7 +112,10 @@ class Camera:
         if self.full_well:
             y = np.minimum(y, 1.0)
         v = self.response.forward(np.maximum(y, 0.0))
-        v = self.black_level + (1.0 - self.black_level) * v
+        beta = np.asarray(self.black_level, dtype=np.float64)
+        if beta.ndim and beta.size != v.shape[2]:
+            raise ValueError(f"{beta.size} black levels for {v.shape[2]} channel(s)")
+        v = beta + (1.0 - beta) * v
         out = self._store(v, dtype)
         return out[..., 0] if np.ndim(radiance) == 2 else out
 

@@ -67,6 +67,11 @@ def test_black_level_gain_and_channel_gains(rng):
     np.testing.assert_allclose(cam.capture(np.zeros((4, 4, 3)), dtype=np.float64), 0.05)
     override = cam.capture(scene, channel_gains=(1.0, 1.0, 1.0), dtype=np.float64)
     np.testing.assert_allclose(override, 0.05 + 0.95 * np.sqrt(scene), atol=1e-12)
+    # one black level per channel: each channel lifted by its own
+    levels = np.array([0.02, 0.07, 0.045])
+    per = Camera(response=Gamma(2.0), black_level=tuple(levels))
+    np.testing.assert_allclose(per.capture(scene, dtype=np.float64),
+                               levels + (1 - levels) * np.sqrt(scene), atol=1e-12)
 
 
 def test_noise_variance_is_a_y_plus_b_and_clipped_pixels_are_unnoised():
@@ -112,6 +117,10 @@ def test_bad_input_is_named():
         Camera().capture(np.ones((4, 4, 3)), channel_gains=(1.0, 1.0))
     with pytest.raises(ValueError, match="black_level"):
         Camera(black_level=1.5)
+    with pytest.raises(ValueError, match="black_level"):
+        Camera(black_level=(0.1, -0.1, 0.0))
+    with pytest.raises(ValueError, match="black levels for 3 channel"):
+        Camera(black_level=(0.1, 0.1)).capture(np.ones((4, 4, 3)))
     with pytest.raises(ValueError, match="speed ratio"):
         accelerating_weights(5, -1.0)
 

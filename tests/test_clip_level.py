@@ -113,7 +113,7 @@ def test_a_padded_border_is_found_and_a_scene_run_is_not():
     assert not any(p.any() for p in series_padding(flat, TIMES))
 
 
-def test_the_study_leaves_padding_out_and_bounds_the_black_level_by_box_means():
+def test_the_study_leaves_padding_out_and_bounds_the_black_level_by_the_mean_code():
     from clblur.study.series import series_groups
 
     frames = series_frames(None)
@@ -127,13 +127,17 @@ def test_the_study_leaves_padding_out_and_bounds_the_black_level_by_box_means():
         for i in (k, j):
             if i in bands:
                 assert not bands[i][g.rows, g.cols].any()
-    # a frame on a pedestal of 12 codes whose single pixels scatter down to 0: the bound is
-    # the floor of its box means, not its darkest pixel
+    # a frame on a pedestal of 12 codes whose single pixels scatter down to 0 and which is
+    # shaded by +-2 codes over the frame: the bound is the frame's mean code, not its
+    # darkest pixel nor its darkest patch (both below the level it is fitted to)
     rng = np.random.default_rng(3)
-    dark = np.clip(np.rint(12 + 3 * rng.standard_normal((64, 80, 3))), 0, 255).astype(np.uint8)
+    shade = np.linspace(-2.0, 2.0, 80)[None, :, None]
+    dark = np.clip(np.rint(12 + shade + 3 * rng.standard_normal((64, 80, 3))), 0,
+                   255).astype(np.uint8)
     dark[10, 10] = 0
     brighter = np.clip(dark.astype(int) * 2, 0, 255).astype(np.uint8)
-    from clblur.study.variants import darkest_code
+    from clblur.study.variants import darkest_codes
 
     g = series_groups([brighter, dark], [2.0, 1.0], max_pixels=1000)[0]
-    assert 9 <= darkest_code(g) <= 12
+    np.testing.assert_allclose(darkest_codes(g), dark.reshape(-1, 3).mean(axis=0))
+    assert np.all(np.abs(darkest_codes(g) - 12) < 0.2)

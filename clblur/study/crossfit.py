@@ -22,11 +22,11 @@ import numpy as np
 from scipy import optimize
 
 from clblur.study.compact import compact
-from clblur.study.effects import EFFECTS, PARAMS
+from clblur.study.effects import EFFECTS, PARAMS, black_names
 from clblur.study.model import WARP_KEYS, Group, time_ok
 from clblur.study.shape_start import shape_starts
 from clblur.study.variants import (
-    darkest_code,
+    darkest_codes,
     geometric,
     has_variant,
     pack,
@@ -100,9 +100,11 @@ def applicable(groups: list[Group]) -> dict[str, str]:
 
 
 def physical_bounds(groups: list[Group]) -> dict[str, tuple[float, float]]:
-    """Parameter bounds the data impose: a black level cannot exceed the darkest code seen."""
-    dark = min(darkest_code(g) for g in groups)
-    return {"black": (0.0, min(PARAMS["black"][2], max(dark, 0) / 255.0))}
+    """Parameter bounds the data impose: a channel's black level cannot exceed the darkest
+    code seen in that channel."""
+    dark = np.min([darkest_codes(g) for g in groups], axis=0)
+    return {n: (0.0, min(PARAMS[n][2], max(float(d), 0.0) / 255.0))
+            for n, d in zip(black_names(dark.size), dark, strict=True)}
 
 
 # Ridge on the response warp (total nats per unit coefficient squared): where a power law or

@@ -6,7 +6,11 @@ Every effect adds parameters to the paper's model (Eq. 3 response ``v = 1 - exp(
 Eq. 9 blur); at their *null* values the model is the paper's again, so each extension is a
 nested model and can be tested against the simpler one.  Parameters (``PARAMS``):
 
-* ``black``: black level ``beta`` (normalised): ``v = beta + (1 - beta) I(x)``.
+* ``black``, ``black1``, ...: black level ``beta_c`` of each channel (normalised):
+  ``v_c = beta_c + (1 - beta_c) I(x_c)``; ``black`` is the first channel's.  One level per
+  channel because cameras and scanners set it so: a raw file's black level per colour filter,
+  a JPEG engine's white-balance gains applied to a pedestal or to veiling glare, a film
+  scan's base colour (Memorial's darkest frames sit at 13 / 18 / 17 codes in R / G / B).
 * ``rho``: Eq. 3's own scale, ``I = Imax (1 - exp(-k t))`` with ``Imax = full scale / rho``:
   ``v = (1 - exp(-rho x)) / rho`` (``k`` cancels in the blur).  The paper calibrates ``Imax``
   for its camera; ``rho = 1`` puts it at the largest code, ``rho -> 0`` is a linear camera.
@@ -41,8 +45,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["EFFECTS", "EFFECT_NAMES", "PARAMS", "Effect", "channel_gains", "effective_gamma",
-           "explain", "readable_estimate"]
+__all__ = ["EFFECTS", "EFFECT_NAMES", "PARAMS", "Effect", "black_levels", "black_names",
+           "channel_gains", "effective_gamma", "explain", "readable_estimate"]
 
 # name: (null value, lower bound, upper bound)
 PARAMS: dict[str, tuple[float, float, float]] = {
@@ -66,6 +70,7 @@ for _m in (1, 2, 3, 4):
     PARAMS[f"w{_m}"] = (0.0, -2.0, 2.0)
 for _c in (1, 2, 3):
     PARAMS[f"cg{_c}"] = (0.0, -0.5, 0.5)
+    PARAMS[f"black{_c}"] = PARAMS["black"]
 
 
 @dataclass(frozen=True)
@@ -76,6 +81,8 @@ class Effect:
     def params(self, channels: int) -> tuple[str, ...]:
         if self.name == "channel_gain":
             return tuple(f"cg{c}" for c in range(1, channels))
+        if self.name == "black_level":
+            return black_names(channels)
         return _EFFECT_PARAMS[self.name]
 
 
@@ -95,8 +102,8 @@ _EFFECT_PARAMS = {
 }
 
 EFFECTS: dict[str, Effect] = {e.name: e for e in (
-    Effect("black_level", "the sensor's zero exposure maps to a positive code (black offset); "
-           "Eq. 3 has I(0) = 0"),
+    Effect("black_level", "the sensor's zero exposure maps to a positive code (black offset, "
+           "one per channel); Eq. 3 has I(0) = 0"),
     Effect("response_shape", "the camera response is not the paper's exponential Eq. 3"),
     Effect("saturation", "clipped highlights in the source image hide irradiance that shows "
            "in the target"),
@@ -129,7 +136,11 @@ def readable_estimate(effect: str, p: dict[str, float], channels: int) -> dict:
     import math
 
     if effect == "black_level":
-        return {"black_level_codes": 255.0 * p["black"]}
+        levels = [255.0 * b for b in black_levels(p, channels)]
+        out: dict = {"black_level_codes": sum(levels) / len(levels)}
+        if channels > 1:
+            out["channel_codes"] = levels
+        return out
     if effect == "response_shape":
         return {"gamma": effective_gamma(p), "exponent": p["gamma"], "rho": p["rho"],
                 "warp": [p.get(f"w{m}", 0.0) for m in (1, 2, 3, 4)]}
@@ -176,6 +187,17 @@ def effective_gamma(p: dict[str, float], low: float = 0.2, high: float = 0.8) ->
     curve = shape(p)
     v = np.linspace(low, high, 61)
     return float(np.polyfit(np.log(v), np.log(curve.inverse(v)), 1)[0])
+
+
+def black_names(channels: int) -> tuple[str, ...]:
+    """The black level's parameters for ``channels`` channels: ``black`` (the first
+    channel's), then ``black1``, ``black2``, ..."""
+    return ("black",) + tuple(f"black{c}" for c in range(1, channels))
+
+
+def black_levels(p: dict[str, float], channels: int) -> list[float]:
+    """The normalised black level of each channel (module Conventions)."""
+    return [float(p.get(n, 0.0)) for n in black_names(channels)]
 
 
 def channel_gains(p: dict[str, float], channels: int) -> list[float]:

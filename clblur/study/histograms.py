@@ -48,14 +48,15 @@ def build_group(name: str, sources: list[np.ndarray], target: np.ndarray,
                 taps: Callable[[np.ndarray, np.ndarray], Iterable[Taps]], ratio: float,
                 vignetting: bool, timed: bool,
                 variants: dict[str, dict] | None = None,
-                darkest: int | None = None) -> Group:
+                darkest: int | np.ndarray | None = None) -> Group:
     """Collapse the taps of pixels (rows, cols) into code histograms (see ``model``).
 
     ``variants`` (``{effect: {key: taps}}``) are alternative tap sets for the geometric
     effects (``clblur.study.variants``): their histograms are built on the same pixels (a
     pixel is kept only if every variant's taps stay inside the image) and attached to the
-    group.  ``darkest``: the bound a black level may not exceed (codes), for sources and
-    target both; default the darkest code of the sources and of the target pixels.
+    group.  ``darkest``: the bound a black level may not exceed (codes; one, or one per
+    channel), for sources and target both; default the darkest code of each channel in the
+    sources and the target pixels.
     """
     h, w, nc = target.shape
     hw = h * w
@@ -124,7 +125,8 @@ def build_group(name: str, sources: list[np.ndarray], target: np.ndarray,
     from clblur.study.variants import attach
 
     attach(g, {eff: {key: hists(m) for key, m in d.items()} for eff, d in alt.items()},
-           min(int(s.min()) for s in sources) if darkest is None else darkest,
+           np.min([s.reshape(-1, nc).min(axis=0) for s in sources], axis=0)
+           if darkest is None else darkest,
            with_target=darkest is None)
     return g
 

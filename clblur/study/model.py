@@ -33,7 +33,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from clblur.responses import ExpShape
-from clblur.study.effects import PARAMS, channel_gains
+from clblur.study.effects import PARAMS, black_levels, channel_gains
 
 __all__ = ["CODES", "TOP", "WARP_KEYS", "Group", "forward", "inverse_table", "null_params",
            "gaussian_nll", "predict", "shape", "time_ok"]
@@ -100,10 +100,14 @@ def _shape(gamma: float, rho: float, warp: tuple[float, ...]) -> ExpShape:
     return ExpShape(0.0, gamma, rho, warp)
 
 
-def inverse_table(p: dict[str, float], curve: ExpShape | None = None) -> np.ndarray:
-    """``T[code]``: exposure of each source code under black level, shape and saturation."""
+def inverse_table(p: dict[str, float], curve: ExpShape | None = None,
+                  beta: float | None = None) -> np.ndarray:
+    """``T[code]``: exposure of each source code under black level, shape and saturation.
+
+    ``beta``: the channel's normalised black level (``effects.black_levels``); default the
+    first channel's, ``p["black"]``."""
     v = np.arange(CODES, dtype=np.float64) / 255.0
-    beta = p["black"]
+    beta = p["black"] if beta is None else beta
     # Full scale as clblur.pixels (I^-1(1) where finite, else the top code bin's margin
     # for Eq. 3), blended continuously in rho: a jump at rho = 1 would let a response
     # *shape* a hair away from Eq. 3 act as a saturation factor of 2.
@@ -137,20 +141,23 @@ def predict(g: Group, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
     vig_c = (1.0, 2.0 * p["vig"], p["vig"] ** 2)
     vig_out = 1.0 / (1.0 + p["vig"] * g.r2) ** 2
     curve = shape(p)  # one instance: a warped curve caches its sampled forward
-    t = inverse_table(p, curve)
-    step = np.gradient(t)
-    step[-1] = step[-2]  # a clipped code's error is the saturation factor's business
-    dq = step * step / 12.0
+    betas = black_levels(p, nc)
     na2, nb2 = p["na"], p["nb"]  # variance coefficients: zero is not a stationary point
     # the sparse products per channel; everything elementwise once on (n, C) arrays
     e = np.empty((n, nc))
     source = np.empty((n, nc))
-    src_table = dq + na2 * t + nb2
     norm = np.zeros(n)
     for (i, k) in g.hist:
         if k == 0 and time_c[i] != 0.0:
             norm += time_c[i] * g.time_norm(i)
+    tables: dict[float, tuple[np.ndarray, np.ndarray]] = {}  # one per distinct black level
     for c in range(nc):
+        if betas[c] not in tables:
+            t = inverse_table(p, curve, betas[c])
+            step = np.gradient(t)
+            step[-1] = step[-2]  # a clipped code's error is the saturation factor's business
+            tables[betas[c]] = t, step * step / 12.0 + na2 * t + nb2
+        t, src_table = tables[betas[c]]
         num = np.zeros(n)
         for (i, k), hs in g.hist.items():
             coef = time_c[i] * vig_c[k]
@@ -162,8 +169,9 @@ def predict(g: Group, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
     m = (g.ratio * np.exp(p["gain"]) * vig_out)[:, None] * np.asarray(gains)[None, :]
     x = m * e
     v, dv = curve.forward_slope(x)
-    scale = 255.0 * (1.0 - p["black"])
-    pred = 255.0 * p["black"] + scale * v
+    beta = np.asarray(betas)[None, :]
+    scale = 255.0 * (1.0 - beta)
+    pred = 255.0 * beta + scale * v
     s = scale * dv
     # never below the stored code's own rounding variance (1/12 code^2): the optimiser
     # explores negative noise coefficients, where the sum would go to zero or below and

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clblur.study.effects import EFFECT_NAMES
+from clblur.study.effects import EFFECT_NAMES, black_levels
 from clblur.study.model import Group, inverse_table, null_params
 from clblur.study.select import Selection
 
@@ -83,7 +83,7 @@ def markdown(report: dict, title: str = "Study", figures: list[str] | None = Non
         est = "-" if f["estimate"] is None else ", ".join(
             f"{k}={_short(v)}" for k, v in f["estimate"].items())
         ci = "-" if not f.get("interval") else ", ".join(
-            f"{k} [{a:.3g}, {b:.3g}]" for k, (a, b) in f["interval"].items())
+            f"{k} {_range(v)}" for k, v in f["interval"].items())
         lines.append(f"| {f['effect']} | {'yes' if f['significant'] else 'no'} | {t} | {p} "
                      f"| {est} | {ci} |")
     lines += ["", "Findings:", ""] + [f"- {f['explanation']}" for f in report["findings"]]
@@ -99,6 +99,13 @@ def markdown(report: dict, title: str = "Study", figures: list[str] | None = Non
     if figures:
         lines += [""] + [f"![{Path(f).stem}]({f})" for f in figures]
     return "\n".join(lines) + "\n"
+
+
+def _range(v: list) -> str:
+    """An interval ``[a, b]``, or a list of them (one per channel), for the table."""
+    if v and isinstance(v[0], list):
+        return "[" + ", ".join(_range(x) for x in v) + "]"
+    return f"[{v[0]:.3g}, {v[1]:.3g}]"
 
 
 def _short(v) -> str:
@@ -165,10 +172,20 @@ def figures(sel: Selection, groups: list[Group], out: Path, max_groups: int = 2)
         save(fig, f"profile_{gi}.png")
     fig, ax = plt.subplots(figsize=(5, 4))
     codes = np.arange(256)
-    for p, label, style in ((null_params(), "paper Eq. 3 (Imax at full scale)", "r-"),
-                            ({**null_params(), **sel.params}, "extended", "b-")):
-        t = inverse_table(p)
-        ax.plot(t[:-1] / t[-2], codes[:-1], style, label=label)
+    t = inverse_table(null_params())
+    ax.plot(t[:-1] / t[-2], codes[:-1], "k-", label="paper Eq. 3 (Imax at full scale)")
+    # the extended curve once per distinct black level (one per channel where they differ)
+    ext = {**null_params(), **sel.params}
+    channels = groups[0].channels if groups else 1
+    levels = black_levels(ext, channels)
+    colours = ("r", "g", "b") if channels == 3 else ("b",) * channels
+    names = ("R", "G", "B") if channels == 3 else tuple(str(c) for c in range(channels))
+    for c in range(channels):
+        if c and len(set(levels)) == 1:
+            break
+        t = inverse_table(ext, beta=levels[c])
+        label = "extended" if len(set(levels)) == 1 else f"extended, {names[c]}"
+        ax.plot(t[:-1] / t[-2], codes[:-1], f"{colours[c]}--", label=label)
     ax.set_xlabel("relative exposure (code 254 = 1)")
     ax.set_ylabel("code value")
     ax.set_xlim(0, 1)

@@ -445,6 +445,16 @@ def intervals(groups: list[Group], p: dict, effect: str, channels: int,
         key, fn = _READABLE.get(n, (n, None))
         a, b = (fn(a), fn(b)) if fn else (a, b)
         out[key] = [float(a), float(b)]
+    if effect == "black_level" and k > 1:
+        # one level per channel (effects.readable_estimate): each channel's interval, and
+        # the interval of their mean (its variance 1' cov 1 / k^2), cut to the bounds' mean
+        out["channel_codes"] = [[255.0 * max(lo[i], est[i] - half[i]),
+                                 255.0 * min(hi[i], est[i] + half[i])] for i in range(k)]
+        for n in names[1:]:
+            out.pop(n, None)
+        mean, mhalf = est.mean(), 1.96 * math.sqrt(max(float(cov.sum()), 0.0)) / k
+        out["black_level_codes"] = [255.0 * max(lo.mean(), mean - mhalf),
+                                    255.0 * min(hi.mean(), mean + mhalf)]
     if effect in ("response_shape", "response_imax"):
         # the estimates' "gamma" is the effective gamma (effects.readable_estimate); the
         # family's own exponent is "exponent" there and here

@@ -18,7 +18,7 @@ from scipy.optimize import least_squares
 
 from clblur.calibration.cross_exposure import fit_cross_exposure
 from clblur.responses import ExpShape, MonotoneSpline, default_knots, warp_basis
-from clblur.study.effects import PARAMS
+from clblur.study.effects import PARAMS, black_levels
 from clblur.study.model import WARP_KEYS, Group
 
 __all__ = ["shape_starts"]
@@ -35,7 +35,7 @@ def shape_starts(groups: list[Group], start: dict[str, float]) -> list[dict[str,
     groups : list of Group
         The groups being fitted (one fold).
     start : dict
-        The current parameters; its ``black`` and ``gain`` are used, the rest is kept.
+        The current parameters; its black levels and ``gain`` are used, the rest is kept.
 
     Returns
     -------
@@ -47,7 +47,9 @@ def shape_starts(groups: list[Group], start: dict[str, float]) -> list[dict[str,
     if curve is None:
         return []
     u, x_knots, lo, hi = curve
-    black = float(start["black"])
+    # the curve pools every channel's codes: their mean black level normalises it
+    levels = black_levels(start, groups[0].channels)
+    black = sum(levels) / len(levels)
     v = np.linspace(max(lo, black + 0.02), min(hi, 0.97), 48)
     if v[0] >= v[-1]:
         return []

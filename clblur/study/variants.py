@@ -34,25 +34,41 @@ import scipy.sparse as sp
 from clblur.study.model import Group, gaussian_nll
 from clblur.study.model import predict as _model_predict
 
-__all__ = ["attach", "darkest_code", "geometric", "has_variant", "pack", "pixel_nll", "predict",
-           "subset"]
+__all__ = ["attach", "darkest_code", "darkest_codes", "geometric", "has_variant", "pack",
+           "pixel_nll", "predict", "subset"]
 
 SCALES = (0.8, 1.25)  # psf_scale histograms besides 1
 SHIFTS = ((1, 0), (-1, 0), (0, 1), (0, -1))  # misregistration histograms besides (0, 0)
 
 
-def attach(g: Group, variants: dict[str, dict], darkest: int,
+def attach(g: Group, variants: dict[str, dict], darkest,
            with_target: bool = True) -> None:
-    """Store variant histograms (``{effect: {key: hist}}``) and the darkest source code
-    (with ``with_target``, or the group's darkest target code if darker)."""
+    """Store variant histograms (``{effect: {key: hist}}``) and the darkest source code of
+    each channel (``darkest``: one code, or one per channel; with ``with_target``, or the
+    group's darkest target code of the channel if darker)."""
     g.__dict__["variants"] = variants
-    g.__dict__["darkest"] = (min(darkest, int(g.target.min()) if g.target.size else 255)
-                             if with_target else int(darkest))
+    nc = g.target.shape[1]
+    dark = np.broadcast_to(np.asarray(darkest, np.float64), (nc,)).copy()
+    if with_target and g.target.size:
+        dark = np.minimum(dark, g.target.min(axis=0))
+    g.__dict__["darkest"] = dark
+
+
+def darkest_codes(g: Group) -> np.ndarray:
+    """Darkest code of each channel seen in the group's source images or target pixels
+    (the bound of that channel's black level; float: an exposure series bounds it by a mean,
+    ``clblur.study.series``)."""
+    nc = g.target.shape[1]
+    if "darkest" in g.__dict__:
+        return np.broadcast_to(np.asarray(g.__dict__["darkest"], np.float64), (nc,))
+    if not g.target.size:
+        return np.zeros(nc)
+    return g.target.min(axis=0).astype(np.float64)
 
 
 def darkest_code(g: Group) -> int:
-    """Darkest code seen in the group's source images or target pixels."""
-    return int(g.__dict__.get("darkest", int(g.target.min()) if g.target.size else 0))
+    """Darkest code seen in the group's source images or target pixels, over the channels."""
+    return int(darkest_codes(g).min())
 
 
 def has_variant(groups: list[Group], effect: str) -> bool:
@@ -121,7 +137,7 @@ def _concat(gs: list[Group]) -> Group:
     g.__dict__["variants"] = {
         e: {k: {key: stack(lambda g, e=e, k=k, key=key: g.__dict__["variants"][e][k][key])
                 for key in hist} for k, hist in d.items()} for e, d in var.items()}
-    g.__dict__["darkest"] = min(darkest_code(m) for m in gs)
+    g.__dict__["darkest"] = np.min([darkest_codes(m) for m in gs], axis=0)
     return g
 
 
