@@ -113,7 +113,7 @@ def test_a_padded_border_is_found_and_a_scene_run_is_not():
     assert not any(p.any() for p in series_padding(flat, TIMES))
 
 
-def test_the_study_leaves_padding_out_and_bounds_the_black_level_by_the_mean_code():
+def test_the_study_leaves_padding_out_and_bounds_the_black_level_allowing_for_noise():
     from clblur.study.series import series_groups
 
     frames = series_frames(None)
@@ -128,8 +128,8 @@ def test_the_study_leaves_padding_out_and_bounds_the_black_level_by_the_mean_cod
             if i in bands:
                 assert not bands[i][g.rows, g.cols].any()
     # a frame on a pedestal of 12 codes whose single pixels scatter down to 0 and which is
-    # shaded by +-2 codes over the frame: the bound is the frame's mean code, not its
-    # darkest pixel nor its darkest patch (both below the level it is fitted to)
+    # shaded by +-2 codes over the frame: not its darkest pixel nor its darkest patch (both
+    # below the level), here the frame's mean code (the darkest patch plus its noise is more)
     rng = np.random.default_rng(3)
     shade = np.linspace(-2.0, 2.0, 80)[None, :, None]
     dark = np.clip(np.rint(12 + shade + 3 * rng.standard_normal((64, 80, 3))), 0,
@@ -141,3 +141,8 @@ def test_the_study_leaves_padding_out_and_bounds_the_black_level_by_the_mean_cod
     g = series_groups([brighter, dark], [2.0, 1.0], max_pixels=1000)[0]
     np.testing.assert_allclose(darkest_codes(g), dark.reshape(-1, 3).mean(axis=0))
     assert np.all(np.abs(darkest_codes(g) - 12) < 0.2)
+    # blacks crushed to code 0 over a patch (a JPEG engine's): the level is 0 there
+    crushed = dark.copy()
+    crushed[20:40, 20:40] = 0
+    g = series_groups([brighter, crushed], [2.0, 1.0], max_pixels=1000)[0]
+    np.testing.assert_array_equal(darkest_codes(g), 0.0)

@@ -6,8 +6,8 @@ are what the shorter image reveals (the ``saturation`` effect).  A camera that c
 full scale (:func:`clip_code`) has its pixels at or above the clip point censored, in the
 target and at the source pixel; a constant border a registration padded a frame with
 (``clblur.pixels.series_padding``) is left out.  Each channel's black level is bounded by the
-mean code of the step's darker frame, not by its darkest pixel or patch, which noise and
-shading put below the black level (:func:`_black_bound`).
+step's darker frame: its darkest patch allowing for noise, grain and shading, not its
+darkest pixel, which read noise puts below the black level (:func:`_black_bound`).
 
 Why two gaps: a bracket in whole stops has one ratio ``r`` between neighbours, and with one
 ratio a response is known only up to a power (``I^-1`` and ``(I^-1)^a`` predict alike once
@@ -17,6 +17,8 @@ steps apart (``r^2``) under the same gain break it.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -35,25 +37,51 @@ def clip_code(images: list[np.ndarray], exposures: list[float]) -> int:
     return round(255 * series_clip_level(codes, exposures))
 
 
-def _black_bound(image: np.ndarray, padding: np.ndarray) -> np.ndarray:
-    """The mean code of a frame's light (its pixels but the padding), per channel: that
-    channel's black level is at most this (float codes).
+# px: the side of the patches whose means bound a black level (:func:`_black_bound`)
+FLOOR_BOX = 5
 
-    Why the mean and not the darkest code or patch: every pixel's expected code is its
-    channel's black level plus what its light adds (zero or more; rounding at code 0 and
-    clipping at the top only keep it there), so the mean over a whole frame bounds the
-    level up to a negligible sampling error.  The darkest pixel does not: read noise puts it
-    several noise widths below the level (Memorial's 1/1024 s frame: channel means 13.7 /
-    18.3 / 16.8 codes, single pixels down to 6).  Nor does the darkest patch: film grain,
-    pattern noise and shading vary the black over the frame, so its darkest 5 x 5 mean lies
-    1 - 3 codes below the level (12.5 / 15.4 / 14.8) and even its darkest 32 x 32 mean
-    below it (12.9 / 16.5 / 15.5); bounded there the fit stopped short of the level the
-    frames show (13.5 / 17.9 / 16.6 unbounded) and an offset of the stored codes stood in
-    for the rest.  A bound that is a little loose only lets the likelihood decide."""
-    lit = image[~padding]
-    if not lit.size:
+
+def _black_bound(image: np.ndarray, padding: np.ndarray) -> np.ndarray:
+    """A bound on each channel's black level from one frame (float codes): the darkest mean
+    of a ``FLOOR_BOX`` square of light plus the deviation the least of that many means can
+    have, at most the mean code of the whole frame's light.
+
+    Every pixel's expected code is its channel's black level plus what its light adds, so
+    the mean of the frame bounds the level soundly, but loosely (a fit then ranges over
+    levels no dark pixel allows, and costs more).  The darkest patch is tighter and biased
+    low: the least of ``n`` patch means lies about ``sqrt(2 ln n)`` of a patch mean's noise
+    below its level, and grain, pattern noise and shading are correlated over a patch, so
+    that noise can be as large as one pixel's.  Hence the darkest mean plus ``sqrt(2 ln n)``
+    times the pixels' standard deviation in the darkest patches (the median over the
+    darkest 1 %; ``n`` counted as independent patches).  Memorial's 1/1024 s frame: darkest
+    5 x 5 means 12.7 / 16.3 / 15.4 codes in R / G / B, which as a bound held the fit below
+    the level its dark frames show (a +1-code storage offset stood in for the rest); now
+    bounded by its mean, 13.7 / 18.3 / 16.8, and fitted at 13.6 / 18.1 / 16.6.  Where the
+    darkest patches are crushed to a constant code (a JPEG's blacks at 0) the bound is that
+    code."""
+    import cv2
+
+    lit = ~padding
+    if not lit.any():
         return np.zeros(image.shape[2])
-    return lit.reshape(-1, image.shape[2]).mean(axis=0, dtype=np.float64)
+    mean = image[lit].reshape(-1, image.shape[2]).mean(axis=0, dtype=np.float64)
+    box = (FLOOR_BOX, FLOOR_BOX)
+    clear = cv2.blur(lit.astype(np.float32), box) >= 1.0 - 1e-6
+    r = FLOOR_BOX // 2
+    clear[:r], clear[-r:], clear[:, :r], clear[:, -r:] = False, False, False, False
+    if not clear.any():
+        return mean
+    area = FLOOR_BOX * FLOOR_BOX
+    z = math.sqrt(2.0 * math.log(max(int(clear.sum()) / area, 2.0)))
+    out = np.empty(image.shape[2])
+    for c in range(image.shape[2]):
+        x = image[..., c].astype(np.float32)
+        m = cv2.blur(x, box)[clear].astype(np.float64)
+        var = np.maximum(cv2.blur(x * x, box)[clear] - m * m, 0.0) * area / (area - 1)
+        k = max(1, m.size // 100)
+        darkest = np.argpartition(m, k - 1)[:k]
+        out[c] = min(mean[c], float(m.min()) + z * math.sqrt(float(np.median(var[darkest]))))
+    return out
 
 
 def series_groups(images: list[np.ndarray], exposures: list[float],
