@@ -311,6 +311,25 @@ def test_estimates_stay_physically_possible():
         assert bounds[name][1] == pytest.approx(d / 255.0)
 
 
+def test_noise_alone_is_no_misregistration():
+    # a sub-pixel shift averages a noisy source's pixels with their neighbours, so on a noisy
+    # series with no shift any small shift predicted better than none (0.1 - 0.2 px found on
+    # every seed); it must beat its mirror image too, which averages as much
+    from clblur.study.synthetic import null_series
+
+    for seed in (8001, 8003):
+        sc = null_series(np.random.default_rng(seed), noise=5e-4)
+        r = study_groups(sc.kind, sc.groups).report
+        assert [f["effect"] for f in r["findings"] if f["significant"]] == ["noise"], seed
+    # and a real shift in noisy data is still found, its size right
+    sc = scenario({"misregistration": 0.4, "noise": 5e-4}, np.random.default_rng(50))
+    found = {f["effect"]: f for f in study_groups(sc.kind, sc.groups).report["findings"]
+             if f["significant"]}
+    assert set(found) == {"misregistration", "noise"}
+    est = found["misregistration"]["estimate"]
+    assert np.hypot(est["shift_x"], est["shift_y"]) == pytest.approx(0.4, abs=0.06)
+
+
 def test_black_level_is_found_per_channel():
     # a camera whose black level differs between the channels (a raw file's per-filter
     # levels, white balance applied to a pedestal, a film scan's base colour): the study

@@ -27,7 +27,7 @@ from clblur.study.pairs import pair_group
 from clblur.study.series import series_groups
 from clblur.study.stacks import stack_group
 
-__all__ = ["CLIP", "RANGES", "Scenario", "null_stack", "random_psf", "scenario"]
+__all__ = ["CLIP", "RANGES", "Scenario", "null_series", "null_stack", "random_psf", "scenario"]
 
 # effect: (low, high) of the hidden magnitude, in the units of ``magnitude`` below
 RANGES = {
@@ -157,6 +157,18 @@ def null_stack(rng: np.random.Generator, shape=(48, 64), frames: int = 6,
     if storage == "floor":
         truth["quantisation"] = 0.5
     return Scenario("frame-stack", [stack_group(short, long)], truth)
+
+
+def null_series(rng: np.random.Generator, shape=(48, 64), noise: float = 0.0) -> Scenario:
+    """An exposure series of the paper's Eq. 3 camera, one stop apart (4, 2, 1, 1/2),
+    nothing hidden; ``noise``: the camera's Poisson coefficient ``a`` (``b = a / 100``),
+    then ``noise`` is the one true finding."""
+    camera = Camera(noise_a=noise, noise_b=noise / 100.0)
+    scene = random_scene(rng, shape, 3, low=0.03, high=0.35)
+    times = [4.0, 2.0, 1.0, 0.5]
+    images = [camera.capture(scene * 0.25, t, rng=rng) for t in times]
+    return Scenario("exposure-series", series_groups(images, times),
+                    {"noise": noise} if noise else {})
 
 
 def _add_highlights(scene: np.ndarray, rng: np.random.Generator, level: float) -> None:
