@@ -86,8 +86,9 @@ class Effect:
         return _EFFECT_PARAMS[self.name]
 
 
+# the effects whose parameters do not depend on the channel count (black_level and
+# channel_gain have one per channel: Effect.params)
 _EFFECT_PARAMS = {
-    "black_level": ("black",),
     "response_shape": ("gamma", "rho", "w1", "w2", "w3", "w4"),
     "saturation": ("sat",),
     "noise": ("na", "nb", "nc"),
