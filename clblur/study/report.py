@@ -180,11 +180,10 @@ def figures(sel: Selection, groups: list[Group], out: Path, max_groups: int = 2)
     levels = black_levels(ext, channels)
     colours = ("r", "g", "b") if channels == 3 else ("b",) * channels
     names = ("R", "G", "B") if channels == 3 else tuple(str(c) for c in range(channels))
-    for c in range(channels):
-        if c and len(set(levels)) == 1:
-            break
+    distinct = len(set(levels)) > 1
+    for c in range(channels if distinct else 1):
         t = inverse_table(ext, beta=levels[c])
-        label = "extended" if len(set(levels)) == 1 else f"extended, {names[c]}"
+        label = f"extended, {names[c]}" if distinct else "extended"
         ax.plot(t[:-1] / t[-2], codes[:-1], f"{colours[c]}--", label=label)
     ax.set_xlabel("relative exposure (code 254 = 1)")
     ax.set_ylabel("code value")

@@ -459,22 +459,20 @@ def intervals(groups: list[Group], p: dict, effect: str, channels: int,
     # centred on the estimate itself: x0 only keeps the differences inside the bounds, and an
     # estimate on its bound (no black level, no extra noise) gets [bound, estimate + half]
     est = np.clip(np.array([p[n] for n in names]), lo, hi)
-    out = {}
-    for i, n in enumerate(names):
-        a, b = max(lo[i], est[i] - half[i]), min(hi[i], est[i] + half[i])
-        key, fn = _READABLE.get(n, (n, None))
-        a, b = (fn(a), fn(b)) if fn else (a, b)
-        out[key] = [float(a), float(b)]
+    ranges = [(max(lo[i], est[i] - half[i]), min(hi[i], est[i] + half[i])) for i in range(k)]
     if effect == "black_level" and k > 1:
         # one level per channel (effects.readable_estimate): each channel's interval, and
         # the interval of their mean (its variance 1' cov 1 / k^2), cut to the bounds' mean
-        out["channel_codes"] = [[255.0 * max(lo[i], est[i] - half[i]),
-                                 255.0 * min(hi[i], est[i] + half[i])] for i in range(k)]
-        for n in names[1:]:
-            out.pop(n, None)
         mean, mhalf = est.mean(), 1.96 * math.sqrt(max(float(cov.sum()), 0.0)) / k
-        out["black_level_codes"] = [255.0 * max(lo.mean(), mean - mhalf),
-                                    255.0 * min(hi.mean(), mean + mhalf)]
+        out = {"black_level_codes": [255.0 * max(lo.mean(), mean - mhalf),
+                                     255.0 * min(hi.mean(), mean + mhalf)],
+               "channel_codes": [[255.0 * a, 255.0 * b] for a, b in ranges]}
+    else:
+        out = {}
+        for n, (a, b) in zip(names, ranges, strict=True):
+            key, fn = _READABLE.get(n, (n, None))
+            a, b = (fn(a), fn(b)) if fn else (a, b)
+            out[key] = [float(a), float(b)]
     if effect in ("response_shape", "response_imax"):
         # the estimates' "gamma" is the effective gamma (effects.readable_estimate); the
         # family's own exponent is "exponent" there and here

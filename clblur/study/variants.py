@@ -34,7 +34,7 @@ import scipy.sparse as sp
 from clblur.study.model import Group, gaussian_nll
 from clblur.study.model import predict as _model_predict
 
-__all__ = ["attach", "darkest_code", "darkest_codes", "geometric", "has_variant", "pack",
+__all__ = ["attach", "darkest_codes", "geometric", "has_variant", "pack",
            "pixel_nll", "predict", "subset"]
 
 SCALES = (0.8, 1.25)  # psf_scale histograms besides 1
@@ -64,11 +64,6 @@ def darkest_codes(g: Group) -> np.ndarray:
     if not g.target.size:
         return np.zeros(nc)
     return g.target.min(axis=0).astype(np.float64)
-
-
-def darkest_code(g: Group) -> int:
-    """Darkest code seen in the group's source images or target pixels, over the channels."""
-    return int(darkest_codes(g).min())
 
 
 def has_variant(groups: list[Group], effect: str) -> bool:
