@@ -219,10 +219,10 @@ def align_series(images: list[np.ndarray], exposures) -> Registration:
     return Registration(shifts, window, int(order[n // 2]), tuple(sorted(unregistered)))
 
 
-def describe(registration: Registration, names: list[str], applied: bool = True) -> dict:
+def describe(registration: Registration, names: list[str]) -> dict:
     """The registration as a report records it: each image's shift (rows, cols) against the
-    reference, the common window, the links not trusted, whether the images were cropped
-    (``applied``) and :func:`summary`'s line."""
+    reference, the common window the images were cropped to, the links not trusted and
+    :func:`summary`'s line."""
     zero = [n for n, s in zip(names, registration.shifts, strict=True) if not s.any()]
     rows, cols = registration.window
     return {"reference": names[registration.reference],
@@ -231,13 +231,12 @@ def describe(registration: Registration, names: list[str], applied: bool = True)
             "unshifted": zero,
             "window": {"rows": [rows.start, rows.stop], "cols": [cols.start, cols.stop]},
             "unregistered": [names[i] for i in registration.unregistered],
-            "applied": bool(applied and registration.moved),
-            "summary": summary(registration, names, applied)}
+            "summary": summary(registration, names)}
 
 
-def summary(registration: Registration, names: list[str], applied: bool = True) -> str:
-    """One line for a terminal or a report: what moved, the window kept (or, when not
-    ``applied``, that the images were used as they are), what could not be registered."""
+def summary(registration: Registration, names: list[str]) -> str:
+    """One line for a terminal or a report: what moved, the window kept, what could not be
+    registered."""
     moved = [f"{n} ({int(s[0])}, {int(s[1])})"
              for n, s in zip(names, registration.shifts, strict=True) if s.any()]
     rows, cols = registration.window
@@ -245,12 +244,9 @@ def summary(registration: Registration, names: list[str], applied: bool = True) 
              f"{names[registration.reference]}")
     if not moved:
         text = "registered: no shift between the images"
-    elif applied:
+    else:
         text = (f"registered: {found}; cropped to {cols.stop - cols.start} x "
                 f"{rows.stop - rows.start} (W x H)")
-    else:
-        text = (f"registration found {found}; within 1 px, so left to the misregistration "
-                "effect (images used as stored)")
     if registration.unregistered:
         text += ("; not registered (too little unclipped overlap with the next longer "
                  f"exposure, taken as unshifted): "

@@ -131,17 +131,24 @@ def test_memorial_is_registered_as_shot_and_shifted_copies_are_recovered(shared_
     assert reg.shifts.tolist() == (offsets[reg.reference] - offsets).tolist()
 
 
-def test_the_study_leaves_a_one_pixel_move_to_its_misregistration_effect(tmp_path):
+def test_the_study_crops_a_one_pixel_move_of_one_frame(tmp_path):
+    # the misregistration effect is one shift shared by every step: a single frame moved by
+    # a row shifts its two steps in opposite directions, which no shared shift fits, so the
+    # registration takes it out, as it does a larger move
     from clblur.calibration.series import folder_series
     from clblur.study.run import groups_from_manifest
 
     _, _, common, times = _handheld(6, times=(4.0, 2.0, 1.0))
     moved = [common[0][1:], common[1][:-1], common[2][:-1]]  # the longest one row up
     times_file = _write_bracket(tmp_path / "bracket", moved, times)
+    _write_bracket(tmp_path / "tripod", [c[1:-1] for c in common], times)  # the common rows
     notes: dict = {}
     groups = groups_from_manifest(folder_series(tmp_path / "bracket", times_file), 3000,
                                   notes=notes)
+    still = groups_from_manifest(folder_series(tmp_path / "tripod", tmp_path / "tripod"
+                                               / "times.txt"), 3000, align=False)
     reg = notes["registration"]
-    assert reg["shifts"]["f0.png"] == [-1, 0] and not reg["applied"]
-    assert "left to the misregistration effect" in reg["summary"]
-    assert groups[0].shape == moved[0].shape[:2]  # the frames as stored
+    assert reg["shifts"]["f0.png"] == [-1, 0]
+    assert "cropped to" in reg["summary"]
+    for a, b in zip(groups, still, strict=True):  # the pixels of the common window
+        np.testing.assert_array_equal(a.target, b.target)
