@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from clblur.calibration import ExposureSeries, calibrate, fit, load_series
-from clblur.calibration.series import parse_time
+from clblur.calibration.series import parse_time, photometric_exposure
 from clblur.cli import main
 from clblur.io import write_image
 
@@ -97,6 +97,20 @@ def test_manifest_with_f_numbers_and_uint16(tmp_path):
     assert series.relative_exposures().tolist() == [1.0, 0.5, 0.25, 0.125]
     with pytest.raises(ValueError, match="times are given by the manifest"):
         load_series(tmp_path / "m.json", times=[1, 2, 3, 4])
+
+
+def test_photometric_exposure_is_time_over_f_number_squared_for_every_caller():
+    # one formula for calibration, its report and the study (clblur.calibration.series)
+    assert photometric_exposure([2.0, 1.0]).tolist() == [2.0, 1.0]
+    assert photometric_exposure([2.0, 1.0], [None, None]).tolist() == [2.0, 1.0]
+    assert photometric_exposure([2.0, 1.0], [2.0, 4.0]).tolist() == [0.5, 0.0625]
+    with pytest.raises(ValueError, match="F-number for every image or for none"):
+        photometric_exposure([2.0, 1.0], [2.0, None])
+    from clblur.study.series import series_groups  # the study refuses the same mix
+
+    codes = [np.full((32, 32, 1), c, np.uint8) for c in (200, 120, 60)]
+    with pytest.raises(ValueError, match="F-number for every image or for none"):
+        series_groups(codes, [4.0, 2.0, 1.0], [4.0, None, 4.0])
 
 
 def test_exif_fallback(tmp_path):

@@ -17,7 +17,7 @@ import numpy as np
 
 from clblur.calibration.evaluate import EVAL_HIGH, EVAL_LOW, FLAT_TOLERANCE
 from clblur.calibration.fitting import LIKELIHOOD_LOW, ResponseFit, fit_radiances
-from clblur.calibration.series import ExposureSeries
+from clblur.calibration.series import ExposureSeries, photometric_exposure
 from clblur.io import atomic_write, atomic_write_text
 from clblur.registration import summary
 
@@ -56,7 +56,7 @@ def figure_values_vs_time(series: ExposureSeries, fit: ResponseFit, path: Path) 
     names = _channel_names(series.channels)
     fig, axes = plt.subplots(1, series.channels, figsize=(4.2 * series.channels, 3.6),
                              squeeze=False)
-    t = series.exposures if series.f_numbers is None else series.exposures / series.f_numbers**2
+    t = photometric_exposure(series.exposures, series.f_numbers)
     for c, ax in enumerate(axes[0]):
         s = fit.sampling.per_channel[c]
         for k in _pick_samples(fit, c):

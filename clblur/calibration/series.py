@@ -38,10 +38,24 @@ from clblur.pixels import imax, series_clip_level
 from clblur.registration import Registration, align_series
 
 __all__ = ["IMAGE_SUFFIXES", "ExposureSeries", "exif_exposure", "exif_iso", "folder_series",
-           "load_series", "parse_time", "read_times_file", "series_files"]
+           "load_series", "parse_time", "photometric_exposure", "read_times_file",
+           "series_files"]
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
 _EXIF_IFD, _EXPOSURE_TIME, _F_NUMBER, _ISO = 0x8769, 0x829A, 0x829D, 0x8827
+
+
+def photometric_exposure(times, f_numbers=None) -> np.ndarray:
+    """The light each exposure gathers, up to one constant: ``t / N**2`` (exposure time over
+    the F-number squared), or the times themselves where no F-number is given (``f_numbers``
+    None, or None for every image).  Float64, one per image.  Raises ValueError when only
+    some images have an F-number (times and ``t / N**2`` are not one unit)."""
+    t = np.asarray(times, dtype=np.float64)
+    if f_numbers is None or all(f is None for f in f_numbers):
+        return t
+    if any(f is None for f in f_numbers) or len(f_numbers) != t.size:
+        raise ValueError("give an F-number for every image or for none")
+    return t / np.asarray(f_numbers, dtype=np.float64) ** 2
 
 
 @dataclass(frozen=True, eq=False)  # holds arrays: compare series by identity
@@ -63,8 +77,7 @@ class ExposureSeries:
         t = _check_times(exposures, len(images))
         fn = None
         if f_numbers is not None and any(f is not None for f in f_numbers):
-            if any(f is None for f in f_numbers) or len(f_numbers) != len(images):
-                raise ValueError("give an F-number for every image or for none")
+            photometric_exposure(t, f_numbers)  # every image has one, or it raises
             fn = np.asarray(f_numbers, dtype=np.float64)
             if not np.all(np.isfinite(fn)) or np.any(fn <= 0):
                 raise ValueError(f"F-numbers must be positive and finite, got {fn.tolist()}")
@@ -118,7 +131,7 @@ class ExposureSeries:
 
     def relative_exposures(self) -> np.ndarray:
         """Photometric exposure ``t / N**2`` divided by its maximum (the longest is 1)."""
-        x = self.exposures if self.f_numbers is None else self.exposures / self.f_numbers**2
+        x = photometric_exposure(self.exposures, self.f_numbers)
         return x / x.max()
 
     def values(self) -> np.ndarray:

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from clblur.calibration.series import photometric_exposure
 from clblur.io import (
     atomic_write_text,
     light_channels,
@@ -73,8 +74,8 @@ def groups_from_manifest(manifest: Manifest, max_pixels: int = DEFAULT_PIXELS,
     if manifest.kind == "exposure-series":
         imgs = [read(e.path) for e in manifest.images]
         if align:
-            reg = align_series(imgs, [e.exposure / (e.f_number or 1.0) ** 2
-                                      for e in manifest.images])
+            reg = align_series(imgs, photometric_exposure(
+                [e.exposure for e in manifest.images], [e.f_number for e in manifest.images]))
             # Every whole-pixel move is cut away, one of a pixel too: the misregistration
             # effect is one shift shared by every step, and a frame that moved shifts its
             # two neighbouring steps in opposite directions (and the steps two stops apart

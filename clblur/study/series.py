@@ -22,6 +22,7 @@ import math
 
 import numpy as np
 
+from clblur.calibration.series import photometric_exposure
 from clblur.pixels import series_clip_level, series_padding
 from clblur.study.histograms import Taps, as_hwc, build_group, sample_grid, shifted
 from clblur.study.model import Group
@@ -93,10 +94,7 @@ def series_groups(images: list[np.ndarray], exposures: list[float],
     ``padding`` (``{image index: fraction of its pixels}``, ``clblur.pixels.series_padding``)."""
     if len(images) != len(exposures) or len(images) < 2:
         raise ValueError("an exposure series needs at least 2 images, one exposure each")
-    f_numbers = f_numbers or [None] * len(images)
-    if len({f is None for f in f_numbers}) > 1:  # else exposures in two units get mixed
-        raise ValueError("give an F-number for every image of the series or for none")
-    h = [e / (f * f if f else 1.0) for e, f in zip(exposures, f_numbers, strict=True)]
+    h = photometric_exposure(exposures, f_numbers).tolist()
     order = np.argsort(h)[::-1]  # longest first
     for a, b in zip(order[:-1], order[1:], strict=True):
         if h[a] == h[b]:  # a ratio of 1 says nothing of the response
