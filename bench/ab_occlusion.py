@@ -43,8 +43,8 @@ if len(sys.argv) > 2:  # --gopro: frame 10 of docs/studies/occlusion.md with the
     import occlusion_study as study
     from clblur import video
     from clblur.flow import FlowEstimator
-    from clblur.io import data_dir, read_image
-    names = sorted((data_dir() / "gopro240" / "frames").glob("*.png"))
+    from clblur.io import gopro_frames, read_image
+    names = gopro_frames()
     frames = [read_image(p) for p in names[2:19:8]]  # frames 2, 10, 18
     est = FlowEstimator("dis")
     bwd, fwd = est(frames[1], frames[0]), est(frames[1], frames[2])

@@ -48,6 +48,7 @@ from clblur import opencl, reference  # noqa: E402
 from clblur.io import (
     atomic_write_text,  # noqa: E402
     data_dir,  # noqa: E402
+    gopro_frames,  # noqa: E402
 )
 from clblur.motion import sample_counts  # noqa: E402
 from clblur.opencl import taps as opencl_taps  # noqa: E402
@@ -61,7 +62,7 @@ RESPONSE = "exp"
 def test_image(width: int, height: int) -> tuple[np.ndarray, str]:
     root = data_dir()
     if root is not None:
-        frames = sorted((Path(root) / "gopro240" / "frames").glob("*.png"))
+        frames = gopro_frames(root)
         if frames:
             img = cv2.cvtColor(cv2.imread(str(frames[0])), cv2.COLOR_BGR2RGB)
             return (cv2.resize(img, (width, height), interpolation=cv2.INTER_CUBIC),

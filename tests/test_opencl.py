@@ -263,9 +263,9 @@ def test_device_and_host_sample_counts_agree(opencl, rng, monkeypatch):
 @pytest.mark.data
 def test_real_frame_with_long_motion(opencl, shared_data):
     """A real photograph (GoPro frame crop) with a smooth 10-25 px flow, every dtype."""
-    from clblur.io import read_image
+    from clblur.io import gopro_frames, read_image
 
-    frames = sorted((shared_data / "gopro240" / "frames").glob("*.png"))
+    frames = gopro_frames(shared_data)
     if not frames:
         pytest.skip("gopro240 frames not in the shared data")
     crop = read_image(frames[0])[200:328, 400:592]

@@ -397,10 +397,10 @@ def test_offset_on_top_of_a_gain_is_quantisation_not_a_response_shape():
 
 
 def _gopro_window(shared_data, tmp_path, how, storage, start=0):
-    from clblur.io import read_image
+    from clblur.io import gopro_frames, read_image
     from clblur.study.shared import GOPRO_STACK, average_frames
 
-    files = sorted((shared_data / "gopro240" / "frames").glob("*.png"))[start:start + GOPRO_STACK]
+    files = gopro_frames(shared_data)[start:start + GOPRO_STACK]
     frames = [read_image(f) for f in files]
     long = average_frames(np.stack(frames), how, storage)
     write_image(tmp_path / "long.png", long)

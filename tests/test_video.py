@@ -12,7 +12,7 @@ import pytest
 from clblur import blur
 from clblur.cli import video as video_cli
 from clblur.flow import FlowEstimator, FlowFolder, save_flows
-from clblur.io import read_image, write_image
+from clblur.io import gopro_frames, read_image, write_image
 from clblur.io.video import VideoReadError
 from clblur.pixels import quantise
 from clblur.responses import response
@@ -469,8 +469,7 @@ def test_command_line(tmp_path, capsys):
 def test_gopro_frames_blur_towards_the_long_exposure(shared_data):
     """Real 240 fps frames: blurring frame 10 along DIS flows from frames 2 and 18 must come
     closer to the 8-frame linear-domain exposure than the sharp frame itself."""
-    folder = shared_data / "gopro240" / "frames"
-    names = sorted(folder.glob("*.png"))
+    names = gopro_frames(shared_data)
     crop = (slice(300, 400), slice(560, 720))
     f = [read_image(names[i])[crop] for i in range(21)]
     r = response("gamma:2.2")

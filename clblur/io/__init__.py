@@ -32,6 +32,7 @@ from clblur.io.images import (
 from clblur.io.paths import (
     check_output,
     data_dir,
+    gopro_frames,
     refuse_overwrite,
     require_file,
     resolve_inside,
@@ -47,8 +48,8 @@ from clblur.io.raster import (
 )
 
 __all__ = ["FLO_MAGIC", "IMAGE_FORMATS", "MappedRaster", "OrientedRaster", "TiffWindows",
-           "as_array_like", "atomic_write",
-           "atomic_write_text", "check_decodable", "check_output", "create_tiff", "data_dir",
+           "as_array_like", "atomic_write", "atomic_write_text", "check_decodable",
+           "check_output", "create_tiff", "data_dir", "gopro_frames",
            "image_format", "is_tiff", "light_channels", "open_flow", "open_image", "probe_image",
            "read_flow", "read_depth", "read_image", "read_psf", "refuse_overwrite",
            "require_file", "resolve_inside", "tmp_beside", "write_flow", "write_image"]

@@ -109,6 +109,13 @@ def check_output(out: PathLike, *inputs: PathLike | None, suffixes: Sequence[str
     return o
 
 
+def gopro_frames(root: Path | None = None) -> list[Path]:
+    """The GoPro 240 fps frames of the measured data (``gopro240/frames/*.png`` under
+    ``root``, default :func:`data_dir`), in frame order; empty when there are none."""
+    root = data_dir() if root is None else Path(root)
+    return [] if root is None else sorted((root / "gopro240" / "frames").glob("*.png"))
+
+
 def data_dir(required: bool = False) -> Path | None:
     """``$CLBLUR_DATA``, else ``../shared/data`` beside the source tree or working directory.
 

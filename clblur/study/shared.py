@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clblur.io import data_dir, read_image, write_image
+from clblur.io import data_dir, gopro_frames, read_image, write_image
 from clblur.manifest import write_manifest
 from clblur.responses import SRGB, Exp, Gamma
 
@@ -98,7 +98,7 @@ def gopro(out: Path, data: Path) -> list[Path]:
     (``gopro240_{how}_{storage}.json``), plus real null data: ``gopro240_paper_round_wNN``
     (the paper's own average, every ``GOPRO_STEP`` frames).  Long exposures are written as
     PNG into ``out``."""
-    files = sorted((data / "gopro240" / "frames").glob("*.png"))
+    files = gopro_frames(data)
     if len(files) < GOPRO_STACK:
         raise ValueError(f"gopro240: {len(files)} frames, need at least {GOPRO_STACK}")
     frames = np.stack([read_image(f) for f in files])

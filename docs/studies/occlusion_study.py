@@ -156,10 +156,10 @@ def gopro_part(args) -> dict | None:
     from the frame's dominant (median) motion is nearer (see depth_proxy)."""
     from clblur import video
     from clblur.flow import FlowEstimator
-    from clblur.io import data_dir, read_image
+    from clblur.io import gopro_frames, read_image
 
-    d = data_dir()
-    if d is None or not (d / "gopro240" / "frames").is_dir():
+    names = gopro_frames()
+    if not names:
         print("GoPro frames not found ($CLBLUR_DATA); part 2 skipped")
         return None
     import importlib.util
@@ -168,7 +168,6 @@ def gopro_part(args) -> dict | None:
         "video_study", Path(__file__).resolve().parent / "video_study.py")
     vs = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(vs)
-    names = sorted((d / "gopro240" / "frames").glob("*.png"))
     frames = [read_image(p) for p in names]
     est = FlowEstimator("dis")
     rows: dict[str, dict[str, float]] = {}

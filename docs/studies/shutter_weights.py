@@ -85,17 +85,17 @@ def gopro(backend: str) -> None:
 
     from clblur import video
     from clblur.flow import FlowEstimator
-    from clblur.io import data_dir, read_image
+    from clblur.io import gopro_frames, read_image
 
-    d = data_dir()
-    if d is None or not (d / "gopro240" / "frames").is_dir():
+    names = gopro_frames()
+    if not names:
         print("GoPro frames not found ($CLBLUR_DATA): skipped")
         return
     spec = importlib.util.spec_from_file_location(
         "video_study", Path(__file__).resolve().parent / "video_study.py")
     study = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(study)
-    frames = [read_image(p) for p in sorted((d / "gopro240" / "frames").glob("*.png"))]
+    frames = [read_image(p) for p in names]
     flow = FlowEstimator("dis")
     methods = {"gather": {}, "depth layers (departure proxy)": dict(layers=True,
                                                                     depth="departure")}

@@ -22,7 +22,7 @@ import numpy as np
 from clblur import video
 from clblur.cli import video as video_cli
 from clblur.flow import FlowFolder
-from clblur.io import data_dir, read_image
+from clblur.io import data_dir, gopro_frames, read_image
 from clblur.pixels import linearise, normalise, quantise
 from clblur.responses import response
 
@@ -298,8 +298,7 @@ def main() -> None:
     ap.add_argument("--reuse", action="store_true",
                     help="with --work: keep blurred clips already there (re-evaluate only)")
     args = ap.parse_args()
-    folder = data_dir(required=True) / "gopro240" / "frames"
-    names = sorted(folder.glob("*.png"))
+    names = gopro_frames(data_dir(required=True))
     frames = [read_image(p) for p in names]
     FIG.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
