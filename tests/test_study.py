@@ -393,7 +393,11 @@ def test_offset_on_top_of_a_gain_is_quantisation_not_a_response_shape():
         math.exp(-sc.truth["exposure_gain"]), abs=0.01)
     assert est["quantisation"]["estimate"]["offset_codes"] == pytest.approx(
         -sc.truth["quantisation"], abs=0.05)
-    assert "replaced by quantisation" in est["response_shape"]["explanation"]
+    # the shape either joined and was replaced by the offset (the exchange step), or never
+    # passed: which of the two turns on the fit's rounding (validation.md, "One tree, two
+    # machines"); it is never part of the verdict
+    shape = est["response_shape"]["explanation"]
+    assert "replaced by quantisation" in shape or "not significant" in shape
 
 
 def _gopro_window(shared_data, tmp_path, how, storage, start=0):
