@@ -380,6 +380,19 @@ def test_truncated_long_exposure_is_quantisation_not_gain():
         f["explanation"] for f in r["findings"] if f["effect"] == "exposure_gain")
 
 
+def test_an_effect_contained_in_one_that_left_is_tested_again():
+    # response_imax's rho lies inside response_shape's parameters, so it is left out while
+    # the shape is in the model; once an exchange or a removal takes the shape out, it is a
+    # candidate again (the removal step once forgot this: select had two copies of it)
+    from clblur.study.select import _testable_again
+
+    contained = {"response_imax"}
+    assert _testable_again(contained, frozenset({"quantisation"}), [], 3) == ["response_imax"]
+    assert _testable_again(contained, frozenset({"response_shape", "quantisation"}), [], 3) == []
+    assert _testable_again(contained, frozenset(), ["response_imax"], 3) == []
+    assert _testable_again(contained, frozenset({"response_imax"}), [], 3) == []
+
+
 def test_offset_on_top_of_a_gain_is_quantisation_not_a_response_shape():
     # a blur pair with a 16 % gain and a truncation-like offset of -0.68 codes: after the
     # gain, the free response shape explains the offset a little better than quantisation

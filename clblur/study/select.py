@@ -28,14 +28,19 @@ Conventions
   makes the decision stricter).
 * Forward selection: of the significant effects, the one with the largest held-out gain
   joins the model, the rest are re-tested against the enlarged model, until none is
-  significant.  Systematic effects are tested with the noise model free in both fits (a
-  nuisance); ``noise`` itself is tested only when no systematic effect is significant.
+  significant.  Systematic effects are tested with the noise model
+  free in both fits (a nuisance); ``noise`` itself is tested only when no systematic
+  effect is significant.
   Findings are ranked by the order they joined, then by statistic.
 * Exchange: when none joins, a joined effect is replaced by a rival (significant in the
   round it joined) whose model predicts the held-out blocks significantly better in its
   place, or that has fewer parameters and predicts not significantly worse
   (``_best_swap``); forward selection then goes on.  Greedy selection alone keeps the
   first of two near-equal explanations even when later effects favour the other.
+* Removal: when no exchange is left, a joined effect whose rival joined on top of it is
+  tested for removal by the same test, and the weakest that adds nothing leaves
+  (``_redundant``): the exchange reached the other way round.  After either, the effects
+  that were contained in the one that left are candidates again (``_testable_again``).
 """
 
 from __future__ import annotations
@@ -209,44 +214,35 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
         # fewer parameters
         swap = _best_swap(folds, current, order, rivals, candidates, cur_params, visited,
                           alpha, min_gain, used, earlier)
-        if swap is None:
+        if swap is not None:
+            out, into, p_change, gain = swap
+            f = findings[into]
+            f.significant = True
+            f.statistic, f.p_value, f.nll_gain, f.round = rivals[out][into]
+        else:
+            # no exchange left: a joined effect that the rival which joined on top of it makes
+            # redundant leaves; the same outcome as an exchange, reached the other way round
             drop = _redundant(folds, current, order, rivals, candidates, cur_params, visited,
                               alpha, min_gain, used)
             if drop is None:
                 break
-            # the rival that joined later explains what the dropped effect did: the same
-            # outcome as an exchange, reached the other way round
-            out, into, p_drop, gain = drop
-            current = current - {out}
-            visited.add(current)
-            quiet = {n: null[n] for n in EFFECTS["noise"].params(channels)}
-            start = p_drop if "noise" in current else [{**q, **quiet} for q in p_drop]
-            cur_params = folds.fit(current, start, channels)
-            order.remove(out)
-            replaced[into] = (out, -gain)  # the held-out change of leaving it out
-            replaced_by[out] = into
-            findings[out].significant = False
-            findings[out].explanation = explain(out, findings[out].estimate, False,
-                                                findings[out].nll_gain, replaced_by=into)
-            continue
-        out, into, p_swap, gain = swap
+            out, into, p_change, keep = drop
+            gain = -keep  # the held-out change of leaving it out
+        exchange = into not in current
         current = (current - {out}) | {into}
         visited.add(current)
+        # the change was decided with the noise free; refit from there, quieted if the model
+        # has no noise effect
         quiet = {n: null[n] for n in EFFECTS["noise"].params(channels)}
-        start = p_swap if "noise" in current else [{**q, **quiet} for q in p_swap]
+        start = p_change if "noise" in current else [{**q, **quiet} for q in p_change]
         cur_params = folds.fit(current, start, channels)
-        order[order.index(out)] = into
-        candidates.remove(into)
-        candidates.append(out)  # it may still join, on top of its replacement
-        # effects that were contained in the one that left (response_imax in
-        # response_shape) can add something again
-        have = set(free_params(current, channels))
-        candidates += [c for c in contained
-                       if c not in current and c not in candidates
-                       and not set(EFFECTS[c].params(channels)) <= have]
-        f = findings[into]
-        f.significant = True
-        f.statistic, f.p_value, f.nll_gain, f.round = rivals[out][into]
+        if exchange:
+            order[order.index(out)] = into
+            candidates.remove(into)
+            candidates.append(out)  # it may still join, on top of its replacement
+        else:
+            order.remove(out)  # shown to add nothing to a model that keeps its rival
+        candidates += _testable_again(contained, current, candidates, channels)
         replaced[into] = (out, gain)
         replaced_by[out] = into
         findings[out].significant = False
@@ -266,6 +262,16 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
     b_rmse, b_nll, b_pred = heldout_scores(groups, base_p)
     x_rmse, x_nll, x_pred = heldout_scores(groups, cur_params)
     return Selection(order, ranked, full, b_rmse, x_rmse, b_nll, x_nll, b_pred, x_pred, skip)
+
+
+def _testable_again(contained: set[str], current: frozenset, candidates: list[str],
+                    channels: int) -> list[str]:
+    """The effects once left out as contained in a joined one (response_imax in
+    response_shape) whose parameters are no longer all in the model: after an exchange or a
+    drop took that effect out, they can add something again."""
+    have = set(free_params(current, channels))
+    return [c for c in sorted(contained) if c not in current and c not in candidates
+            and not set(EFFECTS[c].params(channels)) <= have]
 
 
 def _nested(a: str, b: str, channels: int) -> bool:
