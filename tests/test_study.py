@@ -380,6 +380,37 @@ def test_truncated_long_exposure_is_quantisation_not_gain():
         f["explanation"] for f in r["findings"] if f["effect"] == "exposure_gain")
 
 
+class _Blocks:
+    """Folds whose every comparison of two fits returns the given per-block gains."""
+
+    def __init__(self, gain_per_block: np.ndarray):
+        self.part = [[argparse.Namespace(channels=3)]]
+        self.gain = gain_per_block
+
+    def block_score(self, base, ext):
+        n = self.gain.size
+        return self.gain, np.ones(n), np.ones(n)
+
+
+@pytest.mark.parametrize("larger_by, joins", [(0.0, "black_level"), (0.5, "response_shape")])
+def test_the_simpler_of_two_indistinguishable_winners_joins_first(larger_by, joins):
+    # the free shape (6 parameters) has the larger gain, by rounding; unless its model
+    # predicts the held-out blocks significantly better than the black level's (3), the
+    # black level joins first, whichever of the two gains happens to be larger
+    from clblur.study.select import _joining
+
+    noise = np.random.default_rng(0).standard_normal(400)
+    folds = _Blocks(larger_by + noise - noise.mean())
+    winners = [("response_shape", 1e-9, 0.102, "shape fit"),
+               ("black_level", 1e-9, 0.101, "level fit"),
+               ("exposure_gain", 1e-9, 0.010, "gain fit")]
+    picked = _joining(winners[:2], folds, 0.05 / 3, np.ones(400, bool))
+    assert picked[0] == joins
+    # of several that tie, the fewest parameters (exposure_gain's one)
+    if joins == "black_level":
+        assert _joining(winners, folds, 0.05 / 3, np.ones(400, bool))[0] == "exposure_gain"
+
+
 def test_an_effect_contained_in_one_that_left_is_tested_again():
     # response_imax's rho lies inside response_shape's parameters, so it is left out while
     # the shape is in the model; once an exchange or a removal takes the shape out, it is a
