@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import types
 
 import numpy as np
 import pytest
@@ -384,7 +385,7 @@ class _Blocks:
     """Folds whose every comparison of two fits returns the given per-block gains."""
 
     def __init__(self, gain_per_block: np.ndarray):
-        self.part = [[argparse.Namespace(channels=3)]]
+        self.part = [[types.SimpleNamespace(channels=3)]]
         self.gain = gain_per_block
 
     def block_score(self, base, ext):

@@ -285,6 +285,21 @@ def _nested(a: str, b: str, channels: int) -> bool:
 _NO_SWAP = CONDITIONAL | {"psf_orientation", "noise"}
 
 
+def _current_fit(folds: Folds, current: frozenset, candidates: list[str],
+                 cur_params: list[dict]) -> tuple[frozenset, list[dict]]:
+    """The noise nuisance (when it is a candidate) and the current model's fit with it:
+    what an exchange or a removal is measured against, and where its fits start."""
+    nuisance = frozenset({"noise"}) if "noise" in candidates else frozenset()
+    return nuisance, folds.fit(current | nuisance, cur_params, folds.part[0][0].channels)
+
+
+def _at_null(fits: list[dict], effect: str, channels: int) -> list[dict]:
+    """Each fold's parameters with ``effect``'s at their null values (the effect taken out,
+    the rest kept as a start)."""
+    null = null_params()
+    return [{**q, **{n: null[n] for n in EFFECTS[effect].params(channels)}} for q in fits]
+
+
 def _best_swap(folds: Folds, current: frozenset, order: list[str],
                rivals: dict[str, dict[str, tuple]], candidates: list[str],
                cur_params: list[dict],
@@ -314,22 +329,19 @@ def _best_swap(folds: Folds, current: frozenset, order: list[str],
     so the search ends.
     """
     channels = folds.part[0][0].channels
-    null = null_params()
     pairs = [(e, c) for e in order if e not in _NO_SWAP for c in rivals.get(e, ())
              if c in candidates and c not in _NO_SWAP and c in earlier
              and (current - {e}) | {c} not in visited]
     if not pairs:
         return None
     level = alpha / len(pairs)
-    nuisance = frozenset({"noise"}) if "noise" in candidates else frozenset()
-    base = folds.fit(current | nuisance, cur_params, channels)
+    nuisance, base = _current_fit(folds, current, candidates, cur_params)
     nvalid = max(sum(folds.nvalid), 1)
     improve, simplify = [], []
     for e, c in pairs:
         model = (current - {e}) | {c} | nuisance
-        start = [{**q, **{n: null[n] for n in EFFECTS[e].params(channels)},
-                  **{n: earlier[c][f][n] for n in EFFECTS[c].params(channels)}}
-                 for f, q in enumerate(base)]
+        start = [{**q, **{n: earlier[c][f][n] for n in EFFECTS[c].params(channels)}}
+                 for f, q in enumerate(_at_null(base, e, channels))]
         p = folds.fit(model, start, channels, shape_search="response_shape" in model)
         d, _, pv = _weighted_gain(folds, base, p, used)
         gain = float(d.sum()) / nvalid
@@ -373,14 +385,11 @@ def _redundant(folds: Folds, current: frozenset, order: list[str],
     if not tried:
         return None
     level = alpha / len(tried)
-    nuisance = frozenset({"noise"}) if "noise" in candidates else frozenset()
-    base = folds.fit(current | nuisance, cur_params, channels)
-    null = null_params()
+    nuisance, base = _current_fit(folds, current, candidates, cur_params)
     nvalid = max(sum(folds.nvalid), 1)
     weakest = None
     for e, rival in tried:
-        start = [{**q, **{n: null[n] for n in EFFECTS[e].params(channels)}} for q in base]
-        p = folds.fit((current - {e}) | nuisance, start, channels)
+        p = folds.fit((current - {e}) | nuisance, _at_null(base, e, channels), channels)
         d, _, pv = _weighted_gain(folds, p, base, used)
         gain = float(d.sum()) / nvalid
         if (pv >= level or gain < min_gain) and (weakest is None or gain < weakest[3]):
