@@ -9,7 +9,8 @@ Memorial stack and Canon 400D bracket, as stored and as hand-held copies: every 
 window of the stored frame at a random whole-pixel offset (up to 20 px on Memorial, 6 px on
 the Canon bracket shrunk to 1/4), whose true relative shifts are known.  Calibration: the
 paper's ``exp`` family (Eq. 3) fitted to one such Canon copy with and without registration,
-and to the tripod frames themselves.
+to a copy whose full-size frames are turned by up to 1 degree (bicubic) before they are
+shrunk, registered with and without turns, and to the tripod frames themselves.
 """
 
 from __future__ import annotations
@@ -104,15 +105,43 @@ def accuracy_rows(name: str, series: ExposureSeries, margin: int, seeds: int,
     return rows
 
 
-def calibration_rows(canon: ExposureSeries, margin: int) -> list[str]:
+def turn(image: np.ndarray, degrees: float, margin: int) -> np.ndarray:
+    """A full-size frame turned by ``degrees`` about its centre (bicubic: the scene as a
+    turned camera samples it), shrunk to 1/4 as the bracket is, the border cut away."""
+    h, w = image.shape[:2]
+    m = cv2.getRotationMatrix2D((w / 2, h / 2), degrees, 1.0)
+    out = cv2.warpAffine(image, m, (w, h), flags=cv2.INTER_CUBIC)
+    out = cv2.resize(out, (w // 4, h // 4), interpolation=cv2.INTER_AREA)
+    return out[margin:-margin, margin:-margin]
+
+
+def turned_frames(full: ExposureSeries, rng) -> list[np.ndarray]:
+    """The turned copy: each full-size frame turned by a random angle of up to 1 degree
+    either way (``turn``), with a 16 px border cut (the corners a turn of 1 degree brings in
+    come to 10 px at 1/4)."""
+    angles = rng.uniform(-1, 1, len(full.images))
+    return [turn(im, a, 16) for im, a in zip(full.images, angles, strict=True)]
+
+
+def calibration_rows(canon: ExposureSeries, margin: int, full: ExposureSeries) -> list[str]:
     rng = np.random.default_rng(0)
     frames, _ = handheld(canon.images, margin, rng)
     shifted = ExposureSeries.create(frames, canon.exposures, canon.f_numbers, canon.names)
     inner = [im[margin:-margin, margin:-margin] for im in canon.images]
     tripod = ExposureSeries.create(inner, canon.exposures, canon.f_numbers, canon.names)
+    turned = ExposureSeries.create(turned_frames(full, rng), canon.exposures,
+                                   canon.f_numbers, canon.names)
+    turned_shifted = turned.aligned(turns=False)
     rows = []
     for label, series in (("tripod frames", tripod), ("hand-held, taken as they are", shifted),
-                          ("hand-held, registered", shifted.aligned())):
+                          ("hand-held, registered", shifted.aligned()),
+                          ("tripod frames, 16 px border cut (the turned copy's pixels)",
+                           ExposureSeries.create([turn(im, 0.0, 16) for im in full.images],
+                                                 canon.exposures, canon.f_numbers,
+                                                 canon.names)),
+                          ("turned by up to 1 deg, registered as whole-pixel moves",
+                           turned_shifted),
+                          ("turned by up to 1 deg, registered with turns", turned.aligned())):
         cal = calibrate(series, ["exp"], flat_tolerance=0.03)
         e = cal.evaluations["exp"]
         ks = ", ".join(f"{r.params()['k']:.4f}" for r in cal.responses)
@@ -122,21 +151,26 @@ def calibration_rows(canon: ExposureSeries, margin: int) -> list[str]:
     return rows
 
 
-def study_rows(canon: ExposureSeries, margin: int) -> list[str]:
-    """``clblur study`` of the same hand-held copy as ``calibration_rows``, with and without
-    registration, and of the tripod frames (PNG files in a temporary folder)."""
+def study_rows(canon: ExposureSeries, margin: int, full: ExposureSeries) -> list[str]:
+    """``clblur study`` of the same hand-held and turned copies as ``calibration_rows``, with
+    and without registration, and of the tripod frames (PNG files in a temporary folder)."""
     from clblur.calibration.series import folder_series
     from clblur.io import write_image
     from clblur.study import study
 
     rng = np.random.default_rng(0)
     frames, _ = handheld(canon.images, margin, rng)
+    turned = turned_frames(full, rng)
     inner = [im[margin:-margin, margin:-margin] for im in canon.images]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for label, images, align in (("tripod frames", inner, True),
                                      ("hand-held, taken as they are", frames, False),
-                                     ("hand-held, registered", frames, True)):
+                                     ("hand-held, registered", frames, True),
+                                     ("tripod frames, 16 px border cut",
+                                      [turn(im, 0.0, 16) for im in full.images], True),
+                                     ("turned by up to 1 deg, registered with turns", turned,
+                                      True)):
             folder = Path(tmp) / label.replace(" ", "_").replace(",", "")
             folder.mkdir()
             for name, im in zip(canon.names, images, strict=True):
@@ -180,12 +214,12 @@ def main() -> None:
                 "target, all valid pixels, 1 / 4 stops (DN) | flat pixels, 1 / 4 stops (DN) |",
                 "|---|---|---|---|"]
     print("\n".join(cal_head), flush=True)
-    cal = cal_head + calibration_rows(quarter, 6)
+    cal = cal_head + calibration_rows(quarter, 6, canon)
     study_head = ["| Canon 400D at 1/4, 6 px hand-held copy 0 | `clblur study`: effects (order "
                   "joined) | held-out RMSE paper -> extended (codes) | wall s |",
                   "|---|---|---|---|"]
     print("\n".join(study_head), flush=True)
-    studied = study_head + study_rows(quarter, 6)
+    studied = study_head + study_rows(quarter, 6, canon)
     load = os.getloadavg()[0]
     text = "\n".join([
         "# Registration of exposure series", "",

@@ -139,10 +139,12 @@ class ExposureSeries:
         return np.stack([im.astype(np.float32) for im in self.images]) / np.float32(
             self.full_scale)
 
-    def aligned(self) -> ExposureSeries:
+    def aligned(self, turns: bool = True) -> ExposureSeries:
         """The series registered and cropped to the window every image covers (views of the
-        images; the same images when nothing moved), with ``registration`` set."""
-        reg = align_series(self.images, self.relative_exposures())
+        images where they moved by whole pixels; the same images when nothing moved), with
+        ``registration`` set; ``turns``: also find turns between the frames
+        (``clblur.registration.align_series``)."""
+        reg = align_series(self.images, self.relative_exposures(), turns=turns)
         images = ([reg.crop(im, i) for i, im in enumerate(self.images)] if reg.moved
                   else self.images)
         return ExposureSeries(images, self.exposures, self.f_numbers, self.names, reg)
