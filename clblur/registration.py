@@ -13,15 +13,15 @@ Conventions
 * The motion between exposures is a whole-pixel translation (the hand-held case of Ward,
   "Fast, robust image registration for compositing high dynamic range photographs from
   hand-held exposures", JGT 8(2), 2003), or, where a link turns, a rigid motion (a turn
-  and a translation).  Parallax and scale are not
-  modelled; a residual below a pixel is what the study's ``misregistration`` effect
-  measures.  Codes are kept as stored: a whole-pixel move crops, and a turned frame is read
-  at the pixel nearest to where each window pixel's point lies (at most half a pixel off,
-  as a whole-pixel shift is for a sub-pixel move); resampling would blend codes.
+  and a translation).  Parallax and scale are not modelled; a residual below a pixel is
+  what the study's ``misregistration`` effect measures.  Codes are kept as stored: a
+  whole-pixel move crops, and a turned frame is read at the pixel nearest to where each
+  window pixel's point lies (at most half a pixel off, as a whole-pixel shift is for a
+  sub-pixel move); resampling would blend codes.
 * **Turns** (rotation).  After a link's whole-pixel shift, the overlap is cut into
   ``_GRID`` x ``_GRID`` blocks (at most ``_BLOCK`` px a side) and each block's whole-pixel
   shift is found as the frame's is.  The rigid motion that carries the most blocks within
-  ``_FIT_PX`` (``_consensus``: of the motions two blocks fix exactly; a block that moved
+  ``_COARSE_PX`` (``_consensus``: of the motions two blocks fix exactly; a block that moved
   otherwise, a stripe that cannot tell its own direction, a subject that moved, is left
   out) is fitted to them.  Where it moves the frame's corners by less than ``TURN_PX / 2``
   (a tripod's: every block moves as the frame does) the link is its whole-pixel shift, so
@@ -29,12 +29,12 @@ Conventions
   ``_REFINE`` times more against the shorter frame carried back by the fit so far
   (bilinear, for the measurement only): what is left is a fraction of a pixel, placed by
   the parabola through the correlations either side of the peak, and the fit is made
-  again.  The turn is applied when it moves the frame's corners by more than ``TURN_PX``
-  and is at least three standard errors (the blocks' scatter about the fit); else the link
-  is its whole-pixel shift.  A link with fewer than ``_MIN_BLOCKS`` blocks that agree (a
-  frame mostly clipped or dark), or whose turn is within three standard errors, keeps its
-  shift: its turn is not told, and where another link turned that is reported
-  (``Registration.untold``).
+  again (the blocks within ``_FIT_PX`` of it).  The turn is applied when it moves the
+  frame's corners by more than ``TURN_PX`` and is at least three standard errors (the
+  blocks' scatter about the fit); else the link is its whole-pixel shift.  A link with
+  fewer than ``_MIN_BLOCKS`` blocks that agree (a frame mostly clipped or dark), or whose
+  turn is within three standard errors, keeps its shift: its turn is not told, and where
+  another link turned that is reported (``Registration.untold``).
 * Criterion: the normalised cross-correlation of the two images' codes over the pixels
   neither clips (codes strictly inside ``(_LOW, _HIGH)`` of full scale in each image; masked
   NCC, Padfield, "Masked object registration in the Fourier domain", IEEE TIP 21(5), 2012).
@@ -489,7 +489,13 @@ def _turned(links: list[np.ndarray], order: np.ndarray, unregistered: list[int],
     back = np.linalg.inv(chained[n // 2])
     maps = np.zeros((n, 2, 3))
     for k in range(n):
-        maps[order[k]] = (chained[k] @ back)[:2]
+        m = (chained[k] @ back)[:2]
+        whole = np.rint(m[:, 2])
+        # a frame chained to the reference by whole-pixel shifts alone (its turns cancel to
+        # rounding: the reference itself) is that shift exactly, so it is cropped, not read
+        if np.abs(m[:, :2] - np.eye(2)).max() < 1e-12 and np.abs(m[:, 2] - whole).max() < 1e-9:
+            m = np.hstack([np.eye(2), whole[:, None]])
+        maps[order[k]] = m
     h, w = shape
     centre = np.array([(w - 1) / 2, (h - 1) / 2, 1.0])
     moved = maps @ centre - centre[:2]

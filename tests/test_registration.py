@@ -269,3 +269,14 @@ def test_a_turn_too_dark_to_tell_is_reported_not_guessed():
     assert reg.turn_degrees(4) == pytest.approx(reg.turn_degrees(3))
     assert describe(reg, names)["turn_untold"] == ["f4.png"]
     assert summary(reg, names).endswith("taken as none): f4.png")
+
+
+def test_frames_that_did_not_turn_are_cut_not_read():
+    # the reference and a frame linked to it by a whole-pixel shift alone are views of the
+    # stored frames when another frame turned
+    frames, _ = _turned(2, (0.0, 0.6, 0.0, 0.0, 0.0))
+    reg = align_series(frames, [4.0, 2.0, 1.0, 0.5, 0.25])
+    assert reg.maps is not None
+    for i in (reg.reference, 3):
+        assert np.shares_memory(reg.crop(frames[i], i), frames[i])
+    assert not np.shares_memory(reg.crop(frames[1], 1), frames[1])
