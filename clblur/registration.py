@@ -294,8 +294,12 @@ def _rigid_fit(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, float, np.
     rot = np.array([[c, -s], [s, c]])
     t = dst.mean(axis=0) - rot @ src.mean(axis=0)
     fit = np.hstack([rot, t[:, None]])
-    residual = np.hypot(*(src @ rot.T + t - dst).T)
-    return fit, angle, residual
+    return fit, angle, _misfit(fit, src, dst)
+
+
+def _misfit(fit: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """How far (px) the 2 x 3 ``fit`` carries each point of ``src`` from its ``dst``."""
+    return np.hypot(*(src @ fit[:, :2].T + fit[:, 2] - dst).T)
 
 
 def _peak(block, dy: int, dx: int) -> tuple[int, int, dict]:
@@ -400,7 +404,7 @@ def _consensus(src: np.ndarray, dst: np.ndarray, tolerance: float) -> np.ndarray
     for i in range(m):
         for j in range(i + 1, m):
             fit, _, _ = _rigid_fit(src[[i, j]], dst[[i, j]])
-            residual = np.hypot(*(src @ fit[:, :2].T + fit[:, 2] - dst).T)
+            residual = _misfit(fit, src, dst)
             near = residual <= tolerance
             key = (int(near.sum()), -float(residual[near].sum()))
             if best is None or key > best:
@@ -408,7 +412,7 @@ def _consensus(src: np.ndarray, dst: np.ndarray, tolerance: float) -> np.ndarray
     if keep is None or keep.sum() < _MIN_BLOCKS:
         return None
     fit, _, _ = _rigid_fit(src[keep], dst[keep])
-    keep = np.hypot(*(src @ fit[:, :2].T + fit[:, 2] - dst).T) <= tolerance
+    keep = _misfit(fit, src, dst) <= tolerance
     return keep if keep.sum() >= _MIN_BLOCKS else None
 
 
@@ -445,8 +449,10 @@ def align_series(images: list[np.ndarray], exposures, turns: bool = True) -> Reg
     step = np.zeros((n, 2), np.int64)  # shift of order[k] against order[k - 1]
     links = [np.eye(3) for _ in range(n)]  # order[k - 1] (x, y, 1) to order[k]
     unregistered, untold, turned = [], [], False
+    b, mb = _plane(images[order[0]])
     for k in range(1, n):
-        a, ma = _plane(images[order[k - 1]])
+        # each frame is compared twice, as the shorter of one link and the longer of the next
+        a, ma = b, mb
         b, mb = _plane(images[order[k]])
         if a.shape != b.shape:
             raise ValueError(f"images differ in size: {a.shape} and {b.shape}")
