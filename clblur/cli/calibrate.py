@@ -16,6 +16,7 @@ from pathlib import Path
 
 from clblur.calibration.evaluate import EVAL_LOW, FLAT_TOLERANCE
 from clblur.calibration.models import MODELS
+from clblur.cli.options import add_series_options
 from clblur.errors import InputError
 
 __all__ = ["register", "run"]
@@ -28,10 +29,7 @@ def register(subparsers) -> None:
                     "one scene at several exposures; evaluate them on held-out pixels and "
                     "exposures; write the best as a response JSON for clblur blur --response.")
     p.add_argument("source", help="exposure-series manifest (.json) or folder of images")
-    p.add_argument("--times", metavar="FILE",
-                   help="exposure times for a folder: one per line in file-name order, or "
-                        "'NAME TIME' lines; fractions like 1/1024 allowed (default: EXIF "
-                        "ExposureTime, FNumber, and ISO where it varies)")
+    add_series_options(p)
     p.add_argument("--model", nargs="+", choices=MODELS, metavar="M",
                    help=f"models to fit: {', '.join(MODELS)} (default: all; emor only when "
                         "its basis files are found)")
@@ -63,10 +61,6 @@ def register(subparsers) -> None:
                         f"full scale in both images; 'none' drops it (default {FLAT_TOLERANCE})")
     p.add_argument("--eval-pixels", type=int, default=None, metavar="N",
                    help="score a random subset of N held-out pixels (default: all)")
-    p.add_argument("--no-align", action="store_true",
-                   help="take the images as they are; by default the whole-pixel shift "
-                        "between exposures (a hand-held bracket) is measured and the images "
-                        "cropped to the window all of them cover")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
 

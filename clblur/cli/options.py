@@ -13,9 +13,9 @@ from clblur.errors import InputError
 from clblur.motion import ANCHORS, EXPOSURES
 
 __all__ = ["add_backend_options", "add_blur_options", "add_exposure_option",
-           "add_memory_option",
-           "add_motion_options", "add_vector_options", "blur_options", "check_device",
-           "check_response", "motion_from_args", "parse_vector"]
+           "add_memory_option", "add_motion_options", "add_series_options",
+           "add_vector_options", "blur_options", "check_device", "check_response",
+           "motion_from_args", "parse_vector"]
 
 
 def parse_vector(text: str, option: str = "--motion") -> tuple[float, float]:
@@ -69,6 +69,19 @@ def add_backend_options(p: argparse.ArgumentParser) -> None:
                    help="OpenCL device: 'P:D' indices or a name substring (default: "
                         "$CLBLUR_DEVICE, else the first usable device); a named device that "
                         "does not work is an error")
+
+
+def add_series_options(p: argparse.ArgumentParser, only: str = "") -> None:
+    """--times and --no-align: how an exposure series is read (calibrate, study); ``only``
+    names the inputs they apply to, where the command takes other kinds too."""
+    p.add_argument("--times", metavar="FILE",
+                   help="exposure times for a folder: one per line in file-name order, or "
+                        "'NAME TIME' lines; fractions like 1/1024 allowed (default: EXIF "
+                        "ExposureTime, FNumber, and ISO where it varies)")
+    p.add_argument("--no-align", action="store_true",
+                   help=f"{only}take the images as they are; by default the whole-pixel "
+                        "shift and the turn between exposures (a hand-held bracket) are "
+                        "measured and the images cropped to the window all of them cover")
 
 
 def add_memory_option(p: argparse.ArgumentParser, what: str) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from clblur.cli.options import add_series_options
 from clblur.errors import InputError
 
 __all__ = ["register", "run"]
@@ -21,10 +22,7 @@ def register(subparsers) -> None:
                    help="manifest JSON (exposure-series, blur-pair, frame-stack), or a folder "
                         "of images of one scene at several exposures (as clblur calibrate "
                         "takes it)")
-    p.add_argument("--times", metavar="FILE",
-                   help="for a folder: exposure times, one per line in file-name order, or "
-                        "'NAME TIME' lines (default: EXIF ExposureTime, FNumber, and ISO where "
-                        "it varies)")
+    add_series_options(p, only="exposure series: ")
     p.add_argument("--report", required=True, help="output report JSON (a .md beside it)")
     p.add_argument("--figures", help="folder for the figures (created if missing)")
     p.add_argument("--max-pixels", type=int, default=None,
@@ -35,10 +33,6 @@ def register(subparsers) -> None:
                    help="repeat the diagnosis on N splits of the data into two folds and "
                         "report how often each effect is selected (default 1; N times the "
                         "time)")
-    p.add_argument("--no-align", action="store_true",
-                   help="exposure series: take the images as they are; by default the "
-                        "whole-pixel shift between exposures is measured and the images "
-                        "cropped to the window all of them cover")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
 
