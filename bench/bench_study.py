@@ -1,7 +1,7 @@
 """Study speed on a 1-megapixel blur pair, and detection limits per effect.
 
     python bench/bench_study.py speed  [--results bench/results_study.md]
-    python bench/bench_study.py limits [--seeds 3] [--noise A] [--results FILE]
+    python bench/bench_study.py limits [--seeds 3] [--noise A] [--effects E ...] [--results FILE]
     python bench/bench_study.py series [--data DIR] [--results FILE]
     python bench/bench_study.py null   [--seeds 40] [--results bench/results_study_null.md]
     python bench/bench_study.py memory [--trees BEFORE .] [--results FILE]
@@ -47,6 +47,7 @@ LIMIT_GRID = {
     "nonuniform_motion": (1.05, 1.1, 1.25, 1.5, 2.0),
     "channel_gain": (0.001, 0.002, 0.003, 0.006, 0.01, 0.05),
     "exposure_gain": (0.001, 0.002, 0.003, 0.006, 0.01, 0.08),
+    "channel_shape": (0.002, 0.005, 0.01, 0.02, 0.05, 0.1),
 }
 
 
@@ -187,15 +188,16 @@ def _f(v) -> str:
     return "n/a" if v is None or v != v else f"{v:.2f}"
 
 
-def limits(results: Path, seeds: int, noise: float) -> None:
-    cmd = f"limits --seeds {seeds}" + (f" --noise {noise:g}" if noise else "")
+def limits(results: Path, seeds: int, noise: float, effects: list[str] | None = None) -> None:
+    cmd = (f"limits --seeds {seeds}" + (f" --noise {noise:g}" if noise else "")
+           + (f" --effects {' '.join(effects)}" if effects else ""))
     rule = ("the hidden effect is ranked first and significant" if not noise else
             f"the hidden effect is significant; camera noise a = {noise:g}, b = a / 100 "
             "(found as well)")
     lines = [_header(cmd), f"Detection = {rule}.  48 x 64 scenes.",
              "", "| effect | magnitude | detected | seconds |", "|---|---:|---:|---:|"]
     for effect, grid in LIMIT_GRID.items():
-        if noise and effect == "noise":
+        if (noise and effect == "noise") or (effects and effect not in effects):
             continue
         for m in grid:
             t0 = time.perf_counter()
@@ -274,6 +276,8 @@ def main() -> None:
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--noise", type=float, default=0.0,
                    help="limits: camera noise a (b = a / 100) under every hidden effect")
+    p.add_argument("--effects", nargs="+", choices=list(LIMIT_GRID), metavar="E",
+                   help="limits: only these effects (default: every one of LIMIT_GRID)")
     p.add_argument("--results", type=Path)
     a = p.parse_args()
     if a.mode == "speed":
@@ -286,7 +290,7 @@ def main() -> None:
         null(a.results or Path("bench/results_study_null.md"), a.seeds)
     else:
         name = "results_study_limits" + ("_noisy" if a.noise else "") + ".md"
-        limits(a.results or Path("bench") / name, a.seeds, a.noise)
+        limits(a.results or Path("bench") / name, a.seeds, a.noise, a.effects)
 
 
 if __name__ == "__main__":

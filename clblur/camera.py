@@ -20,11 +20,11 @@ Conventions
 * Noise (Foi et al. 2008): ``y_noisy = a * Poisson(y / a) + N(0, b)`` (variance ``a y + b``),
   added in the linear domain before clipping and the response; pixels at or above the full
   well are clipped and carry no noise.
-* The response maps ``y`` to a normalised value; a black level ``beta`` (one, or one per
-  channel) lifts it: ``v = beta + (1 - beta) * I(y)``; then ``clblur.pixels.quantise``
-  (round half to even), or, with ``storage="floor"``, truncation ``floor(v * full)`` (a
-  -0.5 code bias), and with ``code_offset`` a constant offset of that many codes added
-  before quantising.
+* The response (one, or one per channel) maps ``y`` to a normalised value; a black level
+  ``beta`` (one, or one per channel) lifts it: ``v = beta + (1 - beta) * I(y)``; then
+  ``clblur.pixels.quantise`` (round half to even), or, with ``storage="floor"``,
+  truncation ``floor(v * full)`` (a -0.5 code bias), and with ``code_offset`` a constant
+  offset of that many codes added before quantising.
 * ``shift=(sx, sy)`` (``capture``): the sensor image is displaced by a sub-pixel amount after
   the blur, ``y(p) <- y(p - s)`` (bilinear, edge clamped), i.e. a misregistration between
   this capture and another.
@@ -50,7 +50,7 @@ __all__ = ["Camera", "accelerating_weights", "normalised_radius2", "random_scene
 class Camera:
     """Sensor and processing of one camera (see the module docstring for the physics)."""
 
-    response: Response | str = Exp(3.0)
+    response: Response | str | tuple[Response | str, ...] = Exp(3.0)  # or one per channel
     black_level: float | tuple[float, ...] = 0.0  # normalised value of zero exposure
     noise_a: float = 0.0  # Poisson part of the variance, full-well units
     noise_b: float = 0.0  # Gaussian part of the variance, full-well units squared
@@ -61,7 +61,10 @@ class Camera:
     code_offset: float = 0.0  # codes added before quantising (a storage bias)
 
     def __post_init__(self):
-        object.__setattr__(self, "response", response(self.response))
+        object.__setattr__(self, "response",
+                           tuple(map(response, self.response))
+                           if isinstance(self.response, (tuple, list))
+                           else response(self.response))
         if self.storage not in ("round", "floor"):
             raise ValueError(f"storage must be 'round' or 'floor', got {self.storage!r}")
         if not (math.isfinite(self.code_offset) and abs(self.code_offset) <= 8):
@@ -111,7 +114,13 @@ class Camera:
             y = np.where(clipped, y, _poisson_gaussian(y, self.noise_a, self.noise_b, rng))
         if self.full_well:
             y = np.minimum(y, 1.0)
-        v = self.response.forward(np.maximum(y, 0.0))
+        y = np.maximum(y, 0.0)
+        if isinstance(self.response, tuple):
+            if len(self.response) != y.shape[2]:
+                raise ValueError(f"{len(self.response)} responses for {y.shape[2]} channel(s)")
+            v = np.stack([r.forward(y[..., c]) for c, r in enumerate(self.response)], axis=-1)
+        else:
+            v = self.response.forward(y)
         beta = np.asarray(self.black_level, dtype=np.float64)
         if beta.ndim and beta.size != v.shape[2]:
             raise ValueError(f"{beta.size} black levels for {v.shape[2]} channel(s)")

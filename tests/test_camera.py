@@ -20,6 +20,17 @@ def test_static_capture_is_response_of_exposure_quantised(rng):
     assert got.dtype == np.uint8 and got.shape == scene.shape
 
 
+def test_one_response_per_channel_is_each_channel_through_its_own(rng):
+    scene = random_scene(rng, (24, 32), 3)
+    curves = (Exp(2.0), Gamma(2.2), Linear())
+    got = Camera(response=curves).capture(scene, 0.7)
+    for c, curve in enumerate(curves):
+        np.testing.assert_array_equal(got[..., c], Camera(response=curve).capture(
+            scene[..., c], 0.7))
+    with pytest.raises(ValueError, match="3 responses for 1 channel"):
+        Camera(response=curves).capture(scene[..., :1], 0.7)
+
+
 def test_blurred_capture_is_the_papers_eq9_of_the_static_capture(rng):
     # exp camera, float output: averaging exposure then the response == clblur.blur with exp
     scene = random_scene(rng, (24, 32), 3, high=0.6)

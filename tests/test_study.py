@@ -90,6 +90,10 @@ def _check_estimate(effect: str, est: dict, truth: float) -> None:
         assert abs(np.log(est["gain"])) == pytest.approx(truth, abs=0.01)
     elif effect == "channel_gain":
         assert abs(np.log(est["gains"][0])) == pytest.approx(truth, abs=0.01)
+    elif effect == "channel_shape":  # R's and B's exponents turned apart, G between
+        f = est["exponent_factors"]
+        assert abs(np.log(f[0])) == pytest.approx(truth, abs=0.01)
+        assert np.log(f[0]) == pytest.approx(-np.log(f[2]), abs=0.01)
     elif effect == "saturation":  # one factor for all clipped pixels: a lower bound
         assert 1.0 < est["factor"] <= truth * 1.05
     elif effect == "quantisation":
@@ -346,6 +350,8 @@ def test_black_level_is_found_per_channel():
     r = study_groups("exposure-series", groups).report
     top = r["findings"][0]
     assert top["effect"] == "black_level" and top["significant"], r["findings"][:2]
+    # the channels' curves are one curve lifted by different levels: not channel_shape
+    assert "channel_shape" not in r["extended"]["effects"], r["extended"]["effects"]
     np.testing.assert_allclose(top["estimate"]["channel_codes"], 255 * np.array(levels),
                                atol=1.0)
     assert top["estimate"]["black_level_codes"] == pytest.approx(255 * np.mean(levels),

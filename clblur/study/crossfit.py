@@ -89,7 +89,7 @@ def applicable(groups: list[Group]) -> dict[str, str]:
         out["vignetting"] = ("source and target share sensor positions, so a fixed falloff "
                              "cancels in Eq. 8")
     if groups[0].channels < 2:
-        out["channel_gain"] = "single-channel images"
+        out["channel_gain"] = out["channel_shape"] = "single-channel images"
     if not has_variant(groups, "psf_orientation"):
         out["psf_orientation"] = "the motion path is its own 180-degree turn (centred path)"
     if not has_variant(groups, "psf_scale"):

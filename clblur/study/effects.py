@@ -27,6 +27,11 @@ nested model and can be tested against the simpler one.  Parameters (``PARAMS``)
 * ``gain``: log of an exposure gain between source and target capture.
 * ``cg1``, ``cg2``, ...: log white-balance gains per channel, normalised to a geometric mean
   of 1 (a common gain is ``exposure_gain``'s job).
+* ``ce1``, ``ce2``, ...: log factors on the response's exponent per channel, normalised to a
+  geometric mean of 1 as the gains are: channel ``c`` takes ``gamma * f_c`` (a film's dye
+  layers, or a scanner's or camera's own curve per channel, differ in contrast: the stops a
+  channel spans between two codes scale with its exponent); the shared shape stays
+  ``response_shape``'s job.
 * ``vig``: ``c`` of the cos^4 vignetting ``V = (1 + c (r/R)^2)^-2`` (``clblur.camera``).
 * ``t1``, ``t2``: time weights ``w(s) = 1 + t1 (2s - 1) + t2 (6s^2 - 6s + 1)`` along the
   motion (``s`` = 0 start, 1 end), i.e. a non-uniform velocity.
@@ -46,7 +51,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 __all__ = ["EFFECTS", "EFFECT_NAMES", "PARAMS", "Effect", "black_levels", "black_names",
-           "channel_gains", "effective_gamma", "explain", "readable_estimate"]
+           "channel_exponents", "channel_gains", "effective_gamma", "explain", "readable_estimate"]
 
 # name: (null value, lower bound, upper bound)
 PARAMS: dict[str, tuple[float, float, float]] = {
@@ -70,6 +75,7 @@ for _m in (1, 2, 3, 4):
     PARAMS[f"w{_m}"] = (0.0, -2.0, 2.0)
 for _c in (1, 2, 3):
     PARAMS[f"cg{_c}"] = (0.0, -0.5, 0.5)
+    PARAMS[f"ce{_c}"] = (0.0, -0.7, 0.7)
     PARAMS[f"black{_c}"] = PARAMS["black"]
 
 
@@ -81,13 +87,15 @@ class Effect:
     def params(self, channels: int) -> tuple[str, ...]:
         if self.name == "channel_gain":
             return tuple(f"cg{c}" for c in range(1, channels))
+        if self.name == "channel_shape":
+            return tuple(f"ce{c}" for c in range(1, channels))
         if self.name == "black_level":
             return black_names(channels)
         return _EFFECT_PARAMS[self.name]
 
 
-# the effects whose parameters do not depend on the channel count (black_level and
-# channel_gain have one per channel: Effect.params)
+# the effects whose parameters do not depend on the channel count (black_level,
+# channel_gain and channel_shape have one per channel: Effect.params)
 _EFFECT_PARAMS = {
     "response_shape": ("gamma", "rho", "w1", "w2", "w3", "w4"),
     "saturation": ("sat",),
@@ -128,6 +136,8 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
     Effect("response_imax", "the response is the paper's Eq. 3 with its saturation level Imax "
            "above the largest code (Imax -> infinity: a linear camera); the paper calibrates "
            "Imax per camera"),
+    Effect("channel_shape", "the colour channels' responses differ in contrast (a film's dye "
+           "layers, per-channel tone curves): one exponent per channel"),
 )}
 EFFECT_NAMES = tuple(EFFECTS)
 
@@ -161,6 +171,10 @@ def readable_estimate(effect: str, p: dict[str, float], channels: int) -> dict:
         return {"gain": math.exp(p["gain"])}
     if effect == "channel_gain":
         return {"gains": channel_gains(p, channels)}
+    if effect == "channel_shape":
+        factors = channel_exponents(p, channels)
+        return {"exponent_factors": factors,
+                "gammas": [effective_gamma(p, factor=f) for f in factors]}
     if effect == "quantisation":
         return {"offset_codes": p["qoff"]}
     if effect == "misregistration":
@@ -175,7 +189,8 @@ def readable_estimate(effect: str, p: dict[str, float], channels: int) -> dict:
     raise ValueError(f"unknown effect {effect!r}")
 
 
-def effective_gamma(p: dict[str, float], low: float = 0.2, high: float = 0.8) -> float:
+def effective_gamma(p: dict[str, float], low: float = 0.2, high: float = 0.8,
+                    factor: float = 1.0) -> float:
     """The power-law exponent that best matches the fitted response over values
     ``low..high`` above the black level: the least-squares slope of ``ln I^-1(v)`` on
     ``ln v``.  What a user calls the camera's gamma (2.2 for a display gamma, 1 for a linear
@@ -185,7 +200,7 @@ def effective_gamma(p: dict[str, float], low: float = 0.2, high: float = 0.8) ->
 
     from clblur.study.model import shape  # model imports this module: import at call time
 
-    curve = shape(p)
+    curve = shape(p, factor)
     v = np.linspace(low, high, 61)
     return float(np.polyfit(np.log(v), np.log(curve.inverse(v)), 1)[0])
 
@@ -202,9 +217,20 @@ def black_levels(p: dict[str, float], channels: int) -> list[float]:
 
 
 def channel_gains(p: dict[str, float], channels: int) -> list[float]:
+    """The white-balance gain of each channel, geometric mean 1 (module Conventions)."""
+    return _normalised_factors(p, "cg", channels)
+
+
+def channel_exponents(p: dict[str, float], channels: int) -> list[float]:
+    """The factor on the response's exponent of each channel, geometric mean 1 (module
+    Conventions); all 1 without ``channel_shape``."""
+    return _normalised_factors(p, "ce", channels)
+
+
+def _normalised_factors(p: dict[str, float], prefix: str, channels: int) -> list[float]:
     import math
 
-    logs = [0.0] + [p.get(f"cg{c}", 0.0) for c in range(1, channels)]
+    logs = [0.0] + [p.get(f"{prefix}{c}", 0.0) for c in range(1, channels)]
     mean = sum(logs) / len(logs)
     return [math.exp(v - mean) for v in logs]
 

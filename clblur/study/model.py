@@ -33,7 +33,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from clblur.responses import ExpShape
-from clblur.study.effects import PARAMS, black_levels, channel_gains
+from clblur.study.effects import PARAMS, black_levels, channel_exponents, channel_gains
 
 __all__ = ["CODES", "TOP", "WARP_KEYS", "Group", "forward", "inverse_table", "null_params",
            "gaussian_nll", "predict", "shape", "time_ok"]
@@ -85,14 +85,15 @@ class Group:
                      self.fold[idx], self.source_clipped)
 
 
-def shape(p: dict[str, float]) -> ExpShape:
+def shape(p: dict[str, float], factor: float = 1.0) -> ExpShape:
     """The response curve above the black level (``black = 0``): Eq. 3 generalised by
-    ``gamma``, ``rho`` and the warp coefficients (``clblur.responses.ExpShape``).
+    ``gamma``, ``rho`` and the warp coefficients (``clblur.responses.ExpShape``);
+    ``factor``: a channel's factor on the exponent (``effects.channel_exponents``).
 
     The same parameters give the same instance (a small cache): a fit's finite differences
     in the other parameters then reuse the curve's sampled and interpolation tables."""
     warp = tuple(float(p.get(k, 0.0)) for k in WARP_KEYS)
-    return _shape(float(p["gamma"]), float(p["rho"]), warp if any(warp) else ())
+    return _shape(float(p["gamma"]) * factor, float(p["rho"]), warp if any(warp) else ())
 
 
 @functools.lru_cache(maxsize=64)
@@ -140,7 +141,9 @@ def predict(g: Group, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
     time_c = (1.0, p["t1"], p["t2"])
     vig_c = (1.0, 2.0 * p["vig"], p["vig"] ** 2)
     vig_out = 1.0 / (1.0 + p["vig"] * g.r2) ** 2
-    curve = shape(p)  # one instance: a warped curve caches its sampled forward
+    factors = channel_exponents(p, nc)
+    # one instance per distinct exponent: a warped curve caches its sampled forward
+    curves = {f: shape(p, f) for f in factors}
     betas = black_levels(p, nc)
     na2, nb2 = p["na"], p["nb"]  # variance coefficients: zero is not a stationary point
     # the sparse products per channel; everything elementwise once on (n, C) arrays
@@ -150,14 +153,16 @@ def predict(g: Group, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
     for (i, k) in g.hist:
         if k == 0 and time_c[i] != 0.0:
             norm += time_c[i] * g.time_norm(i)
-    tables: dict[float, tuple[np.ndarray, np.ndarray]] = {}  # one per distinct black level
+    # one table per distinct (black level, exponent)
+    tables: dict[tuple[float, float], tuple[np.ndarray, np.ndarray]] = {}
     for c in range(nc):
-        if betas[c] not in tables:
-            t = inverse_table(p, curve, betas[c])
+        key = betas[c], factors[c]
+        if key not in tables:
+            t = inverse_table(p, curves[factors[c]], betas[c])
             step = np.gradient(t)
             step[-1] = step[-2]  # a clipped code's error is the saturation factor's business
-            tables[betas[c]] = t, step * step / 12.0 + na2 * t + nb2
-        t, src_table = tables[betas[c]]
+            tables[key] = t, step * step / 12.0 + na2 * t + nb2
+        t, src_table = tables[key]
         num = np.zeros(n)
         for (i, k), hs in g.hist.items():
             coef = time_c[i] * vig_c[k]
@@ -168,7 +173,12 @@ def predict(g: Group, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
     e /= np.maximum(norm, 1e-12)[:, None]
     m = (g.ratio * np.exp(p["gain"]) * vig_out)[:, None] * np.asarray(gains)[None, :]
     x = m * e
-    v, dv = curve.forward_slope(x)
+    if len(curves) == 1:
+        v, dv = curves[factors[0]].forward_slope(x)
+    else:
+        v, dv = np.empty_like(x), np.empty_like(x)
+        for c in range(nc):
+            v[:, c], dv[:, c] = curves[factors[c]].forward_slope(x[:, c])
     beta = np.asarray(betas)[None, :]
     scale = 255.0 * (1.0 - beta)
     pred = 255.0 * beta + scale * v

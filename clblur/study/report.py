@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from clblur.study.effects import EFFECT_NAMES, black_levels
-from clblur.study.model import Group, inverse_table, null_params
+from clblur.study.effects import EFFECT_NAMES, black_levels, channel_exponents
+from clblur.study.model import Group, inverse_table, null_params, shape
 from clblur.study.select import Selection
 
 __all__ = ["BASELINE_MODEL", "build_report", "figures", "grid_image", "markdown"]
@@ -174,15 +174,17 @@ def figures(sel: Selection, groups: list[Group], out: Path, max_groups: int = 2)
     codes = np.arange(256)
     t = inverse_table(null_params())
     ax.plot(t[:-1] / t[-2], codes[:-1], "k-", label="paper Eq. 3 (Imax at full scale)")
-    # the extended curve once per distinct black level (one per channel where they differ)
+    # the extended curve once, or once per channel where their black levels or exponents
+    # differ
     ext = {**null_params(), **sel.params}
     channels = groups[0].channels if groups else 1
     levels = black_levels(ext, channels)
+    factors = channel_exponents(ext, channels)
     colours = ("r", "g", "b") if channels == 3 else ("b",) * channels
     names = ("R", "G", "B") if channels == 3 else tuple(str(c) for c in range(channels))
-    distinct = len(set(levels)) > 1
+    distinct = len(set(zip(levels, factors, strict=True))) > 1
     for c in range(channels if distinct else 1):
-        t = inverse_table(ext, beta=levels[c])
+        t = inverse_table(ext, shape(ext, factors[c]), beta=levels[c])
         label = f"extended, {names[c]}" if distinct else "extended"
         ax.plot(t[:-1] / t[-2], codes[:-1], f"{colours[c]}--", label=label)
     ax.set_xlabel("relative exposure (code 254 = 1)")

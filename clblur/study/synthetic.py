@@ -3,8 +3,8 @@
 Each effect is rendered in a data kind where it is observable, at a magnitude drawn from a
 realistic range (``RANGES``) unless given.  Scenes are small random radiance maps
 (``clblur.camera.random_scene``); the camera's response is the paper's ``Exp(3)`` unless the
-effect is ``response_shape`` (a power law) or ``response_imax`` (Eq. 3 with ``Imax`` above
-the top code).
+effect is ``response_shape`` (a power law), ``response_imax`` (Eq. 3 with ``Imax`` above
+the top code) or ``channel_shape`` (Eq. 3 with another exponent in R and in B).
 
 Why these kinds: with the paper's exponential a black offset cancels in an equal-exposure pair
 (``1 - g = prod (1 - f)^w`` just scales by ``1 - beta``), so ``black_level`` is hidden in an
@@ -44,6 +44,7 @@ RANGES = {
     "psf_orientation": (1.0, 1.0),  # the blurred image made with the PSF turned by 180 deg
     "psf_scale": (1.1, 1.25),  # true / stated motion length (or its inverse)
     "response_imax": (0.2, 0.6),  # rho = full scale / Imax of the camera's Eq. 3
+    "channel_shape": (0.1, 0.25),  # |log| of the R and B factor on Eq. 3's exponent (G fixed)
 }
 CLIP = 6.2 / 3.0  # exposure at which Exp(3) reaches code 255
 
@@ -74,6 +75,9 @@ def scenario(effects: dict[str, float | None], rng: np.random.Generator,
     cam = {"response": Gamma(mag["response_shape"]) if "response_shape" in mag else Exp(3.0)}
     if "response_imax" in mag:  # Eq. 3 saturating above the top code, exposures as Exp(3)'s
         cam["response"] = ExpShape(0.0, 1.0, mag["response_imax"])
+    if "channel_shape" in mag:  # Eq. 3 with the exponent of R and B turned apart (a film)
+        f = math.exp(sign * mag["channel_shape"])
+        cam["response"] = tuple(ExpShape(0.0, g, 1.0) for g in (f, 1.0, 1.0 / f))
     if "black_level" in mag:
         cam["black_level"] = mag["black_level"]
     if "noise" in mag:
@@ -87,7 +91,9 @@ def scenario(effects: dict[str, float | None], rng: np.random.Generator,
         scene = 3.0 * scene
     if "saturation" in mag:
         _add_highlights(scene, rng, mag["saturation"] * CLIP)
-    if "black_level" in mag:  # an exposure series: the effect cancels in an equal pair
+    if "black_level" in mag or "channel_shape" in mag:
+        # exposure series: a black offset cancels in an equal pair, and the exponents show
+        # across exposures, as on a film scanned stop by stop
         times = [4.0, 2.0, 1.0, 0.5]
         imgs = [camera.capture(scene * 0.25, t, rng=rng) for t in times]
         return Scenario("exposure-series", series_groups(imgs, times), mag)
