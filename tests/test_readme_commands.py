@@ -2,10 +2,11 @@
 
 The commands run in README order in one sandbox working directory, where every input the
 README names exists as a tiny file (``photo.png``, ``huge.tif``, ``photos/``, ``in.mp4``,
-``../shared/data/memorial``, ...), so outputs of one command feed the next exactly as a reader
-would chain them.  ``[...]`` marks optional arguments: the command runs without them and with
-each one.  Commands that name absolute paths (a cluster's ``/shared``, ``/tmp/manifests``) or a
-running Dask scheduler cannot run in a sandbox; they are parsed by the real argument parser,
+``../shared/data/memorial``, ``../shared/data/levin2009``, ...), so outputs of one command
+feed the next exactly as a reader would chain them.  ``[...]`` marks optional arguments: the
+command runs without them and with each one.  Commands that name absolute paths (a
+cluster's ``/shared``, ``/tmp/manifests``) or a running Dask scheduler cannot run in a
+sandbox; they are parsed by the real argument parser,
 so an option the README shows must still exist.
 """
 
@@ -113,12 +114,24 @@ def make_inputs(root: Path) -> Path:
         v = np.clip((radiance * [1.0, 0.9, 0.8] * t * 4) ** (1 / 2.2), 0, 1)
         write_image(series / f"memorial{i:04d}.png", np.rint(v * 255).astype(np.uint8))
     (series / "shutter_times.txt").write_text("".join(f"{t}\n" for t in times))
+    # a blur pair shaped like ../shared/data/levin2009: grey rectangles, a 5 px blur
+    levin = root / "shared" / "data" / "levin2009"
+    (levin / "gt").mkdir(parents=True)
+    sharp = np.full((128, 128), 0.2)
+    for _ in range(40):
+        y, x, a, b = rng.integers(0, 120, 4)
+        sharp[y:y + a // 4 + 3, x:x + b // 4 + 3] = rng.uniform(0.0, 1.0)
+    from scipy.ndimage import uniform_filter1d
+
+    blurred = uniform_filter1d(sharp, 5, axis=1)
+    write_image(levin / "gt" / "im1.png", np.rint(sharp * 255).astype(np.uint8))
+    write_image(levin / "im1_kernel4_img.png", np.rint(blurred * 255).astype(np.uint8))
     return work
 
 
 def test_readme_has_commands_for_every_command_group():
     names = {shlex.split(c)[1] for c in readme_commands() if c.startswith("clblur ")}
-    assert {"demo", "calibrate", "blur", "study", "batch", "video"} <= names
+    assert {"demo", "calibrate", "blur", "study", "psf", "batch", "video"} <= names
 
 
 def test_every_readme_command_runs_as_written(tmp_path, monkeypatch, capsys):
@@ -148,5 +161,5 @@ def test_every_readme_command_runs_as_written(tmp_path, monkeypatch, capsys):
     # what the commands should have left behind
     for path in ("demo/side_by_side.png", "memorial.json", "memorial-report/report.md",
                  "blurred.png", "huge_blurred.tif", "blurred/p0.png", "out.mp4",
-                 "blurred/f000.png", "flows/forward_000000.npy"):
+                 "blurred/f000.png", "flows/forward_000000.npy", "kernel.png"):
         assert (work / path).exists(), path

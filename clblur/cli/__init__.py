@@ -1,7 +1,7 @@
 """The ``clblur`` command line: the front of the library, never imported by it.
 
 One module per command (``blur``, ``layers`` (``blur-layers``), ``info``, ``demo``,
-``calibrate``, ``study``, ``batch``, ``video``), each with ``register(subparsers)`` (its
+``calibrate``, ``study``, ``psf``, ``batch``, ``video``), each with ``register(subparsers)`` (its
 options) and ``run(args) -> int``, a thin wrapper around a library function; shared
 options are in ``clblur.cli.options``.
 
@@ -24,7 +24,8 @@ from clblur.errors import InputError
 __all__ = ["build_parser", "main"]
 
 # imported lazily so `clblur info` stays fast
-COMMAND_MODULES = ("blur", "layers", "info", "demo", "calibrate", "study", "batch", "video")
+COMMAND_MODULES = ("blur", "layers", "info", "demo", "calibrate", "study", "psf", "batch",
+                   "video")
 
 # errors that mean "this input cannot be used", never "clblur is broken"
 INPUT_ERRORS = (InputError, ValueError, TypeError, FileNotFoundError, FileExistsError,
