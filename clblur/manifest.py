@@ -3,13 +3,15 @@
 Three kinds, paths relative to the manifest file.  Every path must resolve (symlinks followed)
 inside the manifest's folder or the measured-data folder (``clblur.io.data_dir``:
 ``$CLBLUR_DATA``), so manifests written elsewhere may name the shared data; any other path
-(``..``, absolute or through a symlink) is refused::
+(``..``, absolute or through a symlink) is refused.  ``"psf": "estimate"`` asks for the kernel
+to be measured from the pair itself (``clblur.psf_estimation``; ``"psf_size": N``, odd, sets
+the window searched)::
 
     {"kind": "exposure-series",
      "images": [{"path": "e00.png", "exposure": 0.5, "f_number": 5.0}, ...]}
     {"kind": "blur-pair",
      "pairs": [{"static": "s.png", "blurred": "b.png",
-                "motion": [dx, dy] | "flow": "f.npy" | "psf": "k.png",
+                "motion": [dx, dy] | "flow": "f.npy" | "psf": "k.png" | "psf": "estimate",
                 "anchor": "center", "exposure_ratio": 1.0}, ...]}
     {"kind": "frame-stack",
      "stacks": [{"frames": ["f0.png", "f1.png", ...], "long": "long.png"}, ...]}
@@ -27,10 +29,11 @@ from clblur.errors import InputError
 from clblur.io.paths import resolve_inside
 from clblur.motion import ANCHORS
 
-__all__ = ["KINDS", "BlurPair", "Exposure", "FrameStack", "Manifest", "load_manifest",
+__all__ = ["ESTIMATE", "KINDS", "BlurPair", "Exposure", "FrameStack", "Manifest", "load_manifest",
            "manifest_inputs", "write_manifest"]
 
 KINDS = ("exposure-series", "blur-pair", "frame-stack")
+ESTIMATE = "estimate"  # a blur pair's "psf": measure the kernel from the pair
 
 
 @dataclass(frozen=True)
@@ -49,6 +52,8 @@ class BlurPair:
     psf: Path | None = None
     anchor: str = "center"
     exposure_ratio: float = 1.0
+    estimate_psf: bool = False  # the kernel is measured from the pair (clblur.psf_estimation)
+    psf_size: int | None = None  # the window it is searched in (None: grown)
 
 
 @dataclass(frozen=True)
@@ -151,15 +156,23 @@ def load_manifest(path: str | os.PathLike) -> Manifest:
             if not isinstance(anchor, str) or anchor not in ANCHORS:
                 raise InputError(f"{where} anchor must be one of {', '.join(ANCHORS)}, got "
                                  f"{str(anchor)[:40]!r}")
+            estimate = p.get("psf") == ESTIMATE
+            size = p.get("psf_size")
+            if size is not None and (not estimate or isinstance(size, bool)
+                                     or not isinstance(size, int) or size < 3 or size % 2 == 0):
+                raise InputError(f"{where} psf_size must be an odd integer >= 3, with "
+                                 f"\"psf\": \"{ESTIMATE}\"; got {str(size)[:40]!r}")
             pairs.append(BlurPair(
                 static=_path(base, _require(p, "static", where), f"{where} static"),
                 blurred=_path(base, _require(p, "blurred", where), f"{where} blurred"),
                 motion=motion,
                 flow=_path(base, p["flow"], f"{where} flow") if "flow" in p else None,
-                psf=_path(base, p["psf"], f"{where} psf") if "psf" in p else None,
+                psf=_path(base, p["psf"], f"{where} psf") if "psf" in p and not estimate
+                else None,
                 anchor=anchor,
                 exposure_ratio=_positive(p.get("exposure_ratio", 1.0),
-                                         f"{where} exposure_ratio")))
+                                         f"{where} exposure_ratio"),
+                estimate_psf=estimate, psf_size=size))
         return Manifest(kind, path, pairs=tuple(pairs))
     stacks = []
     for i, s in enumerate(_entries(doc, "stacks", f"manifest {path}")):

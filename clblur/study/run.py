@@ -21,6 +21,7 @@ from clblur.io import (
 )
 from clblur.io.paths import refuse_folder_of_inputs
 from clblur.manifest import Manifest, load_manifest, manifest_inputs
+from clblur.psf_estimation import fit_psf
 from clblur.registration import align_series, describe
 from clblur.study.model import Group
 from clblur.study.pairs import pair_group
@@ -64,8 +65,9 @@ def groups_from_manifest(manifest: Manifest, max_pixels: int = DEFAULT_PIXELS,
     (``clblur.registration``, as ``clblur calibrate`` does); ``notes``, when
     given, receives the registration (``notes["registration"]``,
     ``clblur.registration.describe``) and lines on what was left out as no light:
-    ``notes["clipping"]`` (a camera that clips below full scale) and ``notes["padding"]``
-    (constant borders, ``clblur.study.series.series_groups``)."""
+    ``notes["clipping"]`` (a camera that clips below full scale), ``notes["padding"]``
+    (constant borders, ``clblur.study.series.series_groups``) and ``notes["psf_estimated"]``
+    (blur pairs whose kernel was measured from the pair, ``"psf": "estimate"``)."""
     from tqdm import tqdm
 
     def read(path: str | os.PathLike) -> np.ndarray:
@@ -102,16 +104,27 @@ def groups_from_manifest(manifest: Manifest, max_pixels: int = DEFAULT_PIXELS,
     if manifest.kind == "blur-pair":
         per = max(1000, max_pixels // len(manifest.pairs))
         out = []
+        measured = []
         for i, p in enumerate(tqdm(manifest.pairs, desc="pairs", disable=not progress)):
+            static, blurred = read(p.static), read(p.blurred)
             if p.motion is not None:
                 motion = p.motion
             elif p.flow is not None:
                 motion = read_flow(p.flow)
+            elif p.estimate_psf:
+                fit = fit_psf(static, blurred, p.psf_size)
+                motion = fit.kernel
+                measured.append(f"{Path(p.blurred).name} {motion.shape[0]} x "
+                                f"{motion.shape[1]} px ({fit.response})")
             else:
                 motion = read_psf(p.psf)
-            out.append(pair_group(read(p.static), read(p.blurred), motion,
+            out.append(pair_group(static, blurred, motion,
                                   anchor=p.anchor, exposure_ratio=p.exposure_ratio,
                                   max_pixels=per, name=f"pair{i}:{Path(p.blurred).name}"))
+        if notes is not None and measured:
+            notes["psf_estimated"] = ("the blur kernels were measured from the pairs "
+                                      "(clblur.psf_estimation, in the nominal light named): "
+                                      + ", ".join(measured))
         return out
     per = max(1000, max_pixels // len(manifest.stacks))
     return [stack_group([read(f) for f in s.frames], read(s.long), max_pixels=per,
