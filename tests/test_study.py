@@ -284,6 +284,8 @@ def test_shared_data_manifests(shared_data, tmp_path):
 
     assert len(load_manifest(shared.memorial(tmp_path, shared_data)).images) == 16
     assert len(load_manifest(shared.levin(tmp_path, shared_data)).pairs) == 32
+    measured = load_manifest(shared.levin(tmp_path, shared_data, measured=True)).pairs
+    assert len(measured) == 32 and all(p.estimate_psf and p.psf is None for p in measured)
     paths = {p.stem: p for p in shared.gopro(tmp_path, shared_data)}
     # 3 averages x 2 storages x (14 windows + 1 pooled), 4 real-null windows
     assert len(paths) == 6 * 15 + 4

@@ -1,7 +1,8 @@
 """Manifests for the shared measured data (``clblur.io.data_dir()``), written outside it.
 
-``python -m clblur.study.shared OUTDIR`` writes ``memorial.json``, ``levin2009.json``,
-``canon400d_road.json`` and the GoPro frame-stack manifests into ``OUTDIR``; image paths
+``python -m clblur.study.shared OUTDIR`` writes ``memorial.json``, ``levin2009.json`` (and
+``levin2009_measured.json``: the kernels measured from the pairs), ``canon400d_road.json``
+and the GoPro frame-stack manifests into ``OUTDIR``; image paths
 point into the data folder, which is never written to.  The GoPro set has no real long
 exposure, so the 30 fps "long" frames are built here from 8 consecutive 240 fps frames, as
 dataset generators do, in three spaces (code values; gamma-2.2 linear, Nah et al. 2017's
@@ -19,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from clblur.io import data_dir, gopro_frames, read_image, write_image
-from clblur.manifest import write_manifest
+from clblur.manifest import ESTIMATE, write_manifest
 from clblur.responses import SRGB, Exp, Gamma
 
 __all__ = ["GOPRO_AVERAGES", "GOPRO_STACK", "GOPRO_STEP", "GOPRO_STORAGE", "average_frames",
@@ -42,15 +43,18 @@ def memorial(out: Path, data: Path) -> Path:
     return path
 
 
-def levin(out: Path, data: Path) -> Path:
+def levin(out: Path, data: Path, measured: bool = False) -> Path:
+    """The 32 Levin et al. pairs with their stored kernels (``levin2009.json``), or with
+    ``measured`` the kernels measured from the pairs (``levin2009_measured.json``,
+    ``"psf": "estimate"``)."""
     base = data / "levin2009"
     pairs = []
     for i in range(1, 5):
         for j in range(1, 9):
             pairs.append({"static": str(base / "gt" / f"im{i}.png"),
                           "blurred": str(base / f"im{i}_kernel{j}_img.png"),
-                          "psf": str(base / "gt" / f"kernel{j}.png")})
-    path = out / "levin2009.json"
+                          "psf": ESTIMATE if measured else str(base / "gt" / f"kernel{j}.png")})
+    path = out / ("levin2009_measured.json" if measured else "levin2009.json")
     write_manifest(path, {"kind": "blur-pair", "pairs": pairs})
     return path
 
@@ -150,7 +154,8 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(argv[0])
     out.mkdir(parents=True, exist_ok=True)
     data = data_dir(required=True)
-    made = [memorial(out, data), levin(out, data), canon(out, data), *gopro(out, data)]
+    made = [memorial(out, data), levin(out, data), levin(out, data, measured=True),
+            canon(out, data), *gopro(out, data)]
     for p in made:
         if p is not None:
             print(p)
