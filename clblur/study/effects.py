@@ -85,14 +85,15 @@ class Effect:
     what: str  # one line: the physical cause
 
     def params(self, channels: int) -> tuple[str, ...]:
-        if self.name == "channel_gain":
-            return tuple(f"cg{c}" for c in range(1, channels))
-        if self.name == "channel_shape":
-            return tuple(f"ce{c}" for c in range(1, channels))
+        if self.name in _RELATIVE_PREFIX:  # channel 0 is the reference (factor 1)
+            return tuple(f"{_RELATIVE_PREFIX[self.name]}{c}" for c in range(1, channels))
         if self.name == "black_level":
             return black_names(channels)
         return _EFFECT_PARAMS[self.name]
 
+
+# the per-channel factors relative to channel 0 (_normalised_factors): name prefixes
+_RELATIVE_PREFIX = {"channel_gain": "cg", "channel_shape": "ce"}
 
 # the effects whose parameters do not depend on the channel count (black_level,
 # channel_gain and channel_shape have one per channel: Effect.params)
@@ -218,13 +219,13 @@ def black_levels(p: dict[str, float], channels: int) -> list[float]:
 
 def channel_gains(p: dict[str, float], channels: int) -> list[float]:
     """The white-balance gain of each channel, geometric mean 1 (module Conventions)."""
-    return _normalised_factors(p, "cg", channels)
+    return _normalised_factors(p, _RELATIVE_PREFIX["channel_gain"], channels)
 
 
 def channel_exponents(p: dict[str, float], channels: int) -> list[float]:
     """The factor on the response's exponent of each channel, geometric mean 1 (module
     Conventions); all 1 without ``channel_shape``."""
-    return _normalised_factors(p, "ce", channels)
+    return _normalised_factors(p, _RELATIVE_PREFIX["channel_shape"], channels)
 
 
 def _normalised_factors(p: dict[str, float], prefix: str, channels: int) -> list[float]:
