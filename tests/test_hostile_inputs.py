@@ -242,6 +242,10 @@ def build_corpus(root: Path) -> None:
              '"good.png", "blurred": "good.png", "motion": [NaN, 0]}]}')
     manifest("m_pairs_two_forms.json", {"kind": "blur-pair", "pairs": [
         {**pair, "psf": "psf.npy"}]})
+    manifest("m_pairs_psf_size.json", {"kind": "blur-pair", "pairs": [
+        {"static": "good.png", "blurred": "good.png", "psf": "estimate", "psf_size": 4}]})
+    manifest("m_pairs_estimate_shapes.json", {"kind": "blur-pair", "pairs": [
+        {"static": "good.png", "blurred": "grey16.png", "psf": "estimate"}]})
     manifest("m_pairs_path_number.json", {"kind": "blur-pair", "pairs": [
         {**pair, "static": 5}]})
     manifest("m_pairs_not_list.json", {"kind": "blur-pair", "pairs": {"a": 1}})
@@ -598,8 +602,32 @@ def video_cases() -> list[Case]:
     return cases
 
 
+def psf_estimation_cases() -> list[Case]:
+    """``clblur psf`` and a blur pair's ``"psf": "estimate"``."""
+    def psf(name: str, *args: str, match: str) -> Case:
+        return Case(f"psf:{name}", ("psf", *args), match=match)
+
+    g = "{in}/good.png"
+    return [
+        psf("too-small", g, g, "{out}/k.npy", match="at least 32 px"),
+        psf("shapes-differ", g, "{in}/grey16.png", "{out}/k.npy", match="differ in shape"),
+        psf("out-is-input", g, g, g, match="overwrite"),
+        psf("out-extension", g, g, "{out}/k.jpg", match="extension"),
+        psf("out-folder-missing", g, g, "{out}/no/k.npy", match="folder"),
+        psf("size-text", g, g, "{out}/k.npy", "--size", "big", match="invalid int"),
+        psf("response-bad", g, g, "{out}/k.npy", "--response", "gamma:x", match="gamma"),
+        psf("missing", "{in}/nope.png", g, "{out}/k.npy", match="not found"),
+        psf("not-an-image", "{in}/zero.json", g, "{out}/k.npy", match="image"),
+        Case("study:m_pairs_psf_size.json", ("study", "{in}/m_pairs_psf_size.json", "--report",
+                                             "{out}/r.json", "--quiet"), match="psf_size"),
+        Case("study:m_pairs_estimate_shapes.json",
+             ("study", "{in}/m_pairs_estimate_shapes.json", "--report", "{out}/r.json",
+              "--quiet"), match="differ in shape"),
+    ]
+
+
 CASES = (image_cases() + flow_psf_cases() + option_cases() + batch_cases()
-         + bad_manifest_cases() + video_cases())
+         + bad_manifest_cases() + video_cases() + psf_estimation_cases())
 
 
 def test_corpus_is_large_and_distinct():
