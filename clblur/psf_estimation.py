@@ -199,13 +199,17 @@ def _trim(k: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class PSFFit:
-    """A measured kernel (``clblur.blur``'s PSF form), the nominal response it was measured
-    in, and how well it predicts the pair: RMSE in 8-bit codes of the blurred image predicted
-    from the sharp one (:func:`predict`) over the pixels fitted (inside the kernel's reach
-    of the border, below full scale)."""
+    """A measured kernel (``clblur.blur``'s PSF form, unit sum), the nominal response it was
+    measured in, the exposure ``gain`` of the blurred image over the sharp one in that light
+    (least squares on the light, where nothing clips: a blurred frame taken with a shorter
+    shutter or another ISO), and how well the two predict the pair: RMSE in 8-bit codes
+    of the blurred image predicted from the sharp one (:func:`predict` with the kernel times
+    ``gain``) over the pixels fitted (inside the kernel's reach of the border, below full
+    scale)."""
 
     kernel: np.ndarray
     response: object
+    gain: float
     rmse: float
 
 
@@ -239,7 +243,7 @@ def fit_psf(static: np.ndarray, blurred: np.ndarray, size: int | None = None, *,
 
     Returns:
         :class:`PSFFit`: the kernel (float64, unit sum, odd sides, centred), the response
-        it was measured in, and its RMSE on the pair.
+        it was measured in, the exposure gain, and the RMSE of the two on the pair.
 
     Raises:
         InputError: images of different shapes, too small, without edges, or a kernel
@@ -315,19 +319,28 @@ def _fit_in(static: np.ndarray, blurred: np.ndarray, size: int | None, largest: 
                                          f" (at most a quarter of the images' {side} px)"))
         n = min(2 * n + 1, largest)
     kernel = _trim(k)
-    # the prediction's error where the whole kernel lies inside the image and nothing clips
+    # the gain and the prediction's error where the whole kernel lies inside the image and
+    # nothing clips.  The gain is fitted to the light itself: gradients hardly constrain a
+    # kernel's sum (their spectrum vanishes at zero frequency), so the regularised fit's
+    # sum is biased low.
+    from scipy.signal import fftconvolve
+
     from clblur.pixels import imax
 
     reach = max(kernel.shape) // 2
     inner = np.zeros(valid.shape, bool)
     inner[reach:valid.shape[0] - reach, reach:valid.shape[1] - reach] = True
     inner &= valid
+    blurred_light = np.stack([fftconvolve(x[..., c], kernel, mode="same")
+                              for c in range(x.shape[2])], axis=2)[inner]
+    power = float((blurred_light * blurred_light).sum())
+    gain = float((blurred_light * y[inner]).sum()) / power if power > 0 else 1.0
     target = blurred.astype(np.float64) / imax(blurred.dtype)
     target = target[..., None] if target.ndim == 2 else target
     target = target[..., :1] if target.shape[2] == 2 else target[..., :3]
-    d = (predict(static, kernel, spec) - target)[inner] * 255.0
+    d = (predict(static, kernel * gain, spec) - target)[inner] * 255.0
     rmse = float(np.sqrt(np.mean(d * d))) if d.size else float("inf")
-    return PSFFit(kernel, spec, rmse)
+    return PSFFit(kernel, spec, gain, rmse)
 
 
 def kernel_agreement(a: np.ndarray, b: np.ndarray, search: int = 4) -> float:

@@ -5,6 +5,7 @@ the manifest's ``"psf": "estimate"`` and, on Levin et al.'s pairs, held-out pred
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -107,8 +108,24 @@ def test_the_nominal_light_the_pair_was_blurred_in_is_chosen(rng, stored):
                               else "linear").rmse
     reach = max(fit.kernel.shape) // 2
     inner = (slice(reach, -reach), slice(reach, -reach))
-    d = (predict(sharp, fit.kernel, stored) * 255 - codes)[inner]
+    d = (predict(sharp, fit.kernel * fit.gain, stored) * 255 - codes)[inner]
     assert fit.rmse == pytest.approx(float(np.sqrt((d * d).mean())))
+
+
+def test_a_shorter_exposure_is_the_gain_not_the_kernel(rng):
+    # the blurred frame got 0.6 of the sharp one's light (a shorter shutter): the kernel
+    # keeps unit sum and the same shape, the gain measures the ratio
+    truth = path_kernel(15, [(-3, -4), (3, 4)])
+    lin = scene(rng, 160, 160)
+    blurred = 0.6 * np.stack([fftconvolve(lin[..., c], truth, mode="same") for c in range(3)],
+                             2)
+    sharp = np.rint(SRGB.forward(lin) * 255).astype(np.uint8)
+    codes = np.rint(SRGB.forward(np.clip(blurred, 0, 1)) * 255).astype(np.uint8)
+    fit = fit_psf(sharp, codes)
+    assert fit.gain == pytest.approx(0.6, rel=0.03)
+    assert fit.kernel.sum() == pytest.approx(1.0)
+    assert kernel_agreement(truth, fit.kernel, search=0) > 0.98
+    assert fit.rmse < 1.0
 
 
 def test_moving_the_blurred_image_moves_the_kernel(rng):
@@ -210,7 +227,9 @@ def test_study_of_a_pair_without_a_kernel(tmp_path, rng):
          "pairs": [{"static": "s.png", "blurred": "b.png", "psf": "estimate"}]}))
     r = study(load_manifest(tmp_path / "m.json"), report=tmp_path / "r.json",
               max_pixels=4000).report
-    assert r["psf_estimated"].endswith("b.png 1 x 7 px (srgb)")
+    found = re.search(r"b\.png 1 x 7 px \(srgb light, exposure gain ([0-9.]+)\)$",
+                      r["psf_estimated"])
+    assert found and float(found[1]) == pytest.approx(1.0, abs=0.02)
     assert "measured from the pairs" in (tmp_path / "r.md").read_text()
 
 

@@ -52,6 +52,6 @@ def run(args: argparse.Namespace) -> int:
     print(f"kernel {kernel.shape[0]} x {kernel.shape[1]} px, {rows.size} nonzero weights, "
           f"reaching {int(np.abs(rows - c[0]).max())} px vertically and "
           f"{int(np.abs(cols - c[1]).max())} px horizontally from the centre; measured in "
-          f"{fit.response} light, it predicts the blurred image to {fit.rmse:.2f} codes RMSE "
-          f"-> {out}")
+          f"{fit.response} light, with the blurred image's exposure {fit.gain:.3f} x the "
+          f"sharp one's, it predicts the blurred image to {fit.rmse:.2f} codes RMSE -> {out}")
     return 0

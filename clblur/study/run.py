@@ -115,7 +115,8 @@ def groups_from_manifest(manifest: Manifest, max_pixels: int = DEFAULT_PIXELS,
                 fit = fit_psf(static, blurred, p.psf_size)
                 motion = fit.kernel
                 measured.append(f"{Path(p.blurred).name} {motion.shape[0]} x "
-                                f"{motion.shape[1]} px ({fit.response})")
+                                f"{motion.shape[1]} px ({fit.response} light, exposure "
+                                f"gain {fit.gain:.3f})")
             else:
                 motion = read_psf(p.psf)
             out.append(pair_group(static, blurred, motion,
