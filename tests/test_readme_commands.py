@@ -161,5 +161,5 @@ def test_every_readme_command_runs_as_written(tmp_path, monkeypatch, capsys):
     # what the commands should have left behind
     for path in ("demo/side_by_side.png", "memorial.json", "memorial-report/report.md",
                  "blurred.png", "huge_blurred.tif", "blurred/p0.png", "out.mp4",
-                 "blurred/f000.png", "flows/forward_000000.npy", "kernel.png"):
+                 "blurred/f000.png", "flows/forward_000000.npy", "kernel.png", "photo_shaken.png"):
         assert (work / path).exists(), path
