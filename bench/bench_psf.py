@@ -33,41 +33,16 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
-from scipy import ndimage
-from scipy.signal import fftconvolve
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "docs" / "studies"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from psf_pairs import pair, path_kernel  # noqa: E402
 from results_file import write_results  # noqa: E402
 
 from clblur.io import data_dir, read_image, read_psf  # noqa: E402
 from clblur.psf_estimation import fit_psf, kernel_agreement  # noqa: E402
 from clblur.responses import response  # noqa: E402
-
-
-def path_kernel(n: int, points) -> np.ndarray:
-    k = np.zeros((n, n))
-    pts = np.asarray(points, float)
-    for t in np.linspace(0.0, 1.0, 40 * n):
-        seg = min(int(t * (len(pts) - 1)), len(pts) - 2)
-        u = t * (len(pts) - 1) - seg
-        y, x = (1 - u) * pts[seg] + u * pts[seg + 1]
-        k[int(round(y)) + n // 2, int(round(x)) + n // 2] += 1
-    return k / k.sum()
-
-
-def synthetic_pair(rng, h: int, w: int, kernel: np.ndarray):
-    img = np.zeros((h, w, 3))
-    for _ in range(h * w // 600):
-        y, x = rng.integers(0, h), rng.integers(0, w)
-        a, b = rng.integers(5, 40, 2)
-        img[y:y + a, x:x + b] = rng.uniform(0.0, 1.0, 3)
-    lin = 0.6 * img + 0.4 * ndimage.gaussian_filter(rng.uniform(0, 1, (h, w, 3)), (3, 3, 0))
-    blurred = np.stack([fftconvolve(lin[..., c], kernel, mode="same") for c in range(3)], 2)
-    srgb = response("srgb")
-    sharp = np.rint(srgb.forward(lin) * 255).astype(np.uint8)
-    codes = srgb.forward(np.clip(blurred, 0, 1)) * 255 + rng.normal(0, 1.0, blurred.shape)
-    return sharp, np.clip(np.rint(codes), 0, 255).astype(np.uint8)
 
 
 def fourier_psf(static: np.ndarray, blurred: np.ndarray, size: int,
@@ -120,7 +95,7 @@ def synthetic_rows(repeat: int) -> list[str]:
     print("\n".join(rows), flush=True)
     for h, w, n, pts in cases:
         truth = path_kernel(n, pts)
-        sharp, blurred = synthetic_pair(rng, h, w, truth)
+        sharp, blurred = pair(rng, truth, shape=(h, w))
         mp = h * w / 1e6
         methods = [("clblur fit_psf (default)", partial(fit_psf, sharp, blurred)),
                    ("clblur fit_psf, response srgb",
@@ -153,12 +128,13 @@ def levin_rows(data: Path) -> list[str]:
             for name, k in zip(scores, (given, fit_psf(*half).kernel,
                                         fourier_psf(*half, 31, "linear")), strict=True):
                 scores[name].append(heldout(sharp, b, k))
-    ref = np.array(scores["Levin's kernels (measured from dots beside the print)"])
+    levin = "Levin's kernels (measured from dots beside the print)"
+    ref = np.array(scores[levin])
     rows = ["| kernels | right-half RMSE, mean of 32 (codes) | pairs better than Levin's |",
             "|---|---:|---:|"]
     for name, s in scores.items():
         s = np.array(s)
-        better = "" if s is ref else f"{int((s < ref).sum())} of 32"
+        better = "" if name == levin else f"{int((s < ref).sum())} of 32"
         rows.append(f"| {name} | {s.mean():.2f} | {better} |")
     print("\n".join(rows), flush=True)
     return rows
