@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from clblur.camera import Camera, random_scene
-from clblur.io import atomic_write_text, write_image
+from clblur.io import write_image
 from clblur.manifest import write_manifest
 from clblur.study import study, study_groups
 from clblur.study.synthetic import RANGES, scenario
@@ -262,9 +262,16 @@ def _header(what: str) -> str:
 
 
 def _write(path: Path, lines: list[str]) -> None:
+    """Print the tables and write them at the top of ``path``, keeping the notes written by
+    hand below its marker (``results_file``)."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from results_file import write_results
+
     text = "\n".join(lines) + "\n"
     print(text)
-    atomic_write_text(path, text)
+    write_results(path, text)
 
 
 def main() -> None:
