@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import math
 import os
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from scipy import optimize
@@ -122,13 +121,10 @@ WARP_RIDGE = 10.0
 CONDITIONAL = frozenset({"misregistration", "psf_scale"})
 
 
-def both_folds(work):
-    """``[work(0), work(1)]``, the two folds in two threads: the fits are independent, and
-    numpy's array operations and scipy's sparse products release the GIL while they run."""
-    if (os.cpu_count() or 1) < 2:
-        return [work(0), work(1)]
-    with ThreadPoolExecutor(2) as pool:
-        return list(pool.map(work, (0, 1)))
+def _parallel_folds() -> bool:
+    """Whether fold 1 gets a process of its own: with two or more cores for this process."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return (cores or 1) >= 2 and os.environ.get("CLBLUR_STUDY_PROCESSES", "1") != "0"
 
 
 class Folds:
@@ -145,6 +141,11 @@ class Folds:
     -----------
     ``fit`` returns ``[params fitted on fold 0, params fitted on fold 1]``; the ``block_*``
     scores evaluate fold ``f`` with the parameters of fold ``1 - f``.
+
+    The two folds' fits run side by side where this process has two cores: fold 1's in a
+    child process that holds that fold from the first fit to ``close``
+    (``clblur.study.fold_worker``; ``Folds`` is a context manager).  The fits are the
+    sequential ones, bit for bit; ``CLBLUR_STUDY_PROCESSES=0`` keeps both in this process.
     """
 
     def __init__(self, groups: list[Group], nblocks: int):
@@ -154,6 +155,19 @@ class Folds:
         self.nvalid = [sum(int(g.valid.sum()) for g in part) for part in self.part]
         self.cache: dict[frozenset, list[dict]] = {}
         self.bounds = physical_bounds(groups)
+        self._worker = None  # clblur.study.fold_worker.FoldWorker, at the first fit
+
+    def __enter__(self) -> Folds:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """End fold 1's worker process, if one was started."""
+        if self._worker is not None:
+            self._worker.close()
+            self._worker = None
 
     def fit(self, effects: frozenset, start: list[dict], channels: int,
             only: frozenset | None = None, warm: list[dict] | None = None,
@@ -168,9 +182,21 @@ class Folds:
         key = (effects, only)
         if key not in self.cache:
             free = free_params(only if only is not None else effects, channels)
-            self.cache[key] = both_folds(lambda f: fit(
-                self.part[f], free, start[f], self.nvalid[f], self.bounds,
-                None if warm is None else warm[f], shape_search))
+            warm = [None, None] if warm is None else warm
+            if self._worker is None and _parallel_folds():
+                # imported here: the child runs that module as a script, and a module the
+                # package imported already would be run a second time
+                from clblur.study.fold_worker import FoldWorker
+
+                self._worker = FoldWorker(self.part[1], self.nvalid[1], self.bounds)
+            if self._worker is not None:
+                self._worker.submit(free, start[1], warm[1], shape_search)
+            first = fit(self.part[0], free, start[0], self.nvalid[0], self.bounds, warm[0],
+                        shape_search)
+            second = (self._worker.result() if self._worker is not None else
+                      fit(self.part[1], free, start[1], self.nvalid[1], self.bounds, warm[1],
+                          shape_search))
+            self.cache[key] = [first, second]
         return self.cache[key]
 
     def block_score(self, base: list[dict], ext: list[dict]) -> tuple[np.ndarray, ...]:

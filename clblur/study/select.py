@@ -114,10 +114,22 @@ class Selection:
 def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
            progress=None, split: int = 0) -> Selection:
     """Run the whole diagnosis (see the module docstring) on the blocks' fold ``split``
-    (``assign_blocks``; 0, the checkerboard, unless the study repeats the split)."""
+    (``assign_blocks``; 0, the checkerboard, unless the study repeats the split).
+
+    BLAS runs on one thread meanwhile: its only calls here are L-BFGS-B's on matrices of a
+    few dozen parameters, and OpenBLAS's worker threads, woken by each, spin on the core
+    the other fold's fit needs (a third of a series study's CPU time, for no speed).
+    """
+    from threadpoolctl import threadpool_limits
+
     nblocks = assign_blocks(groups, split=split)
+    with threadpool_limits(limits=1, user_api="blas"), Folds(groups, nblocks) as folds:
+        return _select(groups, folds, nblocks, alpha, min_gain, progress)
+
+
+def _select(groups: list[Group], folds: Folds, nblocks: int, alpha: float, min_gain: float,
+            progress) -> Selection:
     channels = groups[0].channels
-    folds = Folds(groups, nblocks)
     used = np.zeros(nblocks, bool)
     for part in folds.part:
         for g in part:
