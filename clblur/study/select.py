@@ -384,7 +384,8 @@ def _redundant(folds: Folds, current: frozenset, order: list[str],
     0.995 first on one machine, and the offset joins after the response shape on another),
     the exchange has nothing to swap in.  So each joined effect ``e`` with a rival in the
     model is tested for removal: the model without ``e`` is fitted (from the current fit,
-    ``e``'s parameters at null) and ``e`` is tested as an addition to it
+    ``e``'s parameters at null, and the response shape's starts) and ``e`` is tested as an
+    addition to it
     (``_weighted_gain``, at ``alpha`` over the number of effects tried, the same least
     gain).  Of those that add nothing significant, the one with the smallest gain is
     dropped.  Returns ``(dropped, its rival in the model, params without it, gain of
@@ -401,7 +402,11 @@ def _redundant(folds: Folds, current: frozenset, order: list[str],
     nvalid = max(sum(folds.nvalid), 1)
     weakest = None
     for e, rival in tried:
-        p = folds.fit((current - {e}) | nuisance, _at_null(base, e, channels), channels)
+        # searched as an exchange's fit is: without e the response shape's optimum can lie
+        # in another basin than the one the start (the current fit) sits in
+        model = (current - {e}) | nuisance
+        p = folds.fit(model, _at_null(base, e, channels), channels,
+                      shape_search="response_shape" in model)
         d, _, pv = _weighted_gain(folds, p, base, used)
         gain = float(d.sum()) / nvalid
         if (pv >= level or gain < min_gain) and (weakest is None or gain < weakest[3]):
