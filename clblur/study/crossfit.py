@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 
 import numpy as np
 from scipy import optimize
@@ -124,7 +125,8 @@ CONDITIONAL = frozenset({"misregistration", "psf_scale"})
 def _parallel_folds() -> bool:
     """Whether fold 1 gets a process of its own: with two or more cores for this process."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return (cores or 1) >= 2 and os.environ.get("CLBLUR_STUDY_PROCESSES", "1") != "0"
+    return ((cores or 1) >= 2 and bool(sys.executable)
+            and os.environ.get("CLBLUR_STUDY_PROCESSES", "1") != "0")
 
 
 class Folds:
