@@ -153,7 +153,8 @@ def test_banded_pinned_transfers_on_two_queues_equal_the_shared_path(opencl, rng
     plans = [make_plan(random_image(rng, np.uint8, 3, shape), smooth_flow(rng, shape), "exp"),
              make_plan(random_image(rng, np.float32, 5, shape), (3.5, 1.0), "exp"),
              make_plan(random_image(rng, np.uint16, 3, shape), (12.0, 0.0), "exp")]
-    shared = [opencl.blur(p) for p in plans]
+    with rt.lock:  # half=False as below (a GPU's default stores some intermediates as half)
+        shared = [opencl.run_plan(rt, p, half=False) for p in plans]
     cl = opencl.pyopencl_module()
     monkeypatch.setattr(rt, "unified", False)
     monkeypatch.setattr(rt, "queues", (cl.CommandQueue(rt.context),))
@@ -348,9 +349,27 @@ def test_boxes_of_every_length_match_the_reference(opencl, rng, length):
     and leaving), with equal weights and with the continuous exposure's half-weight ends."""
     from clblur.opencl.taps import space_invariant_taps
 
+    rt = opencl.runtime(None)
     img = random_image(rng, np.uint8, 3)
     for motion in ((float(length - 1), 0.0), (0.0, float(length - 1))):
         for exposure in ("frames", "continuous"):
             plan = make_plan(img, motion, "exp", anchor="start", exposure=exposure)
             assert length == 1 or space_invariant_taps(plan).box()
             assert_matches_reference(opencl, plan)
+            with rt.lock:  # the GPU variant keeps no ring: every value read twice
+                gpu = opencl.run_plan(rt, plan, gpu=True)
+            assert_matches_reference(_Fixed(gpu), plan)
+
+
+@pytest.mark.opencl
+def test_the_gpu_variant_keeps_no_box_ring():
+    """A GPU reserves a thread's private memory for every thread of the grid: the CPU
+    variant's ring (BOX_RING_CPU taps of two long16, 256 KiB) made NVIDIA's driver refuse
+    every box launch (OUT_OF_HOST_MEMORY, H100).  The GPU build keeps at most 2 KiB."""
+    from clblur import opencl
+
+    rt = opencl.runtime(None)
+    rings = {gpu: [int(o.split("=")[1]) for o in rt.build_options(False, gpu)
+                   if o.startswith("-DBOX_RING=")] for gpu in (False, True)}
+    assert len(rings[True]) == 1 and len(rings[False]) == 1
+    assert 2 * 128 * rings[True][0] <= 2048 < 2 * 128 * rings[False][0]

@@ -17,6 +17,8 @@ Conventions
   searches there; clblur/opencl/quantisation.py ``quantisation_grid``).
 * Input kinds (what the image buffer holds) and output kinds (what the store writes).
 * ``FLOW_LIMIT`` (``clblur.motion``): the largest flow component the kernels accept.
+* ``BOX_RING_CPU`` / ``BOX_RING_GPU``: taps whose values a work-item of
+  ``integrate_box_codes`` keeps in a private ring (``Runtime.build_options`` picks one).
 """
 
 from __future__ import annotations
@@ -26,9 +28,9 @@ import numpy as np
 from clblur.motion import FLOW_LIMIT
 from clblur.responses import KIND_CODES
 
-__all__ = ["FIELD_LANES", "GROUP", "IN_F32", "IN_KINDS", "IN_U8", "IN_U16", "LANES",
-           "LAYERED_MAXK", "OUT_F32", "OUT_KINDS", "OUT_U8", "OUT_U16", "QHEAD", "RESP_STRIDE",
-           "GRID_SEARCH", "build_defines"]
+__all__ = ["BOX_RING_CPU", "BOX_RING_GPU", "FIELD_LANES", "GROUP", "GRID_SEARCH", "IN_F32",
+           "IN_KINDS", "IN_U8", "IN_U16", "LANES", "LAYERED_MAXK", "OUT_F32", "OUT_KINDS",
+           "OUT_U8", "OUT_U16", "QHEAD", "RESP_STRIDE", "build_defines"]
 
 LANES = 8
 FIELD_LANES = 16
@@ -38,6 +40,14 @@ GROUP = 4
 RESP_STRIDE = 4
 QHEAD = 5
 GRID_SEARCH = 0x100  # uint8 code grid: flag of a cell that holds a code boundary
+# A box work-item keeps up to BOX_RING taps' values (two long16, 128 bytes a tap) until they
+# leave the box, so each step reads one pixel per line instead of two.  CPU devices: 1024 taps,
+# 256 KiB of a thread's stack (boxes of 25 - 513 taps 1.2x on PoCL, 2026-11-23).  GPUs: none
+# kept (1), each value read twice: a GPU reserves private memory per thread for the whole
+# grid, and NVIDIA's driver refused the 1024-tap ring at launch (OUT_OF_HOST_MEMORY on an H100,
+# 2026-11-26, after the two values had been set alike).
+BOX_RING_CPU = 1024
+BOX_RING_GPU = 1
 
 IN_U8, IN_U16, IN_F32 = 0, 1, 2
 IN_KINDS = {np.dtype(np.uint8): IN_U8, np.dtype(np.uint16): IN_U16}  # float inputs: IN_F32

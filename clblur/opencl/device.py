@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from clblur.opencl.constants import build_defines
+from clblur.opencl.constants import BOX_RING_CPU, BOX_RING_GPU, build_defines
 from clblur.opencl.program import Program, kernel_source
 
 __all__ = ["ENV_DEVICE", "DeviceNotFound", "OpenCLUnavailable", "Runtime", "current_device",
@@ -123,8 +123,10 @@ class Runtime:
             opts.append("-DSTORE_HALF")
         if self.fp64:
             opts.append("-DHAVE_FP64")
-        if self.gpu if gpu is None else gpu:
+        gpu = self.gpu if gpu is None else gpu
+        if gpu:
             opts.append("-DGPU_VARIANT")
+        opts.append(f"-DBOX_RING={BOX_RING_GPU if gpu else BOX_RING_CPU}")
         return tuple(opts)
 
     def program(self, half: bool, gpu: bool | None = None) -> Program:

@@ -824,15 +824,9 @@ static long4 fixed_codes(__global const uchar *image, int in_kind, __global cons
              fixed_codes(image, in_kind, lutq, lut_len, BOX_PIXEL(L0 + 3, k), channels,    \
                          cbase, cg))
 
-/* Longest box whose values a work-item keeps (integrate_box_codes): 2 x 1024 long16 =
- * 256 KiB of private memory (the stack of a CPU device's thread; a step touches one entry
- * of each, in order); GPUs would spill it, and read twice instead.  Measured on PoCL (4K,
- * 2 cores): 1.2x for boxes of 25 to 513 taps. */
-#ifdef GPU_VARIANT
-#define BOX_RING 1024
-#else
-#define BOX_RING 1024
-#endif
+/* BOX_RING (a build option: constants.BOX_RING_CPU / BOX_RING_GPU): the longest box whose
+ * values a work-item of integrate_box_codes keeps in two private rings (a step touches one
+ * entry of each, in order); longer boxes read each value twice. */
 
 /* The body of integrate_box_codes for one work-item (x0: its first line), always inlined,
  * so that the common case below gets in_kind, cg, channels and transposed as constants and
