@@ -2,6 +2,8 @@
 
 OpenCL tests use the ``opencl`` fixture: they skip without a usable device, except under CI
 (``CI`` set), where a missing device is a failure, so kernel tests can never silently vanish.
+``pytest --opencl-only`` runs just those tests (the ``opencl`` fixture or mark): the kernel
+cross-check on another device, ``CLBLUR_DEVICE=NAME pytest --opencl-only`` (``bench/gpu_check.sh``).
 """
 
 from __future__ import annotations
@@ -12,6 +14,23 @@ import numpy as np
 import pytest
 
 from clblur.io import data_dir
+
+
+def pytest_addoption(parser):
+    parser.addoption("--opencl-only", action="store_true",
+                     help="run only the tests that use an OpenCL device")
+
+
+def pytest_collection_modifyitems(config, items):
+    if not config.getoption("--opencl-only"):
+        return
+    keep, drop = [], []
+    for item in items:
+        uses = "opencl" in getattr(item, "fixturenames", ()) or item.get_closest_marker("opencl")
+        (keep if uses else drop).append(item)
+    if drop:
+        config.hook.pytest_deselected(items=drop)
+        items[:] = keep
 
 
 @pytest.fixture(scope="session")

@@ -343,33 +343,40 @@ def test_box_code_grid_equals_the_search(opencl, rng, monkeypatch, spec):
 
 @pytest.mark.opencl
 @pytest.mark.parametrize("length", [1, 2, 3, 5, 24, 60, 130, 1100])
-def test_boxes_of_every_length_match_the_reference(opencl, rng, length):
+def test_boxes_of_every_length_match_the_reference(opencl, rng, monkeypatch, length):
     """Running sums whose values are kept until they leave the box (integrate_box_codes; past
     BOX_RING taps, read twice), including boxes longer than the line (clamped values entering
-    and leaving), with equal weights and with the continuous exposure's half-weight ends."""
+    and leaving), with equal weights and with the continuous exposure's half-weight ends; and
+    the same with no ring, as a GPU builds it, on whatever device runs the tests."""
+    from clblur.opencl import device as device_module
     from clblur.opencl.taps import space_invariant_taps
 
-    rt = opencl.runtime(None)
     img = random_image(rng, np.uint8, 3)
+    plans = []
     for motion in ((float(length - 1), 0.0), (0.0, float(length - 1))):
         for exposure in ("frames", "continuous"):
-            plan = make_plan(img, motion, "exp", anchor="start", exposure=exposure)
-            assert length == 1 or space_invariant_taps(plan).box()
+            plans.append(make_plan(img, motion, "exp", anchor="start", exposure=exposure))
+            assert length == 1 or space_invariant_taps(plans[-1]).box()
+    for ring in (None, 1):
+        if ring is not None:  # a new build option, a program of its own
+            monkeypatch.setattr(device_module, "BOX_RING_CPU", ring)
+        for plan in plans:
             assert_matches_reference(opencl, plan)
-            with rt.lock:  # the GPU variant keeps no ring: every value read twice
-                gpu = opencl.run_plan(rt, plan, gpu=True)
-            assert_matches_reference(_Fixed(gpu), plan)
 
 
 @pytest.mark.opencl
-def test_the_gpu_variant_keeps_no_box_ring():
+def test_a_gpu_keeps_no_box_ring(opencl):
     """A GPU reserves a thread's private memory for every thread of the grid: the CPU
-    variant's ring (BOX_RING_CPU taps of two long16, 256 KiB) made NVIDIA's driver refuse
-    every box launch (OUT_OF_HOST_MEMORY, H100).  The GPU build keeps at most 2 KiB."""
-    from clblur import opencl
+    devices' ring (BOX_RING_CPU taps of two long16, 256 KiB) made NVIDIA's driver refuse
+    every box launch (OUT_OF_HOST_MEMORY, H100).  Off a CPU the ring stays within 2 KiB."""
+    from types import SimpleNamespace
 
+    from clblur.opencl.device import box_ring
+
+    cl = opencl.pyopencl_module()
     rt = opencl.runtime(None)
-    rings = {gpu: [int(o.split("=")[1]) for o in rt.build_options(False, gpu)
-                   if o.startswith("-DBOX_RING=")] for gpu in (False, True)}
-    assert len(rings[True]) == 1 and len(rings[False]) == 1
-    assert 2 * 128 * rings[True][0] <= 2048 < 2 * 128 * rings[False][0]
+    for variant in (False, True):
+        assert f"-DBOX_RING={box_ring(rt.device)}" in rt.build_options(False, variant)
+    for kind in (cl.device_type.GPU, cl.device_type.ACCELERATOR):
+        assert 2 * 128 * box_ring(SimpleNamespace(type=kind)) <= 2048
+    assert box_ring(SimpleNamespace(type=cl.device_type.CPU)) > 16

@@ -18,7 +18,8 @@ Conventions
 * Input kinds (what the image buffer holds) and output kinds (what the store writes).
 * ``FLOW_LIMIT`` (``clblur.motion``): the largest flow component the kernels accept.
 * ``BOX_RING_CPU`` / ``BOX_RING_GPU``: taps whose values a work-item of
-  ``integrate_box_codes`` keeps in a private ring (``Runtime.build_options`` picks one).
+  ``integrate_box_codes`` keeps in a private ring (``clblur.opencl.device.box_ring`` picks
+  one by the device's type).
 """
 
 from __future__ import annotations
@@ -42,10 +43,10 @@ QHEAD = 5
 GRID_SEARCH = 0x100  # uint8 code grid: flag of a cell that holds a code boundary
 # A box work-item keeps up to BOX_RING taps' values (two long16, 128 bytes a tap) until they
 # leave the box, so each step reads one pixel per line instead of two.  CPU devices: 1024 taps,
-# 256 KiB of a thread's stack (boxes of 25 - 513 taps 1.2x on PoCL, 2026-11-23).  GPUs: none
-# kept (1), each value read twice: a GPU reserves private memory per thread for the whole
-# grid, and NVIDIA's driver refused the 1024-tap ring at launch (OUT_OF_HOST_MEMORY on an H100,
-# 2026-11-26, after the two values had been set alike).
+# 256 KiB of a thread's stack (boxes of 25 - 513 taps 1.2x on PoCL, 2026-11-23).  Other
+# devices: none kept (1), each value read twice: a GPU reserves private memory per thread for
+# the whole grid, and NVIDIA's driver refused the 1024-tap ring at launch (OUT_OF_HOST_MEMORY
+# on an H100, 2026-11-26, after the GPU variant's value had been set to the CPU's).
 BOX_RING_CPU = 1024
 BOX_RING_GPU = 1
 
