@@ -11,8 +11,11 @@ depth map; median wall time and median process CPU time (all threads) of ``clblu
 with and without ``depth`` on the chosen backend (PoCL here).
 
 Run:  python bench/bench_occlusion.py [--backend opencl] [--k 64] [--repeat 5]
-Prints two tables and writes them at the top of bench/results_occlusion.md (the notes below
-its marker line, written by hand, are kept).
+          [--timing-only] [--results PATH]
+Prints two tables and writes them at the top of bench/results_occlusion.md, or PATH (the notes
+below its marker line, written by hand, are kept).  ``--timing-only`` skips the accuracy table
+(the numpy reference's, the same on every device): the GPU run writes
+``bench/results_occlusion_gpu.md`` that way.
 """
 
 from __future__ import annotations
@@ -122,28 +125,43 @@ def main() -> None:
     ap.add_argument("--backend", default="opencl")
     ap.add_argument("--k", type=int, default=64, help="sub-frames of the truth (default 64)")
     ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--timing-only", action="store_true",
+                    help="skip the accuracy table (the numpy reference's, device-independent)")
+    ap.add_argument("--results", type=Path, default=RESULTS,
+                    help=f"results file (default {RESULTS.name})")
     args = ap.parse_args()
     from results_file import write_results
 
-    acc = accuracy(args.k)
-    spd = timing(args.backend, args.repeat)
-    load = os.getloadavg()[0]
-    stamp = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
-    text = "\n".join([
-        "# Layered exposure: accuracy and cost", "",
-        f"`python bench/bench_occlusion.py --backend {args.backend} --k {args.k} "
-        f"--repeat {args.repeat}`", "",
-        f"Machine: {platform.node()}, {platform.machine()}, {os.cpu_count()} logical CPUs, "
-        f"load average {load:.1f} at the end; {stamp}.",
-        "",
+    acc = [] if args.timing_only else [
         f"PSNR (dB, sRGB-encoded, peak 1) over the swept region against K = {args.k} "
         "sub-frames with exact occlusion averaged in linear light (`tests/layered_scenes.py`; "
         "the numpy reference, response srgb, default sample counts):", "",
-        *acc, "",
+        *accuracy(args.k), ""]
+    spd = timing(args.backend, args.repeat)
+    load = os.getloadavg()[0]
+    stamp = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    command = " ".join(["python bench/bench_occlusion.py", *sys.argv[1:]])
+    text = "\n".join([
+        "# Layered exposure: accuracy and cost", "",
+        f"`{command}`", "",
+        f"Machine: {platform.node()}, {platform.machine()}, {os.cpu_count()} logical CPUs, "
+        f"load average {load:.1f} at the end; {stamp}; {_device(args.backend)}.",
+        "",
+        *acc,
         "Cost against the plain gather (median wall time and median process CPU time of "
         "`clblur.blur`, per-pixel flow, response srgb):", "", *spd, ""])
-    write_results(RESULTS, text)
-    print(f"wrote {RESULTS}")
+    write_results(args.results, text)
+    print(f"wrote {args.results}")
+
+
+def _device(backend: str) -> str:
+    """The device the timings ran on, in words."""
+    if backend != "opencl":
+        return "numpy backend"
+    from clblur import opencl
+
+    dev = opencl.runtime(None).device
+    return f"OpenCL device {dev.name.strip()} ({dev.platform.name.strip()})"
 
 
 if __name__ == "__main__":
