@@ -47,3 +47,33 @@ def test_a_fit_that_fails_in_the_worker_is_raised_with_its_traceback():
     finally:
         worker.close()
     assert worker._proc.poll() == 0
+
+
+def test_remembered_products_give_the_predictions_computed_afresh():
+    """``Group.product`` remembers sparse products per code table: a run of predictions in
+    the order a gradient takes them (the point, then one parameter at a time, with and
+    without a shift mixing in the variant histograms) equals predictions on fresh copies
+    of the group, bit for bit; the memory stays bounded and is not pickled to a worker."""
+    import copy
+    import pickle
+
+    from clblur.study.model import _PRODUCTS_KEPT
+    from clblur.study.variants import predict
+
+    sc = scenario({"misregistration": 0.4}, np.random.default_rng(3))
+    g = sc.groups[0]
+    assert "misregistration" in g.__dict__.get("variants", {})
+    base = {**null_params(), "gamma": 1.3}
+    steps = [base] + [{**base, name: base[name] + 0.01}
+                      for name in ("gain", "na", "gamma", "t1", "vig", "sx", "black")
+                      if name in base]
+    steps += [{**s, "sx": 0.3} for s in steps]
+    for p in steps:
+        fresh = copy.copy(g)
+        fresh.__dict__ = {k: v for k, v in g.__dict__.items() if k != "_products"}
+        want, got = predict(fresh, p), predict(g, p)
+        for a, b in zip(want, got, strict=True):
+            assert np.array_equal(a, b)
+    held = g.__dict__["_products"]
+    assert held and len(held) <= _PRODUCTS_KEPT * 2 * g.channels
+    assert "_products" not in pickle.loads(pickle.dumps(g)).__dict__

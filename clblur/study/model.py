@@ -44,6 +44,9 @@ CODES = 256
 WARP_KEYS = ("w1", "w2", "w3", "w4")
 TOP = 1.0 - 1.0 / (4 * 255)  # largest normalised value linearised as is (clblur.pixels)
 _LOG2PI = float(np.log(2 * np.pi))
+# predictions whose tables' products a group remembers (Group.product): the point a
+# gradient is taken at and the step being tried
+_PRODUCTS_KEPT = 2
 
 
 @dataclass
@@ -70,6 +73,35 @@ class Group:
         if i not in cache:
             cache[i] = _rowsum(self.hist[(i, 0)][0])
         return cache[i]
+
+    def product(self, slot: tuple, h, table: np.ndarray) -> np.ndarray:
+        """``h @ table`` for the histogram ``h`` at ``slot``, remembered for the last few
+        tables.  Why: a fit's finite-difference gradient moves one parameter at a time, and
+        most of them (gains, noise, time weights, shifts) leave the code tables as they were,
+        so the sparse products, most of a blur pair's time, repeat; a remembered product is
+        the same array, bit for bit.  ``h`` not a sparse matrix (a mix of them,
+        ``clblur.study.variants``): not remembered here (its parts are)."""
+        if not sp.issparse(h):
+            return h @ table
+        cache = self.__dict__.setdefault("_products", {})
+        key = table.tobytes()
+        held = cache.pop(key, None)  # re-inserted last: the least recently used goes first
+        if held is None:
+            held = {}
+            # a prediction reads up to two tables per channel (values, source variance)
+            if len(cache) >= _PRODUCTS_KEPT * 2 * self.channels:
+                del cache[next(iter(cache))]
+        cache[key] = held
+        hit = held.get(slot)
+        if hit is None:
+            hit = held[slot] = h @ table
+        return hit
+
+    def __getstate__(self) -> dict:
+        """Pickled (to a fold worker) without the remembered products."""
+        state = dict(self.__dict__)
+        state.pop("_products", None)
+        return state
 
     @property
     def channels(self) -> int:
@@ -167,9 +199,9 @@ def predict(g: Group, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
         for (i, k), hs in g.hist.items():
             coef = time_c[i] * vig_c[k]
             if coef != 0.0:
-                num += coef * (hs[c] @ t)
+                num += coef * g.product((i, k, c), hs[c], t)
         e[:, c] = num
-        source[:, c] = g.hist_sq[c] @ src_table
+        source[:, c] = g.product(("sq", c), g.hist_sq[c], src_table)
     e /= np.maximum(norm, 1e-12)[:, None]
     m = (g.ratio * np.exp(p["gain"]) * vig_out)[:, None] * np.asarray(gains)[None, :]
     x = m * e

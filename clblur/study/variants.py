@@ -169,21 +169,25 @@ def _terms(g: Group, p: dict) -> list[tuple[float, tuple]]:
 
 class _Mix:
     """``sum_v w_v H_v`` as far as ``model.predict`` uses a histogram (``@`` a code table,
-    row sums): products of the parts, never a new sparse matrix per evaluation."""
+    row sums): products of the parts, never a new sparse matrix per evaluation.  ``parts``:
+    (weight, histogram, slot); the parts' products are remembered by ``owner``
+    (``Group.product``), since a shift's step changes the weights, not the products."""
 
-    def __init__(self, parts: list[tuple[float, sp.csr_matrix]]):
+    def __init__(self, parts: list[tuple[float, sp.csr_matrix, tuple]], owner: Group):
         self.parts = parts
+        self.owner = owner
         self.shape = parts[0][1].shape
 
     def __matmul__(self, t: np.ndarray) -> np.ndarray:
-        out = self.parts[0][0] * (self.parts[0][1] @ t)
-        for w, h in self.parts[1:]:
-            out = out + w * (h @ t)
+        w, h, slot = self.parts[0]
+        out = w * self.owner.product(slot, h, t)
+        for w, h, slot in self.parts[1:]:
+            out = out + w * self.owner.product(slot, h, t)
         return out
 
     def sum(self, axis=None):
         out = self.parts[0][0] * self.parts[0][1].sum(axis=axis)
-        for w, h in self.parts[1:]:
+        for w, h, _ in self.parts[1:]:
             out = out + w * h.sum(axis=axis)
         return out
 
@@ -194,10 +198,16 @@ def predict(g: Group, p: dict) -> tuple[np.ndarray, np.ndarray]:
     if terms:
         var = g.__dict__["variants"]
         w0 = 1.0 - sum(w for w, _ in terms)
-        hist = {key: [_Mix([(w0, h)] + [(w, var[e][k][key][c]) for w, (e, k) in terms])
+        # slots: the plain histogram's as in model.predict, so both share its products
+        hist = {key: [_Mix([(w0, h, (*key, c))]
+                           + [(w, var[e][k][key][c], (e, k, *key, c)) for w, (e, k) in terms],
+                           g)
                       for c, h in enumerate(hs)]
                 for key, hs in g.hist.items()}
-        g = dataclasses.replace(g, hist=hist)
+        mixed = dataclasses.replace(g, hist=hist)
+        # one memory of products for both (Group.product): hist_sq is the group's own
+        mixed.__dict__["_products"] = g.__dict__.setdefault("_products", {})
+        g = mixed
     pred, var_ = _model_predict(g, p)
     q = p.get("qoff", 0.0)
     return (pred + q if q else pred), var_
