@@ -160,8 +160,7 @@ def _device(backend: str) -> str:
         return "numpy backend"
     from clblur import opencl
 
-    dev = opencl.runtime(None).device
-    return f"OpenCL device {dev.name.strip()} ({dev.platform.name.strip()})"
+    return f"OpenCL device {opencl.current_device()}"
 
 
 if __name__ == "__main__":
