@@ -137,13 +137,20 @@ def _continuous(w: np.ndarray, axis: int) -> np.ndarray:
     tol = DEPTH_TAU * np.minimum(m[1:], m[:-1])
     ok = np.abs(d) <= tol
     if n >= 5:
-        step = np.full((n + 5,) + m.shape[1:], np.nan)
-        step[3:n + 2] = d                       # step[j + 3] = d[j]; NaN outside
-        # d[i] against d[i - 2] and d[i - 3] (before), and d[i + 2] and d[i + 3] (after)
-        with np.errstate(invalid="ignore"):
-            before = (np.abs(d - step[1:n]) <= tol) & (np.abs(d - step[0:n - 1]) <= tol)
-            after = (np.abs(d - step[5:n + 4]) <= tol) & (np.abs(d - step[6:n + 5]) <= tol)
-        ok |= before | after
+        # only the jumps are tested against the steps around them (a few boundary pixels,
+        # not the whole array); a step beyond the array predicts nothing
+        at = np.nonzero(~ok)
+        i, d_at, tol_at = at[0], d[at], tol[at]
+
+        def predicts(offset: int) -> np.ndarray:
+            """Whether d[i + offset] is within tol of d[i] (False beyond the array)."""
+            j = i + offset
+            inside = (j >= 0) & (j < n - 1)
+            out = np.zeros(i.size, bool)
+            there = (j[inside],) + tuple(a[inside] for a in at[1:])
+            out[inside] = np.abs(d_at[inside] - d[there]) <= tol_at[inside]
+            return out
+        ok[at] = (predicts(-2) & predicts(-3)) | (predicts(2) & predicts(3))
     sky = m == 0  # +inf depth: only sky continues sky
     ok = np.where(sky[1:] | sky[:-1], sky[1:] & sky[:-1], ok)
     return np.moveaxis(ok, 0, axis)
