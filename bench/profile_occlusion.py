@@ -9,6 +9,8 @@ left out, so the same script profiles an older tree:
 ``PYTHONPATH=BEFORE python bench/profile_occlusion.py``.
 
 Run:  python bench/profile_occlusion.py [--scene static|panning] [--calls 10]
+(``CLBLUR_LAYER_BUILD=device|host`` picks where the layers' transforms run; default: the
+device on a GPU, the host on a CPU device)
 Prints a Markdown table (per call, mean over the calls after one warm-up call); the
 ``kernel`` rows time each OpenCL launch to its completion (their CPU is all the process's
 threads, the device's included).
@@ -18,6 +20,8 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures as futures
+import dataclasses
+import importlib
 import sys
 import time
 from pathlib import Path
@@ -62,6 +66,14 @@ def main() -> None:
     from clblur import layered_exposure as layered
     from clblur.opencl import layered as device_layered
 
+    def optional(name: str):  # a module an older tree does not have: its rows are left out
+        try:
+            return importlib.import_module(f"clblur.opencl.{name}")
+        except ImportError:
+            return None
+    device_nearest, device_fill, device_region = (optional(n)
+                                                   for n in ("nearest", "fill", "region"))
+
     totals: dict[str, list[float]] = {}
 
     def timed(name: str, fn):
@@ -85,12 +97,20 @@ def main() -> None:
         (layer_planes, "_inpaint", "  _inpaint (hidden background)"),
         (cv2, "inpaint", "    cv2.inpaint (Navier-Stokes, before 2026-11-24)"),
         (layer_planes, "harmonic_fill", "    harmonic_fill (the fill itself)"),
+        (device_nearest, "nearest_transform", "  device nearest transforms"),
+        (device_nearest, "distance", "  device distances"),
+        (device_fill, "harmonic_fill", "    device harmonic_fill"),
+        (device_region, "region_mask", "  device region_mask"),
         (device_layered, "composite", "composite (counts, upload, kernel)"),
         (layered, "counts", "  counts (samples per pixel)"),
     ]
     for module, attr, label in rows:
-        if hasattr(module, attr):
+        if module is not None and hasattr(module, attr):
             setattr(module, attr, timed(label, getattr(module, attr)))
+    if hasattr(layer_planes, "HOST"):  # the host's transforms, held by reference: the timed ones
+        layer_planes.HOST = dataclasses.replace(
+            layer_planes.HOST, nearest=layer_planes._nearest_transform,
+            distance=layer_planes.distance_to, fill=layer_planes.harmonic_fill)
     # each kernel launch waits for its event: the kernels' own time (wall) as rows too
     from clblur.opencl.program import Program
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -18,8 +19,8 @@ import numpy as np
 from clblur.halo import halo_for_reach, reach
 from clblur.layering import layer_labels
 
-__all__ = ["INPAINT_RADIUS", "Layers", "MID_EXTEND_PX", "SPLIT_PRIOR", "bounding_box",
-           "distance_to", "harmonic_fill", "prepare", "split_coverage"]
+__all__ = ["HOST", "INPAINT_RADIUS", "Layers", "MID_EXTEND_PX", "SPLIT_PRIOR", "bounding_box",
+           "Transforms", "distance_to", "harmonic_fill", "prepare", "split_coverage"]
 
 # px the reconstruction of hidden light extends beyond the pixels a sample reads, so that
 # what is read is filled from a filled neighbourhood (the radius the Navier-Stokes
@@ -187,10 +188,34 @@ def harmonic_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     return out
 
 
+@dataclass(frozen=True)
+class Transforms:
+    """The three array transforms that building layers spends most of its time in, as one
+    swappable set: a device backend passes its own (``clblur.opencl.layered.transforms``), with
+    the same contracts.
+
+    ``nearest(outside)``: (distance, flat index of a nearest pixel that is not ``outside``),
+    as :func:`_nearest_transform` (where two pixels are equally near, another implementation
+    may pick the other one); ``distance(inside, at=None)``: :func:`distance_to`, exact;
+    ``fill(values, known)``: :func:`harmonic_fill`, to float32 rounding.  ``threads``:
+    whether independent ``nearest`` calls run on threads side by side (a device queue
+    serialises them anyway).
+    """
+
+    nearest: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+    distance: Callable[..., np.ndarray]
+    fill: Callable[[np.ndarray, np.ndarray], np.ndarray]
+    threads: bool = True  # independent transforms may run side by side (scipy's release the GIL)
+
+
+HOST = Transforms(nearest=_nearest_transform, distance=distance_to, fill=harmonic_fill)
+
+
 def _inpaint(lin: np.ndarray, known: np.ndarray, depth: float,
              nearest: tuple[np.ndarray, np.ndarray] | None = None,
              needed: np.ndarray | None = None,
-             window: tuple[slice, slice] = (slice(None), slice(None))) -> np.ndarray:
+             window: tuple[slice, slice] = (slice(None), slice(None)),
+             fill: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> np.ndarray:
     """``lin`` with the pixels outside ``known`` reconstructed from the known ones
     (:func:`harmonic_fill`) up to ``depth`` pixels from them; deeper pixels, which no sample
     reads, take their nearest known pixel and join the known ones for the fill.
@@ -228,7 +253,7 @@ def _inpaint(lin: np.ndarray, known: np.ndarray, depth: float,
     # in the box, whatever is not known comes back from the fill: filled (the hole) or its
     # nearest known pixel's light rounded to float32 (deep); known pixels keep lin exactly
     fresh = ~known[box][in_box]
-    filled = harmonic_fill(base, ~hole[box])
+    filled = (fill or HOST.fill)(base, ~hole[box])
     out[in_win][fresh] = filled[in_box][fresh]
     return out
 
@@ -282,7 +307,7 @@ def split_coverage(light: np.ndarray, front: np.ndarray, behind: np.ndarray) -> 
 def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
             region: np.ndarray, background: np.ndarray | None = None,
             split_edges: bool = True, rule: str = "depth",
-            dtype: type = np.float64) -> Layers | None:
+            dtype: type = np.float64, transforms: Transforms | None = None) -> Layers | None:
     """Build the layers around ``region`` (H x W bool) from the linear image, the vectors and
     the ordering signal; ``background``: the linear clean plate, if known.  Host-side, shared
     by both backends.  ``lin``: the linear image, or a function that returns the linear image
@@ -290,10 +315,12 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     ordering gives one layer there: a single surface is what the gather integrates.
     ``rule``: how a float ``order`` becomes layers (:func:`layer_labels`); ``dtype``: of
     the planes (a device backend takes float32: the same values as float64 planes rounded,
-    built without the float64 copy)."""
+    built without the float64 copy); ``transforms``: the distance transforms and the fill
+    (:class:`Transforms`; None: :data:`HOST`)."""
     import cv2
     from scipy.ndimage import maximum_filter, minimum_filter
 
+    transforms = HOST if transforms is None else transforms
     h, w = region.shape
     r = reach(v, anchor)
     band = 2.0 * r + 2.0
@@ -340,7 +367,7 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     # inpainting radius, so that what is read is inpainted from a filled neighbourhood), and
     # around the mixed pixels of layer k - 1, which take it as what lies behind them.  The
     # vectors of layer k all come from pixels at or behind it.
-    from_region = distance_to(region[crop])
+    from_region = transforms.distance(region[crop])
     pad = 2.0 + INPAINT_RADIUS + 1
     l2 = v_c[..., 0] * v_c[..., 0] + v_c[..., 1] * v_c[..., 1]
     # reach() of the vectors at or behind each layer: the largest square, rearmost first
@@ -363,15 +390,15 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     def behind_edt(k: int) -> tuple[np.ndarray, np.ndarray]:
         """Distance to, and flat index of, the nearest pixel at or behind layer ``k``."""
         if k not in nearest_at_or_behind:
-            nearest_at_or_behind[k] = _nearest_transform(labels < k)
+            nearest_at_or_behind[k] = transforms.nearest(labels < k)
         return nearest_at_or_behind[k]
 
     # every layer behind the first reads its transform below (the rearmost one not when a
     # plate stands for it); scipy releases the interpreter lock, so they run side by side
     wanted = [k for k in range(1, last + 1) if not (k == last and background is not None)]
-    if len(wanted) > 1 and (os.cpu_count() or 1) > 1:
+    if len(wanted) > 1 and (os.cpu_count() or 1) > 1 and transforms.threads:
         with ThreadPoolExecutor(min(len(wanted), os.cpu_count() or 1)) as pool:
-            found = list(pool.map(lambda k: _nearest_transform(labels < k), wanted))
+            found = list(pool.map(lambda k: transforms.nearest(labels < k), wanted))
         nearest_at_or_behind.update(zip(wanted, found, strict=True))
 
     def fill(k: int) -> np.ndarray:
@@ -381,7 +408,8 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
             # an intermediate layer extends MID_EXTEND_PX under what hides it, and a mixed
             # pixel lies within 2 px of what is behind it: deeper, nothing reads the fill
             depth = band if k == last else MID_EXTEND_PX + 2.0
-            fills[k] = _inpaint(lin_c, labels >= k, depth, behind_edt(k), needed(k), win)
+            fills[k] = _inpaint(lin_c, labels >= k, depth, behind_edt(k), needed(k), win,
+                                transforms.fill)
         return fills[k]
 
     # The composite reads the layers only within the reach of the region's pixels, plus the
@@ -448,11 +476,11 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
         # reads it where its samples land.
         first = vec_w[np.unravel_index(np.argmax(ext_w), hw)]
         if not (((vec_w[..., 0] != first[0]) | (vec_w[..., 1] != first[1])) & ext_w).any():
-            dist_at = distance_to(ext_w, at)
+            dist_at = transforms.distance(ext_w, at)
             d_at = np.broadcast_to(first.astype(np.float32), (at[0].size, 2))
             vectors[kept][at] = d_at
         else:
-            dist, nearest = _nearest_transform(~ext_w)
+            dist, nearest = transforms.nearest(~ext_w)
             dist_at = dist[at]
             vectors[kept] = _at(vec_w, nearest)
             d_at = vectors[kept][at]

@@ -447,8 +447,15 @@ def agree(a: np.ndarray, b: np.ndarray) -> None:
         np.testing.assert_allclose(b, a, atol=2e-5, rtol=1e-5)
 
 
+# where the layers' distance transforms and membrane fill run on the OpenCL path (both are
+# held to the reference: clblur.opencl.layered.integrator, docs/tolerances.md)
+BUILDS = pytest.mark.parametrize("build", ["host", "device"])
+
+
+@BUILDS
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32])
-def test_opencl_layered_matches_the_reference(opencl, crossing, dtype):
+def test_opencl_layered_matches_the_reference(opencl, crossing, dtype, build, monkeypatch):
+    monkeypatch.setenv("CLBLUR_LAYER_BUILD", build)
     sc, frame, truth, flow, depth, swept = crossing
     img = frame.astype(dtype) if dtype == np.float32 else \
         np.rint(frame * np.iinfo(dtype).max).astype(dtype)
@@ -463,9 +470,11 @@ def test_opencl_layered_matches_the_reference(opencl, crossing, dtype):
         np.testing.assert_array_equal(got[~region], plain[~region])
 
 
+@BUILDS
 @pytest.mark.parametrize("dtype", [np.uint8, np.float32])
-def test_opencl_turning_layers_match_the_reference(opencl, spinning, dtype):
+def test_opencl_turning_layers_match_the_reference(opencl, spinning, dtype, build, monkeypatch):
     """The inverse motion of warped layers (layered.cl inverse_motion) on the device."""
+    monkeypatch.setenv("CLBLUR_LAYER_BUILD", build)
     r = spinning
     img = r.sharp if dtype == np.uint8 else (r.sharp / 255.0).astype(np.float32)
     for opts in (dict(), dict(anchor="end", samples=11)):
@@ -617,3 +626,34 @@ def test_harmonic_fill_fills_holes_within_the_known_range(rng):
     assert off < 0.03 and off < 0.25 * np.abs(nearest - ramp)[~known].max()
     one = harmonic_fill(noisy[..., :1], known)  # a single channel keeps its axis
     np.testing.assert_allclose(one, filled[..., :1], rtol=1e-6, atol=1e-7)
+
+
+def test_layer_build_is_checked(opencl, monkeypatch):
+    """A layer build other than auto, device or host is a one-line error, not a silent host."""
+    from clblur.opencl.layered import integrator
+
+    monkeypatch.setenv("CLBLUR_LAYER_BUILD", "gpu")
+    with pytest.raises(ValueError, match="CLBLUR_LAYER_BUILD"):
+        integrator()
+    assert integrator(build="host") is not None
+
+
+def test_device_layer_build_runs_the_device_transforms(opencl, crossing, monkeypatch):
+    """With build="device" the region and the layers' transforms run on the device (not
+    silently on the host), and the result is the host build's within the layered tolerance."""
+    from clblur.opencl import fill, nearest, region
+
+    sc, frame, truth, flow, depth, swept = crossing
+    calls = []
+    for module, name in ((nearest, "nearest_transform"), (nearest, "distance"),
+                         (fill, "harmonic_fill"), (region, "region_mask")):
+        real = getattr(module, name)
+        monkeypatch.setattr(module, name, lambda *a, _r=real, _n=name, **k: (calls.append(_n),
+                                                                           _r(*a, **k))[1])
+    monkeypatch.setenv("CLBLUR_LAYER_BUILD", "host")
+    host = clblur.blur(frame, flow, "srgb", backend="opencl", depth=depth)
+    assert not calls
+    monkeypatch.setenv("CLBLUR_LAYER_BUILD", "device")
+    dev = clblur.blur(frame, flow, "srgb", backend="opencl", depth=depth)
+    assert {"nearest_transform", "distance", "harmonic_fill", "region_mask"} <= set(calls)
+    agree(host, dev)

@@ -9,13 +9,18 @@ Conventions
   identity response).  The staged path serves plans the fused kernel cannot (alpha).
 * The layered integrator is *sparse*: outside the pixels that ``boundary_mask`` flags, the
   result is the plain gather of the backend, bit for bit (the fused output); at flagged pixels
-  the layers are built on the host (``clblur.layered_exposure.prepare``, shared with the
-  numpy reference), composited in float32 by ``clblur/opencl/layered.cl``, and finished on the host.
+  the layers are built by ``clblur.layered_exposure.prepare`` (shared with the numpy
+  reference), composited in float32 by ``clblur/opencl/layered.cl``, and finished on the host.
+  On a GPU (``integrator``'s ``build``) the region, the distance transforms and the membrane
+  fill of that build run on the device (``clblur/opencl/region.cl``, ``nearest.cl``,
+  ``fill.cl``); the rest of ``prepare`` (the layer labels, the planes' assembly) and the
+  sample counts are still host work.
   Tolerance against the numpy reference: ``docs/tolerances.md`` ("Layered exposure").
 """
 
 from __future__ import annotations
 
+import os
 from dataclasses import replace
 from importlib import resources
 
@@ -23,13 +28,14 @@ import numpy as np
 
 from clblur import layered_exposure as layered
 from clblur import reference
+from clblur.layer_planes import HOST, Transforms
 from clblur.opencl.constants import LANES, LAYERED_MAXK, build_defines
 from clblur.opencl.device import pyopencl_module
 from clblur.opencl.program import Program
 from clblur.request import BlurPlan
 from clblur.responses import response
 
-__all__ = ["OpenCLStages", "composite", "integrator"]
+__all__ = ["BUILDS", "OpenCLStages", "composite", "integrator", "transforms"]
 
 MAXC = 16  # channels + coverage a work-item holds in registers (layered.cl)
 GROUP = 64
@@ -173,22 +179,61 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
     return out
 
 
-def integrator(device: str | None = None):
-    """The sparse layered integrator on the device (``clblur.pipeline`` Conventions)."""
+def transforms(device: str | None = None) -> Transforms:
+    """The device's distance transforms and membrane fill for building layers
+    (``clblur.layer_planes.Transforms``): ``clblur.opencl.nearest`` and
+    ``clblur.opencl.fill``, looked up at each call."""
+    from clblur.opencl import fill, nearest
+
+    return Transforms(nearest=lambda outside: nearest.nearest_transform(outside, device),
+                      distance=lambda inside, at=None: nearest.distance(inside, at, device),
+                      fill=lambda values, known: fill.harmonic_fill(values, known, device),
+                      threads=False)
+
+
+BUILDS = ("auto", "device", "host")
+
+
+def integrator(device: str | None = None, build: str | None = None):
+    """The sparse layered integrator on the device (``clblur.pipeline`` Conventions).
+
+    ``build``: where the layered region is found and the layers' distance transforms and
+    membrane fill run: ``"device"`` (``clblur.opencl.region`` and :func:`transforms`),
+    ``"host"`` (``clblur.layered_exposure.region_mask``, ``clblur.layer_planes.HOST``), or
+    ``"auto"``: the device when it is a GPU (there the host's versions were most of a
+    layered call's time, ``bench/results_occlusion_gpu.md``), else the host (on a CPU device
+    both share the same cores: ``bench/results_occlusion.md``).  None: the environment
+    variable ``CLBLUR_LAYER_BUILD``, else ``"auto"``.  Both builds are held to the
+    reference (``docs/tolerances.md``)."""
+    if build is None:
+        build = os.environ.get("CLBLUR_LAYER_BUILD", "auto").strip().lower() or "auto"
+    if build not in BUILDS:
+        raise ValueError(f"layer build must be one of {', '.join(BUILDS)} "
+                         f"(CLBLUR_LAYER_BUILD), got {build!r}")
 
     def integrate(linear, plan: BlurPlan):
         ordered = layered.plan_order(plan)
         if ordered is None:
             return None
+        from clblur.opencl import runtime
+
+        on_device = build == "device" or (build == "auto" and runtime(device).gpu)
         v, order, rule = ordered
-        region = layered.region_mask(v, plan.anchor)
+        if on_device:
+            from clblur.opencl import region as device_region
+
+            ops = transforms(device)
+            region = device_region.region_mask(v, plan.anchor, device=device)
+        else:
+            ops = HOST
+            region = layered.region_mask(v, plan.anchor)
         if not region.any():
             return None
         def crop_linear(crop):  # linearise only the crop the layers need
             return reference.linearise(replace(plan, image=plan.image[crop], background=None))
         layers = layered.prepare(crop_linear, v, order, plan.anchor, region,
                                  layered.background_linear(plan), rule=rule,
-                                 dtype=np.float32)
+                                 dtype=np.float32, transforms=ops)
         if layers is None:
             return None
         values = composite(layers, plan.anchor, plan.samples, plan.weights, plan.full_shape,
