@@ -560,6 +560,30 @@ def test_opencl_cpu_layout_is_the_one_pixel_kernel_bit_for_bit(opencl, crossing)
         np.testing.assert_allclose(one, ref, atol=2e-5, rtol=1e-5)
 
 
+def test_opencl_own_counts_are_the_hosts(opencl, crossing, spinning):
+    """composite_layers counting samples in the kernel (counts.cl) gives the bits of the
+    host's counts (clblur.layered_exposure.counts), on rigid and turning layers, lengths just
+    off integers included."""
+    from clblur.layer_planes import prepare
+    from clblur.opencl import runtime
+    from clblur.opencl.layered import composite
+
+    if not runtime().fp64:
+        pytest.skip("the device has no fp64: the host counts")
+    sc, frame, truth, flow, depth, swept = crossing
+    r = spinning
+    near_integer = flow * np.float32(1 + 3e-7)  # |v| a hair beyond an integer length
+    cases = [(SRGB.inverse(frame), flow, depth), (SRGB.inverse(frame), near_integer, depth),
+             (SRGB.inverse(r.sharp / 255.0), r.flow, r.depth)]
+    for lin, v, d in cases:
+        region = layered.region_mask(v, 0.5)
+        layers = prepare(lin, v, d, 0.5, region)
+        kw = dict(lanes=False)
+        own = composite(layers, 0.5, None, None, d.shape, own_counts=True, **kw)
+        host = composite(layers, 0.5, None, None, d.shape, own_counts=False, **kw)
+        np.testing.assert_array_equal(own, host)
+
+
 def test_distance_to_is_scipys_transform_bit_for_bit():
     from scipy.ndimage import distance_transform_edt
 

@@ -116,19 +116,8 @@ static float2 read_flow(__global const uchar *flow, int flow_half, size_t i,
     return v;
 }
 
-#ifdef HAVE_FP64
-/* clblur.motion.sample_counts: exact ceil(|v|) + 1 from float64 squares of the float32
- * vector, corrected with exact integer-square comparisons (contraction is off). */
-static int sample_count(float vx, float vy)
-{
-    double x = vx, y = vy;
-    double l2 = x * x + y * y;
-    double m = ceil(sqrt(l2));
-    m = m * m < l2 ? m + 1.0 : m;
-    m = m > 0.0 && (m - 1.0) * (m - 1.0) >= l2 ? m - 1.0 : m;
-    return (int)m + 1;
-}
-#endif
+/* sample_count (clblur.motion.sample_counts, exact, where the device has fp64): counts.cl,
+ * which precedes this file in the program (clblur.opencl.program.KERNEL_FILES). */
 
 #ifdef HAVE_FP64
 /* sample_count for LANES vectors, exact: a float32 candidate m = ceil(sqrt(l2)) is accepted

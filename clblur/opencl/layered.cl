@@ -12,7 +12,9 @@
  *   is read from it), so that with CP = 4 every read is one float4 per tap.
  * - present: K x h x w, 0 where layer k cannot reach the pixel at any sample (skipped).
  * - One work-item per listed pixel (pix: n x 2 (row, col) in the crop); counts: its sample
- *   count N; weights: N time weights when weighted != 0, else 1/N each, or with ends != 0
+ *   count N (composite_layers with own_counts != 0: counted in the kernel instead, with
+ *   counts.cl's sample_count); weights: N time weights when weighted != 0, else 1/N each,
+ *   or with ends != 0
  *   (the continuous exposure, clblur/motion.py sample_weight) 1/(N-1) each but half of it
  *   at j = 0 and j = N - 1 (1 when N = 1).
  * - Sample j of a pixel p reads each layer k at q = p - D_k(q) t, t = (j - a (N-1)) /
@@ -169,6 +171,7 @@ __kernel void composite_layers(__global const float *planes, __global const floa
                                __global const uchar *present, __global const uchar *warped,
                                __global const float *curvature,
                                __global const int *pix, __global const int *counts,
+                               int own_counts,
                                __global const float *weights, int weighted, int ends,
                                int n, int layers, int h, int w, int r0, int c0,
                                int fh, int fw, float anchor, __global float *out)
@@ -179,8 +182,6 @@ __kernel void composite_layers(__global const float *planes, __global const floa
     int row = pix[2 * i], col = pix[2 * i + 1];
     float px = (float)(c0 + col), py = (float)(r0 + row);
     const int channels = CHANNELS;
-    int N = counts[i];
-    float den = (float)max(N - 1, 1);
     size_t plane = (size_t)h * w * CP;
     size_t at = (size_t)row * w + col;
     /* the layers that can reach this pixel, front to back, with their vectors */
@@ -203,6 +204,19 @@ __kernel void composite_layers(__global const float *planes, __global const floa
         ++m;
     }
     float fx = flow[2 * at], fy = flow[2 * at + 1];
+    /* N: the host's counts, or with own_counts (straight paths, per-pixel counts, a device
+     * with fp64) counted here as clblur.layered_exposure.counts does: the largest over the
+     * pixel's own vector and the vectors of the layers present at it */
+    int N;
+#ifdef HAVE_FP64
+    if (own_counts) {
+        N = sample_count(fx, fy);
+        for (int q = 0; q < m; ++q)
+            N = max(N, sample_count(vx[q], vy[q]));
+    } else
+#endif
+        N = counts[i];
+    float den = (float)max(N - 1, 1);
     float acc[CHANNELS], e[CHANNELS];
     for (int c = 0; c < channels; ++c)
         acc[c] = 0.0f;

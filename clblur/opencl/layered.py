@@ -48,10 +48,13 @@ def _program(rt, channels: int, curved: bool = False,
     ``steps`` fixed-point steps of the inverse motion, built once per runtime and options
     (kept in the runtime's program cache, keyed by its build options)."""
     options = (*build_defines(), f"-DCHANNELS={channels}", f"-DCURVED={int(curved)}",
-               f"-DINVERSE_STEPS={int(steps)}")
+               f"-DINVERSE_STEPS={int(steps)}", *(("-DHAVE_FP64",) if rt.fp64 else ()))
     key = ("layered.cl", *options)
     if key not in rt.programs:
-        source = resources.files("clblur.opencl").joinpath("layered.cl").read_text()
+        root = resources.files("clblur.opencl")
+        # counts.cl first: the sample counts the gather uses too (one home for the formula)
+        source = "\n".join(root.joinpath(name).read_text() for name in ("counts.cl",
+                                                                         "layered.cl"))
         rt.programs[key] = Program(rt.context, source, options)
     return rt.programs[key]
 
@@ -95,13 +98,16 @@ class OpenCLStages:
 def composite(layers: layered.Layers, anchor: float, samples: int | None,
               weights: np.ndarray | None, full_shape: tuple[int, int],
               device: str | None = None, lanes: bool | None = None,
-              ends: bool = False) -> np.ndarray:
+              ends: bool = False, own_counts: bool | None = None) -> np.ndarray:
     """:func:`clblur.layered_exposure.composite` on the device, for ``layers.region`` only.
 
     ``lanes``: use the CPU layout (``composite_lanes``, LANES pixels of a row per work-item;
     three light channels only) or not (``composite_layers``, one pixel per work-item); the
     default picks it for three channels on a CPU device.  Both give the same bits.
     ``ends``: the ``continuous`` exposure with per-pixel counts (``BlurPlan.ends``).
+    ``own_counts``: whether ``composite_layers`` counts each pixel's samples itself (exact,
+    the host's ``clblur.layered_exposure.counts``); the default does where it can (a device
+    with fp64, straight paths, per-pixel counts, no ``Layers.reach``).
     Returns the exposures of the region's pixels (n x C float32, row-major order of the
     region)."""
     from clblur.opencl import runtime
@@ -118,7 +124,6 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
     # the linear image padded to the planes' layout (one zero channel): one load per tap
     linear = np.zeros((h, w, cp), np.float32)
     linear[..., :channels] = layers.linear
-    counts = layered.counts(layers, samples, (rows, cols)).astype(np.int32)
     weighted = weights is not None
     wts = weights.astype(np.float32) if weighted else np.zeros(1, np.float32)
     out = np.empty((n, channels), np.float32)
@@ -152,6 +157,7 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
         if lanes and cp != 4:
             raise ValueError("the CPU compositing layout takes three light channels")
         if lanes or (lanes is None and cp == 4 and not rt.gpu):
+            counts = layered.counts(layers, samples, (rows, cols)).astype(np.int32)
             # CPU: LANES consecutive pixels of a row per work-item (layered.cl); the chunks
             # of LANES columns that hold region pixels, row-major
             wide = -(-w // LANES) * LANES
@@ -173,8 +179,15 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
             return lanes_out[on.ravel()]
         out_buf = cl.Buffer(rt.context, mf.WRITE_ONLY, max(out.nbytes, 16))
         pix = np.stack([rows, cols], axis=1).astype(np.int32)
+        # the kernel counts samples itself where it can (a host pass over the region's
+        # pixels and every layer cost 5 ms on an H100 host, the kernel's whole run 0.7 ms)
+        own = own_counts if own_counts is not None else (
+            rt.fp64 and samples is None and layers.curvature is None and layers.reach is None)
+        counts = np.zeros(1, np.int32) if own else \
+            layered.counts(layers, samples, (rows, cols)).astype(np.int32)
         program.run("composite_layers", rt.queue, (-(-n // GROUP) * GROUP,), (GROUP,),
-                    pix=buf(pix), counts=buf(counts), n=n, out=out_buf, **args)
+                    pix=buf(pix), counts=buf(counts), own_counts=int(own), n=n,
+                    out=out_buf, **args)
         cl.enqueue_copy(rt.queue, out, out_buf, is_blocking=True)
     return out
 

@@ -26,7 +26,7 @@ import numpy as np
 
 __all__ = ["KERNEL_FILES", "Argument", "Program", "kernel_signatures", "kernel_source"]
 
-KERNEL_FILES = ("response.cl", "integrate.cl")
+KERNEL_FILES = ("response.cl", "counts.cl", "integrate.cl")
 
 _SCALARS = {"char": np.int8, "uchar": np.uint8, "short": np.int16, "ushort": np.uint16,
             "int": np.int32, "uint": np.uint32, "long": np.int64, "ulong": np.uint64,
