@@ -90,6 +90,7 @@ def main() -> None:
     rows = [  # (module, attribute, label): outer stages first, nested ones indented
         (opencl, "blur", "plain gather (the result outside the region)"),
         (device_layered.layered, "region_mask", "region_mask (tile culling, motion edges)"),
+        (device_region, "region_and_reach", "region_and_reach (the region on the device)"),
         (device_layered.layered, "prepare", "prepare (layers on the host)"),
         (layer_planes, "layer_labels", "  layer_labels (depth to layers)"),
         (ndimage, "distance_transform_edt", "  scipy distance transforms (wherever they run)"),
@@ -100,7 +101,6 @@ def main() -> None:
         (device_nearest, "nearest_transform", "  device nearest transforms"),
         (device_nearest, "distance", "  device distances"),
         (device_fill, "harmonic_fill", "    device harmonic_fill"),
-        (device_region, "region_mask", "  device region_mask"),
         (device_layered, "composite", "composite (counts, upload, kernel)"),
         (layered, "counts", "  counts (samples per pixel)"),
     ]

@@ -307,7 +307,8 @@ def split_coverage(light: np.ndarray, front: np.ndarray, behind: np.ndarray) -> 
 def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
             region: np.ndarray, background: np.ndarray | None = None,
             split_edges: bool = True, rule: str = "depth",
-            dtype: type = np.float64, transforms: Transforms | None = None) -> Layers | None:
+            dtype: type = np.float64, transforms: Transforms | None = None,
+            r: float | None = None) -> Layers | None:
     """Build the layers around ``region`` (H x W bool) from the linear image, the vectors and
     the ordering signal; ``background``: the linear clean plate, if known.  Host-side, shared
     by both backends.  ``lin``: the linear image, or a function that returns the linear image
@@ -316,13 +317,14 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     ``rule``: how a float ``order`` becomes layers (:func:`layer_labels`); ``dtype``: of
     the planes (a device backend takes float32: the same values as float64 planes rounded,
     built without the float64 copy); ``transforms``: the distance transforms and the fill
-    (:class:`Transforms`; None: :data:`HOST`)."""
+    (:class:`Transforms`; None: :data:`HOST`); ``r``: ``reach(v, anchor)`` where the caller
+    has it already (a pass over the whole field otherwise)."""
     import cv2
     from scipy.ndimage import maximum_filter, minimum_filter
 
     transforms = HOST if transforms is None else transforms
     h, w = region.shape
-    r = reach(v, anchor)
+    r = reach(v, anchor) if r is None else r
     band = 2.0 * r + 2.0
     margin = int(math.ceil(band + r)) + 3
     crop = bounding_box(region, margin)

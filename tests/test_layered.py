@@ -670,7 +670,7 @@ def test_device_layer_build_runs_the_device_transforms(opencl, crossing, monkeyp
     sc, frame, truth, flow, depth, swept = crossing
     calls = []
     for module, name in ((nearest, "nearest_transform"), (nearest, "distance"),
-                         (fill, "harmonic_fill"), (region, "region_mask")):
+                         (fill, "harmonic_fill"), (region, "region_and_reach")):
         real = getattr(module, name)
         monkeypatch.setattr(module, name, lambda *a, _r=real, _n=name, **k: (calls.append(_n),
                                                                            _r(*a, **k))[1])
@@ -679,5 +679,5 @@ def test_device_layer_build_runs_the_device_transforms(opencl, crossing, monkeyp
     assert not calls
     monkeypatch.setenv("CLBLUR_LAYER_BUILD", "device")
     dev = clblur.blur(frame, flow, "srgb", backend="opencl", depth=depth)
-    assert {"nearest_transform", "distance", "harmonic_fill", "region_mask"} <= set(calls)
+    assert {"nearest_transform", "distance", "harmonic_fill", "region_and_reach"} <= set(calls)
     agree(host, dev)

@@ -250,3 +250,16 @@ def test_empty_and_bad_shapes(opencl):
         device_mask(np.zeros((4, 4, 2), np.float32), 0.5, tile=0)
     with pytest.raises(ValueError):
         device_mask(np.zeros((4, 4, 2), np.float32), 0.5, run=0)
+
+
+def test_region_and_reach_gives_the_hosts_reach(opencl):
+    """The reach found on the way is clblur.halo.reach bit for bit (prepare takes it)."""
+    from clblur.opencl.region import region_and_reach
+    from clblur.opencl.region import region_mask as device_mask
+
+    rng = np.random.default_rng(7)
+    for shape, anchor in (((37, 53), 0.5), ((64, 130), 0.0), ((9, 5), 1.0)):
+        v = (rng.standard_normal(shape + (2,)) * 9).astype(np.float32)
+        mask, r = region_and_reach(v, anchor)
+        assert r == reach(v, anchor)
+        np.testing.assert_array_equal(mask, device_mask(v, anchor))

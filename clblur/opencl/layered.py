@@ -236,9 +236,9 @@ def integrator(device: str | None = None, build: str | None = None):
             from clblur.opencl import region as device_region
 
             ops = transforms(device)
-            region = device_region.region_mask(v, plan.anchor, device=device)
+            region, r = device_region.region_and_reach(v, plan.anchor, device=device)
         else:
-            ops = HOST
+            ops, r = HOST, None
             region = layered.region_mask(v, plan.anchor)
         if not region.any():
             return None
@@ -246,7 +246,7 @@ def integrator(device: str | None = None, build: str | None = None):
             return reference.linearise(replace(plan, image=plan.image[crop], background=None))
         layers = layered.prepare(crop_linear, v, order, plan.anchor, region,
                                  layered.background_linear(plan), rule=rule,
-                                 dtype=np.float32, transforms=ops)
+                                 dtype=np.float32, transforms=ops, r=r)
         if layers is None:
             return None
         values = composite(layers, plan.anchor, plan.samples, plan.weights, plan.full_shape,

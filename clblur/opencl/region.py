@@ -43,7 +43,7 @@ from clblur.opencl.constants import build_defines
 from clblur.opencl.device import pyopencl_module
 from clblur.opencl.program import Program
 
-__all__ = ["CPU_RUN", "MAX_SIDE", "near_limit", "region_mask"]
+__all__ = ["CPU_RUN", "MAX_SIDE", "near_limit", "region_and_reach", "region_mask"]
 
 MAX_SIDE = 32767  # squared distances and flat offsets in int32 (edge_gaps, region)
 PIXEL_LOCAL = (32, 8)  # work-group of the per-pixel kernels: a warp-wide row on a GPU
@@ -94,7 +94,17 @@ def near_limit(r: float) -> int:
 
 def region_mask(v: np.ndarray, anchor: float, tile: int = TILE, spread: float = SPREAD_PX,
                 device: str | None = None, *, run: int | None = None) -> np.ndarray:
-    """:func:`clblur.layered_exposure.region_mask` on the OpenCL device.
+    """:func:`clblur.layered_exposure.region_mask` on the OpenCL device (the mask of
+    :func:`region_and_reach`; the parameters are its)."""
+    return region_and_reach(v, anchor, tile, spread, device, run=run)[0]
+
+
+def region_and_reach(v: np.ndarray, anchor: float, tile: int = TILE,
+                     spread: float = SPREAD_PX, device: str | None = None, *,
+                     run: int | None = None) -> tuple[np.ndarray, float]:
+    """:func:`clblur.layered_exposure.region_mask` on the OpenCL device, and the reach
+    ``clblur.halo.reach(v, anchor)`` it found on the way (which building the layers needs
+    too: ``clblur.layer_planes.prepare``'s ``r``).
 
     Parameters
     ----------
@@ -114,9 +124,11 @@ def region_mask(v: np.ndarray, anchor: float, tile: int = TILE, spread: float = 
 
     Returns
     -------
-    numpy.ndarray
+    mask : numpy.ndarray
         H x W bool: the reference's mask, except possibly at pixels whose inverse departure
         lies within ``spread / 32`` of ``spread`` (module Conventions).
+    r : float
+        ``clblur.halo.reach(v, anchor)``, bit for bit.
 
     Raises
     ------
@@ -139,7 +151,7 @@ def region_mask(v: np.ndarray, anchor: float, tile: int = TILE, spread: float = 
     h, w = v.shape[:2]
     out = np.zeros((h, w), np.uint8)
     if not out.size:
-        return out.astype(bool)
+        return out.astype(bool), reach(v, anchor)
     th, tw = -(-h // tile), -(-w // tile)
     t0, t1 = -anchor, 1.0 - anchor
     vf = np.ascontiguousarray(v, np.float32)
@@ -188,4 +200,4 @@ def region_mask(v: np.ndarray, anchor: float, tile: int = TILE, spread: float = 
                     flags=flags, h=h, w=w, tile=tile, tw=tw, run=run, bound=bound, k2=k2,
                     t0=t0, t1=t1, abs_t0=abs(t0), abs_t1=abs(t1), spread=spread, out=mask)
         cl.enqueue_copy(rt.queue, out, mask, is_blocking=True)
-    return out.view(bool)
+    return out.view(bool), r
