@@ -14,8 +14,8 @@ import math
 import numpy as np
 
 __all__ = ["DEPTH_TAU", "GAP_FRACTION", "MAX_LAYERS", "NAMED_ORDERS", "departure_order",
-           "depth_components", "layer_labels", "named_order", "order_components",
-           "speed_order"]
+           "depth_components", "layer_labels", "layer_of_components", "named_order",
+           "order_components", "rank_components", "sliver_targets", "speed_order"]
 
 # the orderings computed from the motion itself (``clblur.blur``'s ``depth="speed"`` etc.)
 NAMED_ORDERS = ("speed", "departure")
@@ -90,16 +90,7 @@ def layer_labels(order: np.ndarray, max_layers: int = MAX_LAYERS,
     if n == 1:
         return np.zeros(order.shape, np.int32)
     ranked, keys = order_components(order, comp, n)
-    # separation of consecutive components in the order, in log-depth (scale-invariant);
-    # sky (key inf) next to sky is no gap
-    k = np.asarray(keys)[ranked]
-    with np.errstate(invalid="ignore"):
-        gaps = np.abs(np.diff(k))
-    gaps = np.where(np.isnan(gaps), 0.0, gaps)
-    layer_of_rank = _cut(gaps, gaps > math.log1p(DEPTH_TAU), max_layers)
-    layer_of_comp = np.empty(n, np.int32)
-    layer_of_comp[ranked] = layer_of_rank
-    return layer_of_comp[comp]
+    return layer_of_components(ranked, keys, max_layers)[comp]
 
 
 def _cut(gaps: np.ndarray, cut: np.ndarray, max_layers: int) -> np.ndarray:
@@ -184,29 +175,39 @@ def depth_components(depth: np.ndarray) -> tuple[np.ndarray, int]:
         # mean inverse depth of each component, and of its nearest (largest w) neighbour
         wf = np.where(np.isfinite(w), w, 0.0)
         mean_w = np.bincount(comp.ravel(), wf.ravel(), n) / np.bincount(comp.ravel(), None, n)
-        target = np.arange(n)
-        best = np.full(n, -1.0)
-        for a, b in ((comp[:, :-1][~right], comp[:, 1:][~right]),
-                     (comp[:-1, :][~down], comp[1:, :][~down])):
-            for x, y in ((a, b), (b, a)):  # x's neighbour y
-                sel = ~interior[x] & (mean_w[y] > mean_w[x])
-                np.maximum.at(best, x[sel], mean_w[y[sel]])
-        for a, b in ((comp[:, :-1][~right], comp[:, 1:][~right]),
-                     (comp[:-1, :][~down], comp[1:, :][~down])):
-            for x, y in ((a, b), (b, a)):
-                sel = (best[x] >= 0) & (mean_w[y] == best[x])
-                target[x[sel]] = y[sel]
-        # a sliver in front of a sliver (the mixed pixels of a corner) follows it: targets are
-        # strictly nearer, so the chain ends
-        while True:
-            nxt = target[target]
-            if np.array_equal(nxt, target):
-                break
-            target = nxt
+        neighbours = [(x, y) for a, b in ((comp[:, :-1][~right], comp[:, 1:][~right]),
+                                          (comp[:-1, :][~down], comp[1:, :][~down]))
+                      for x, y in ((a, b), (b, a))]  # x's neighbour y
+        target = sliver_targets(interior, mean_w, neighbours)
         _, comp_new = np.unique(target[comp], return_inverse=True)
         comp = comp_new.reshape(h, wd)
         n = int(comp.max()) + 1
     return comp.astype(np.int32), n
+
+
+def sliver_targets(interior: np.ndarray, mean_w: np.ndarray,
+                   neighbours: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """The component each component merges into (itself if it stays), the sliver rule of
+    :func:`depth_components`: a component without interior pixels (``~interior``) joins its
+    nearest neighbour in front of it (the largest mean inverse depth ``mean_w`` above its
+    own), and a sliver in front of a sliver follows it (the targets are strictly nearer, so
+    the chain ends).  ``neighbours``: (x, y) arrays of components x next to components y, in
+    the order the first such pair is taken (the host's raster scans, or a device's records
+    of them)."""
+    n = interior.size
+    target = np.arange(n)
+    best = np.full(n, -1.0)
+    for x, y in neighbours:
+        sel = ~interior[x] & (mean_w[y] > mean_w[x])
+        np.maximum.at(best, x[sel], mean_w[y[sel]])
+    for x, y in neighbours:
+        sel = (best[x] >= 0) & (mean_w[y] == best[x])
+        target[x[sel]] = y[sel]
+    while True:
+        nxt = target[target]
+        if np.array_equal(nxt, target):
+            return target
+        target = nxt
 
 
 def _components(right: np.ndarray, down: np.ndarray) -> tuple[int, np.ndarray]:
@@ -240,7 +241,6 @@ def order_components(depth: np.ndarray, comp: np.ndarray, n: int) -> tuple[list[
     others: a ground plane is ordered by where it meets what stands on it, not by its far
     end) goes first, and a cycle is broken the same way.
     """
-    import heapq
 
     with np.errstate(divide="ignore"):
         logz = np.log(np.asarray(depth, np.float64))  # +inf stays +inf
@@ -280,13 +280,25 @@ def order_components(depth: np.ndarray, comp: np.ndarray, n: int) -> tuple[list[
     with np.errstate(invalid="ignore"):
         keys = [float(x) for x in np.where(z_at[lo_i] == z_at[hi_i], z_at[lo_i],
                                            0.5 * (z_at[lo_i] + z_at[hi_i]))]
-    after: list[set[int]] = [set() for _ in range(n)]
-    indeg = np.zeros(n, np.int64)
+    before = []
     for (lo, hi), parts in pairs.items():
         med = float(np.median(np.concatenate(parts)))
-        if med == 0.0:
-            continue
-        front, back = (lo, hi) if med > 0 else (hi, lo)
+        if med != 0.0:
+            before.append((lo, hi) if med > 0 else (hi, lo))
+    return rank_components(keys, before), keys
+
+
+def rank_components(keys: list[float], before: list[tuple[int, int]]) -> list[int]:
+    """The front-to-back order of :func:`order_components` from its keys and its pairwise
+    constraints ``before`` ((front, back) component pairs, each unordered pair at most once):
+    sorted topologically, the smallest key first among the components free to go, a cycle
+    broken by the nearest remaining component."""
+    import heapq
+
+    n = len(keys)
+    after: list[set[int]] = [set() for _ in range(n)]
+    indeg = np.zeros(n, np.int64)
+    for front, back in before:
         after[front].add(back)
         indeg[back] += 1
     ready = [(keys[c], c) for c in range(n) if indeg[c] == 0]
@@ -307,4 +319,18 @@ def order_components(depth: np.ndarray, comp: np.ndarray, n: int) -> tuple[list[
             indeg[b] -= 1
             if indeg[b] == 0 and not done[b]:
                 heapq.heappush(ready, (keys[b], b))
-    return ranked, keys
+    return ranked
+
+
+def layer_of_components(ranked: list[int], keys: list[float], max_layers: int) -> np.ndarray:
+    """The layer of each component (int32) from its rank and key (:func:`order_components`):
+    cut where consecutive components in the order lie more than ``log(1 + DEPTH_TAU)`` apart
+    in log-depth (scale-invariant; sky next to sky is no gap), at most ``max_layers``."""
+    k = np.asarray(keys)[ranked]
+    with np.errstate(invalid="ignore"):
+        gaps = np.abs(np.diff(k))
+    gaps = np.where(np.isnan(gaps), 0.0, gaps)
+    layer_of_rank = _cut(gaps, gaps > math.log1p(DEPTH_TAU), max_layers)
+    layer_of_comp = np.empty(len(keys), np.int32)
+    layer_of_comp[ranked] = layer_of_rank
+    return layer_of_comp
