@@ -71,8 +71,8 @@ def main() -> None:
             return importlib.import_module(f"clblur.opencl.{name}")
         except ImportError:
             return None
-    device_nearest, device_fill, device_region = (optional(n)
-                                                   for n in ("nearest", "fill", "region"))
+    device_nearest, device_fill, device_region, device_labels = (
+        optional(n) for n in ("nearest", "fill", "region", "labels"))
 
     totals: dict[str, list[float]] = {}
 
@@ -98,6 +98,7 @@ def main() -> None:
         (layer_planes, "_inpaint", "  _inpaint (hidden background)"),
         (cv2, "inpaint", "    cv2.inpaint (Navier-Stokes, before 2026-11-24)"),
         (layer_planes, "harmonic_fill", "    harmonic_fill (the fill itself)"),
+        (device_labels, "layer_labels", "  device layer_labels"),
         (device_nearest, "nearest_transform", "  device nearest transforms"),
         (device_nearest, "distance", "  device distances"),
         (device_fill, "harmonic_fill", "    device harmonic_fill"),
@@ -110,7 +111,9 @@ def main() -> None:
     if hasattr(layer_planes, "HOST"):  # the host's transforms, held by reference: the timed ones
         layer_planes.HOST = dataclasses.replace(
             layer_planes.HOST, nearest=layer_planes._nearest_transform,
-            distance=layer_planes.distance_to, fill=layer_planes.harmonic_fill)
+            distance=layer_planes.distance_to, fill=layer_planes.harmonic_fill,
+            **({"labels": layer_planes.layer_labels}
+               if "labels" in {f.name for f in dataclasses.fields(layer_planes.HOST)} else {}))
     # each kernel launch waits for its event: the kernels' own time (wall) as rows too
     from clblur.opencl.program import Program
 

@@ -190,14 +190,15 @@ def harmonic_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Transforms:
-    """The three array transforms that building layers spends most of its time in, as one
+    """The array transforms that building layers spends most of its time in, as one
     swappable set: a device backend passes its own (``clblur.opencl.layered.transforms``), with
     the same contracts.
 
     ``nearest(outside)``: (distance, flat index of a nearest pixel that is not ``outside``),
     as :func:`_nearest_transform` (where two pixels are equally near, another implementation
     may pick the other one); ``distance(inside, at=None)``: :func:`distance_to`, exact;
-    ``fill(values, known)``: :func:`harmonic_fill`, to float32 rounding.  ``threads``:
+    ``fill(values, known)``: :func:`harmonic_fill`, to float32 rounding.
+    ``labels(order, rule=...)``: ``clblur.layering.layer_labels``, exactly.  ``threads``:
     whether independent ``nearest`` calls run on threads side by side (a device queue
     serialises them anyway).
     """
@@ -205,6 +206,7 @@ class Transforms:
     nearest: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
     distance: Callable[..., np.ndarray]
     fill: Callable[[np.ndarray, np.ndarray], np.ndarray]
+    labels: Callable[..., np.ndarray] = layer_labels
     threads: bool = True  # independent transforms may run side by side (scipy's release the GIL)
 
 
@@ -329,7 +331,7 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     margin = int(math.ceil(band + r)) + 3
     crop = bounding_box(region, margin)
     (r0, r1), (c0, c1) = (crop[0].start, crop[0].stop), (crop[1].start, crop[1].stop)
-    labels = layer_labels(order[crop], rule=rule)
+    labels = transforms.labels(order[crop], rule=rule)
     last = int(labels.max())
     if last == 0 and background is None:
         return None

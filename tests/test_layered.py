@@ -663,14 +663,16 @@ def test_layer_build_is_checked(opencl, monkeypatch):
 
 
 def test_device_layer_build_runs_the_device_transforms(opencl, crossing, monkeypatch):
-    """With build="device" the region and the layers' transforms run on the device (not
-    silently on the host), and the result is the host build's within the layered tolerance."""
-    from clblur.opencl import fill, nearest, region
+    """With build="device" the region, the labels and the layers' transforms run on the
+    device (not silently on the host), and the result is the host build's within the layered
+    tolerance."""
+    from clblur.opencl import fill, labels, nearest, region
 
     sc, frame, truth, flow, depth, swept = crossing
     calls = []
     for module, name in ((nearest, "nearest_transform"), (nearest, "distance"),
-                         (fill, "harmonic_fill"), (region, "region_and_reach")):
+                         (fill, "harmonic_fill"), (region, "region_and_reach"),
+                         (labels, "layer_labels")):
         real = getattr(module, name)
         monkeypatch.setattr(module, name, lambda *a, _r=real, _n=name, **k: (calls.append(_n),
                                                                            _r(*a, **k))[1])
@@ -679,5 +681,6 @@ def test_device_layer_build_runs_the_device_transforms(opencl, crossing, monkeyp
     assert not calls
     monkeypatch.setenv("CLBLUR_LAYER_BUILD", "device")
     dev = clblur.blur(frame, flow, "srgb", backend="opencl", depth=depth)
-    assert {"nearest_transform", "distance", "harmonic_fill", "region_and_reach"} <= set(calls)
+    assert {"nearest_transform", "distance", "harmonic_fill", "region_and_reach",
+            "layer_labels"} <= set(calls)
     agree(host, dev)

@@ -11,10 +11,11 @@ Conventions
   result is the plain gather of the backend, bit for bit (the fused output); at flagged pixels
   the layers are built by ``clblur.layered_exposure.prepare`` (shared with the numpy
   reference), composited in float32 by ``clblur/opencl/layered.cl``, and finished on the host.
-  On a GPU (``integrator``'s ``build``) the region, the distance transforms and the membrane
-  fill of that build run on the device (``clblur/opencl/region.cl``, ``nearest.cl``,
-  ``fill.cl``); the rest of ``prepare`` (the layer labels, the planes' assembly) and the
-  sample counts are still host work.
+  On a GPU (``integrator``'s ``build``) the region, the layer labels, the distance
+  transforms and the membrane fill of that build run on the device
+  (``clblur/opencl/region.cl``, ``labels.cl``, ``nearest.cl``, ``fill.cl``), and the
+  compositing kernel counts its own samples; the rest of ``prepare`` (the split of mixed
+  pixels, the planes' assembly) is still host work.
   Tolerance against the numpy reference: ``docs/tolerances.md`` ("Layered exposure").
 """
 
@@ -28,7 +29,7 @@ import numpy as np
 
 from clblur import layered_exposure as layered
 from clblur import reference
-from clblur.layer_planes import HOST, Transforms
+from clblur.layer_planes import Transforms
 from clblur.opencl.constants import LANES, LAYERED_MAXK, build_defines
 from clblur.opencl.device import pyopencl_module
 from clblur.opencl.program import Program
@@ -193,14 +194,16 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
 
 
 def transforms(device: str | None = None) -> Transforms:
-    """The device's distance transforms and membrane fill for building layers
-    (``clblur.layer_planes.Transforms``): ``clblur.opencl.nearest`` and
-    ``clblur.opencl.fill``, looked up at each call."""
-    from clblur.opencl import fill, nearest
+    """The device's layer labels, distance transforms and membrane fill for building layers
+    (``clblur.layer_planes.Transforms``): ``clblur.opencl.labels``, ``clblur.opencl.nearest``
+    and ``clblur.opencl.fill``, looked up at each call."""
+    from clblur.opencl import fill, labels, nearest
 
     return Transforms(nearest=lambda outside: nearest.nearest_transform(outside, device),
                       distance=lambda inside, at=None: nearest.distance(inside, at, device),
                       fill=lambda values, known: fill.harmonic_fill(values, known, device),
+                      labels=lambda order, rule="depth": labels.layer_labels(
+                          order, rule=rule, device=device),
                       threads=False)
 
 
@@ -210,8 +213,8 @@ BUILDS = ("auto", "device", "host")
 def integrator(device: str | None = None, build: str | None = None):
     """The sparse layered integrator on the device (``clblur.pipeline`` Conventions).
 
-    ``build``: where the layered region is found and the layers' distance transforms and
-    membrane fill run: ``"device"`` (``clblur.opencl.region`` and :func:`transforms`),
+    ``build``: where the layered region is found and the layers' labels, distance transforms
+    and membrane fill run: ``"device"`` (``clblur.opencl.region`` and :func:`transforms`),
     ``"host"`` (``clblur.layered_exposure.region_mask``, ``clblur.layer_planes.HOST``), or
     ``"auto"``: the device when it is a GPU (there the host's versions were most of a
     layered call's time, ``bench/results_occlusion_gpu.md``), else the host (on a CPU device
@@ -238,7 +241,7 @@ def integrator(device: str | None = None, build: str | None = None):
             ops = transforms(device)
             region, r = device_region.region_and_reach(v, plan.anchor, device=device)
         else:
-            ops, r = HOST, None
+            ops, r = None, None  # prepare's default: layer_planes.HOST, looked up per call
             region = layered.region_mask(v, plan.anchor)
         if not region.any():
             return None
