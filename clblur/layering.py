@@ -14,8 +14,8 @@ import math
 import numpy as np
 
 __all__ = ["DEPTH_TAU", "GAP_FRACTION", "MAX_LAYERS", "NAMED_ORDERS", "departure_order",
-           "depth_components", "layer_labels", "layer_of_components", "named_order",
-           "order_components", "rank_components", "sliver_targets", "speed_order"]
+           "depth_components", "layer_labels", "layer_of_components", "median_keys",
+           "named_order", "order_components", "rank_components", "sliver_targets", "speed_order"]
 
 # the orderings computed from the motion itself (``clblur.blur``'s ``depth="speed"`` etc.)
 NAMED_ORDERS = ("speed", "departure")
@@ -271,21 +271,27 @@ def order_components(depth: np.ndarray, comp: np.ndarray, n: int) -> tuple[list[
     # median log-depth of each component's boundary pixels (of all its pixels if it has none)
     at = border if np.bincount(comp[border], minlength=n).all() else \
         border | ~np.isin(comp, np.unique(comp[border]))
-    c_at, z_at = comp[at], logz[at]
-    srt = np.lexsort((z_at, c_at))
-    c_at, z_at = c_at[srt], z_at[srt]
-    start = np.searchsorted(c_at, np.arange(n))
-    end = np.searchsorted(c_at, np.arange(n), side="right")
-    lo_i, hi_i = (start + end - 1) // 2, (start + end) // 2
-    with np.errstate(invalid="ignore"):
-        keys = [float(x) for x in np.where(z_at[lo_i] == z_at[hi_i], z_at[lo_i],
-                                           0.5 * (z_at[lo_i] + z_at[hi_i]))]
+    keys = median_keys(comp[at], logz[at], n)
     before = []
     for (lo, hi), parts in pairs.items():
         med = float(np.median(np.concatenate(parts)))
         if med != 0.0:
             before.append((lo, hi) if med > 0 else (hi, lo))
     return rank_components(keys, before), keys
+
+
+def median_keys(c_at: np.ndarray, z_at: np.ndarray, n: int) -> list[float]:
+    """Each of the ``n`` components' key for :func:`order_components`: the median (numpy's:
+    the middle value, or the mean of the middle two) of the log-depths ``z_at`` of its
+    pixels ``c_at`` (every component present at least once)."""
+    srt = np.lexsort((z_at, c_at))
+    c_at, z_at = c_at[srt], z_at[srt]
+    start = np.searchsorted(c_at, np.arange(n))
+    end = np.searchsorted(c_at, np.arange(n), side="right")
+    lo_i, hi_i = (start + end - 1) // 2, (start + end) // 2
+    with np.errstate(invalid="ignore"):
+        return [float(x) for x in np.where(z_at[lo_i] == z_at[hi_i], z_at[lo_i],
+                                           0.5 * (z_at[lo_i] + z_at[hi_i]))]
 
 
 def rank_components(keys: list[float], before: list[tuple[int, int]]) -> list[int]:

@@ -20,6 +20,7 @@ import os
 import re
 import threading
 from dataclasses import dataclass, field
+from importlib import resources
 
 import numpy as np
 
@@ -135,6 +136,18 @@ class Runtime:
         if opts not in self.programs:
             self.programs[opts] = Program(self.context, kernel_source(), opts)
         return self.programs[opts]
+
+    def built(self, files: tuple[str, ...], *options: str) -> Program:
+        """The program of this package's kernel ``files`` (their sources joined in order)
+        built with the shared constants (``build_defines``) and ``options``: built once, then
+        kept in ``programs``, keyed by the files and the options."""
+        opts = (*build_defines(), *options)
+        key = (*files, *opts)
+        if key not in self.programs:
+            root = resources.files("clblur.opencl")
+            source = "\n".join(root.joinpath(name).read_text() for name in files)
+            self.programs[key] = Program(self.context, source, opts)
+        return self.programs[key]
 
     def all_queues(self) -> tuple:
         """The main queue first, then the extra ones."""

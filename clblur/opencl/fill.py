@@ -23,12 +23,9 @@ Conventions
 
 from __future__ import annotations
 
-from importlib import resources
-
 import numpy as np
 
 from clblur.layer_planes import FILL_SWEEPS, FILL_SWEEPS_MAX
-from clblur.opencl.constants import build_defines
 from clblur.opencl.device import pyopencl_module
 from clblur.opencl.program import Program
 
@@ -55,15 +52,11 @@ def _program(rt, channels: int) -> Program:
     """The fill program for ``channels`` value channels, built once per runtime and options
     (kept in the runtime's program cache, keyed by its build options)."""
     cl = pyopencl_module()
-    options = (*build_defines(), f"-DCHANNELS={channels}")
+    options = (f"-DCHANNELS={channels}",)
     if rt.device.single_fp_config & cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT:
         # value / weight rounded as numpy rounds it (OpenCL's default allows 2.5 ulp)
         options += ("-cl-fp32-correctly-rounded-divide-sqrt",)
-    key = ("fill.cl", *options)
-    if key not in rt.programs:
-        source = resources.files("clblur.opencl").joinpath("fill.cl").read_text()
-        rt.programs[key] = Program(rt.context, source, options)
-    return rt.programs[key]
+    return rt.built(("fill.cl",), *options)
 
 
 def _support_down(mask: np.ndarray) -> np.ndarray:

@@ -100,69 +100,45 @@ inline bool joined(__local const double *lw, const int at, const int stride, con
     return ok;
 }
 
-/* Root of x in a parent array where parent[x] <= x (roots point to themselves). */
-inline int local_find(__local volatile int *parent, int x)
-{
-    int up = parent[x];
-    while (up != x) {
-        x = up;
-        up = parent[x];
+/* Find and union on a parent array where parent[x] <= x (roots point to themselves), for
+ * local (within a tile) and global (across seams) memory alike: OpenCL C 1.2 has no generic
+ * address space, so one macro writes both.
+ *
+ * Find: the root of x.  Union of the sets of a and b, lock-free (Playne and Hawick, "A new
+ * algorithm for parallel connected-component labelling on GPUs", IEEE TPDS 2018): the larger
+ * root is linked under the smaller with atomic_min; if it was no longer a root (another
+ * work-item linked it), the min still left it pointing at a member of the merged set, and the
+ * loop merges on from its parent.  Parents only decrease, so it terminates. */
+#define UNION_FIND(space, find, unite)                                                     \
+    inline int find(space volatile int *parent, int x)                                    \
+    {                                                                                     \
+        int up = parent[x];                                                               \
+        while (up != x) {                                                                 \
+            x = up;                                                                       \
+            up = parent[x];                                                               \
+        }                                                                                 \
+        return x;                                                                         \
+    }                                                                                     \
+    inline void unite(space volatile int *parent, int a, int b)                           \
+    {                                                                                     \
+        for (;;) {                                                                        \
+            a = find(parent, a);                                                          \
+            b = find(parent, b);                                                          \
+            if (a == b)                                                                   \
+                return;                                                                   \
+            if (a > b) {                                                                  \
+                const int t = a;                                                          \
+                a = b;                                                                    \
+                b = t;                                                                    \
+            }                                                                             \
+            const int old = atomic_min(&parent[b], a);                                    \
+            if (old == b)                                                                 \
+                return;                                                                   \
+            b = old;                                                                      \
+        }                                                                                 \
     }
-    return x;
-}
-
-inline int global_find(__global volatile int *parent, int x)
-{
-    int up = parent[x];
-    while (up != x) {
-        x = up;
-        up = parent[x];
-    }
-    return x;
-}
-
-/* Union of the sets of a and b, lock-free (Playne and Hawick, "A new algorithm for parallel
- * connected-component labelling on GPUs", IEEE TPDS 2018): the larger root is linked under
- * the smaller with atomic_min; if it was no longer a root (another work-item linked it), the
- * min still left it pointing at a member of the merged set, and the loop merges on from its
- * parent.  Parents only decrease, so it terminates. */
-inline void local_union(__local volatile int *parent, int a, int b)
-{
-    for (;;) {
-        a = local_find(parent, a);
-        b = local_find(parent, b);
-        if (a == b)
-            return;
-        if (a > b) {
-            const int t = a;
-            a = b;
-            b = t;
-        }
-        const int old = atomic_min(&parent[b], a);
-        if (old == b)
-            return;
-        b = old;
-    }
-}
-
-inline void global_union(__global volatile int *parent, int a, int b)
-{
-    for (;;) {
-        a = global_find(parent, a);
-        b = global_find(parent, b);
-        if (a == b)
-            return;
-        if (a > b) {
-            const int t = a;
-            a = b;
-            b = t;
-        }
-        const int old = atomic_min(&parent[b], a);
-        if (old == b)
-            return;
-        b = old;
-    }
-}
+UNION_FIND(__local, local_find, local_union)
+UNION_FIND(__global, global_find, global_union)
 
 /* 2-D launch (x: column, y: row), local size LABELS_TILE x LABELS_TILE.  Per pixel the join
  * bits (each pixel computes the joins to all four neighbours itself: the same operations give

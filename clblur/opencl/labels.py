@@ -38,13 +38,11 @@ from __future__ import annotations
 
 import ctypes
 from dataclasses import dataclass
-from importlib import resources
 
 import numpy as np
 
 from clblur import layering
 from clblur.layering import DEPTH_TAU, MAX_LAYERS
-from clblur.opencl.constants import build_defines
 from clblur.opencl.device import pyopencl_module
 from clblur.opencl.program import Program
 
@@ -60,13 +58,8 @@ _U = 2.0 ** -53  # unit roundoff of float64
 def _program(rt, depth_type: str) -> Program:
     """The labels program for ``depth_type`` (``float`` or ``double``) input, built once per
     runtime and options (kept in the runtime's program cache, keyed by its build options)."""
-    options = (*build_defines(), f"-DDEPTH_T={depth_type}", f"-DLABELS_TILE={TILE}",
-               f"-DLABELS_WG={WG}")
-    key = ("labels.cl", *options)
-    if key not in rt.programs:
-        source = resources.files("clblur.opencl").joinpath("labels.cl").read_text()
-        rt.programs[key] = Program(rt.context, source, options)
-    return rt.programs[key]
+    return rt.built(("labels.cl",), f"-DDEPTH_T={depth_type}", f"-DLABELS_TILE={TILE}",
+                    f"-DLABELS_WG={WG}")
 
 
 def _padded(n: int, m: int) -> int:
@@ -347,14 +340,7 @@ def _order_and_cut(order: np.ndarray, code, x, y, n: int,
     z_at = logz_all[first]
     if not np.bincount(c_at, minlength=n).all():
         return None
-    srt = np.lexsort((z_at, c_at))
-    c_at, z_at = c_at[srt], z_at[srt]
-    start = np.searchsorted(c_at, np.arange(n))
-    end = np.searchsorted(c_at, np.arange(n), side="right")
-    lo_i, hi_i = (start + end - 1) // 2, (start + end) // 2
-    with np.errstate(invalid="ignore"):
-        keys = [float(v) for v in np.where(z_at[lo_i] == z_at[hi_i], z_at[lo_i],
-                                           0.5 * (z_at[lo_i] + z_at[hi_i]))]
+    keys = layering.median_keys(c_at, z_at, n)
     # median over each pair's boundary pairs (np.median: the middle one, or the mean of the
     # middle two); only its sign is used
     key = lo.astype(np.int64) * n + hi

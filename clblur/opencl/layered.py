@@ -23,14 +23,13 @@ from __future__ import annotations
 
 import os
 from dataclasses import replace
-from importlib import resources
 
 import numpy as np
 
 from clblur import layered_exposure as layered
 from clblur import reference
 from clblur.layer_planes import Transforms
-from clblur.opencl.constants import LANES, LAYERED_MAXK, build_defines
+from clblur.opencl.constants import LANES, LAYERED_MAXK
 from clblur.opencl.device import pyopencl_module
 from clblur.opencl.program import Program
 from clblur.request import BlurPlan
@@ -48,16 +47,10 @@ def _program(rt, channels: int, curved: bool = False,
     """The compositing program for ``channels`` light channels, straight or curved paths and
     ``steps`` fixed-point steps of the inverse motion, built once per runtime and options
     (kept in the runtime's program cache, keyed by its build options)."""
-    options = (*build_defines(), f"-DCHANNELS={channels}", f"-DCURVED={int(curved)}",
-               f"-DINVERSE_STEPS={int(steps)}", *(("-DHAVE_FP64",) if rt.fp64 else ()))
-    key = ("layered.cl", *options)
-    if key not in rt.programs:
-        root = resources.files("clblur.opencl")
-        # counts.cl first: the sample counts the gather uses too (one home for the formula)
-        source = "\n".join(root.joinpath(name).read_text() for name in ("counts.cl",
-                                                                         "layered.cl"))
-        rt.programs[key] = Program(rt.context, source, options)
-    return rt.programs[key]
+    # counts.cl first: the sample counts the gather uses too (one home for the formula)
+    return rt.built(("counts.cl", "layered.cl"), f"-DCHANNELS={channels}",
+                    f"-DCURVED={int(curved)}", f"-DINVERSE_STEPS={int(steps)}",
+                    *(("-DHAVE_FP64",) if rt.fp64 else ()))
 
 
 class OpenCLStages:

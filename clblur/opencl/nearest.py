@@ -18,11 +18,8 @@ Conventions
 
 from __future__ import annotations
 
-from importlib import resources
-
 import numpy as np
 
-from clblur.opencl.constants import build_defines
 from clblur.opencl.device import pyopencl_module
 from clblur.opencl.program import Program
 
@@ -35,12 +32,7 @@ GROUP = 64  # work-items per group: global sizes are padded to it (the kernels g
 def _program(rt) -> Program:
     """The distance-transform program, built once per runtime (kept in the runtime's program
     cache, keyed by its build options)."""
-    options = tuple(build_defines())
-    key = ("nearest.cl", *options)
-    if key not in rt.programs:
-        source = resources.files("clblur.opencl").joinpath("nearest.cl").read_text()
-        rt.programs[key] = Program(rt.context, source, options)
-    return rt.programs[key]
+    return rt.built(("nearest.cl",))
 
 
 def _padded(n: int) -> int:

@@ -33,13 +33,11 @@ Conventions
 from __future__ import annotations
 
 import math
-from importlib import resources
 
 import numpy as np
 
 from clblur.halo import reach
 from clblur.layered_exposure import SPREAD_PX, TILE
-from clblur.opencl.constants import build_defines
 from clblur.opencl.device import pyopencl_module
 from clblur.opencl.program import Program
 
@@ -58,12 +56,7 @@ CPU_RUN = 16
 def _program(rt) -> Program:
     """The region program, built once per runtime (kept in the runtime's program cache,
     keyed by its build options)."""
-    options = tuple(build_defines())
-    key = ("region.cl", *options)
-    if key not in rt.programs:
-        source = resources.files("clblur.opencl").joinpath("region.cl").read_text()
-        rt.programs[key] = Program(rt.context, source, options)
-    return rt.programs[key]
+    return rt.built(("region.cl",))
 
 
 def _padded(n: int, step: int) -> int:
