@@ -312,14 +312,15 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
             dtype: type = np.float64, transforms: Transforms | None = None,
             r: float | None = None) -> Layers | None:
     """Build the layers around ``region`` (H x W bool) from the linear image, the vectors and
-    the ordering signal; ``background``: the linear clean plate, if known.  Host-side, shared
-    by both backends.  ``lin``: the linear image, or a function that returns the linear image
-    of a crop ``(row slice, col slice)`` (so only the crop is linearised).  None when the
+    the ordering signal; ``background``: the linear clean plate, if known.  Composed on the
+    host and shared by both backends (a device supplies its ``transforms``).  ``lin``: the
+    linear image, or a function that returns the linear image of a crop ``(row slice, col
+    slice)`` (so only the crop is linearised).  None when the
     ordering gives one layer there: a single surface is what the gather integrates.
     ``rule``: how a float ``order`` becomes layers (:func:`layer_labels`); ``dtype``: of
     the planes (a device backend takes float32: the same values as float64 planes rounded,
-    built without the float64 copy); ``transforms``: the distance transforms and the fill
-    (:class:`Transforms`; None: :data:`HOST`); ``r``: ``reach(v, anchor)`` where the caller
+    built without the float64 copy); ``transforms``: the labels, the distance transforms and
+    the fill (:class:`Transforms`; None: :data:`HOST`); ``r``: ``reach(v, anchor)`` where the caller
     has it already (a pass over the whole field otherwise)."""
     import cv2
     from scipy.ndimage import maximum_filter, minimum_filter
