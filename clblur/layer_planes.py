@@ -8,6 +8,7 @@ a coverage fitted to their light (:func:`split_coverage`).
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 from collections.abc import Callable
@@ -260,17 +261,21 @@ def _inpaint(lin: np.ndarray, known: np.ndarray, depth: float,
     return out
 
 
+_BRUTE_PAIRS = 1 << 21  # pairs of pixels _nearest_pixel measures directly (16 MB of int64)
 _CROSS = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], np.uint8)  # 4-neighbours and the pixel
 
-# offsets within 3 px, nearest first (ties in a fixed order)
-_NEAR = sorted(((dy, dx) for dy in range(-3, 4) for dx in range(-3, 4) if dy or dx),
-               key=lambda o: (o[0] * o[0] + o[1] * o[1], o))
+# offsets of the 7 x 7 square nearer than 4 px (the corners, at 4.24 px, could hide a pixel
+# at 4 - 4.2 px outside the square), nearest first (ties in a fixed order)
+_NEAR = sorted(((dy, dx) for dy in range(-3, 4) for dx in range(-3, 4)
+                if 0 < dy * dy + dx * dx < 16), key=lambda o: (o[0] * o[0] + o[1] * o[1], o))
 
 
 def _nearest_pixel(inside: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(rows, cols) of a nearest ``inside`` pixel to each ``at`` pixel (row-major order of
-    ``at``): looked up within 3 px, then by a distance transform for the rest (mixed pixels
-    lie next to their layer, so the lookup nearly always succeeds)."""
+    """(rows, cols) of a nearest ``inside`` pixel (not empty) to each ``at`` pixel (row-major
+    order of ``at``): looked up under 4 px, then for the rest by distances to every
+    ``inside`` pixel where there are few pairs, else by a distance transform of the box
+    around them (mixed pixels lie next to their layer, so the lookup nearly always
+    succeeds)."""
     from scipy.ndimage import distance_transform_edt
 
     h, w = inside.shape
@@ -285,9 +290,45 @@ def _nearest_pixel(inside: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.n
         todo &= ~hit
         if not todo.any():
             return ry, rx
-    idx = distance_transform_edt(~inside, return_indices=True)[1]
-    ry[todo], rx[todo] = idx[0][ys[todo], xs[todo]], idx[1][ys[todo], xs[todo]]
-    return ry, rx
+    # the rest (few: pixels of a sliver far from its layer's core; a whole-frame transform
+    # for them was most of this function's time on real flows)
+    ty, tx = ys[todo], xs[todo]
+    iy, ix = np.nonzero(inside)
+    if iy.size * ty.size <= _BRUTE_PAIRS:
+        # few pixels of the layer (a layer of slivers): every pair, the first nearest in
+        # row-major order
+        d2 = (ty[:, None] - iy[None, :]) ** 2 + (tx[:, None] - ix[None, :]) ** 2
+        pick = np.argmin(d2, axis=1)
+        ry[todo], rx[todo] = iy[pick], ix[pick]
+        return ry, rx
+    # else the transform of a box around them, grown until each one's nearest pixel is
+    # nearer than the box's cut edges (then every pixel at that distance lies in the box, and
+    # the transform picks among them as it does on the whole array); growing the box by the
+    # largest shortfall settles it in one more transform, as no pixel's distance grows
+    margin = 8
+    while True:
+        b0, b1 = max(ty.min() - margin, 0), min(ty.max() + 1 + margin, h)
+        a0, a1 = max(tx.min() - margin, 0), min(tx.max() + 1 + margin, w)
+        if 2 * (b1 - b0) * (a1 - a0) >= h * w:
+            b0, b1, a0, a1 = 0, h, 0, w  # most of the array: the whole of it
+        box = inside[b0:b1, a0:a1]
+        if not box.any():
+            margin *= 2
+            continue
+        dist, idx = distance_transform_edt(~box, return_indices=True)
+        py, px = ty - b0, tx - a0
+        d = dist[py, px]
+        # distance from each pixel to the box's edges that cut the array (inf: none)
+        edge = np.full(ty.size, np.inf)
+        for cut, gap in ((b0 > 0, py + 1), (b1 < h, b1 - b0 - py), (a0 > 0, px + 1),
+                         (a1 < w, a1 - a0 - px)):
+            if cut:
+                edge = np.minimum(edge, gap)
+        short = d >= edge
+        if not short.any():
+            ry[todo], rx[todo] = idx[0][py, px] + b0, idx[1][py, px] + a0
+            return ry, rx
+        margin += int(np.ceil((d[short] - edge[short]).max())) + 1
 
 
 def split_coverage(light: np.ndarray, front: np.ndarray, behind: np.ndarray) -> np.ndarray:
@@ -433,18 +474,19 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     vectors = np.zeros((last + 1,) + hw + (2,), np.float32)
     present = np.zeros((last + 1,) + hw, bool)
     warped = np.zeros(last + 1, bool)
-    kept = 0
+    # Each layer's extent and vectors first (cheap), then the transforms that find how far
+    # its region pixels are from it (a transform of the window per layer) side by side with
+    # the fills and the planes' assembly, where the transforms may run on threads.
+    shapes = []  # (k, extent, vectors, own mixed pixels) of the layers a sample can read
     for k in range(last + 1):
         if k == last and background is not None:
             # the clean plate is what lies behind everything, and it does not move
-            at_or_behind = (lab_w >= k)[..., None]
             ext_w = np.ones(hw, bool)
-            colour_w = np.where(at_or_behind, lin_w, background[crop][win])
-            vec_w = np.where(at_or_behind, v_w, np.float32(0))
+            vec_w = np.where((lab_w >= k)[..., None], v_w, np.float32(0))
             mine_w = np.zeros(hw, bool)
         else:
             if k == 0:
-                ext_w, colour_w, vec_w = lab_w == 0, lin_w, v_w
+                ext_w, vec_w = lab_w == 0, v_w
             else:
                 dist, flat = behind_edt(k)
                 # nearest pixel at or behind layer k (itself there)
@@ -452,47 +494,68 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
                 # only the rearmost layer is assumed to continue far under what hides it
                 ext_w = (_at(labels, nearest_w) == k) & (dist[win] <= (band if k == last
                                                                        else MID_EXTEND_PX))
-                colour_w = fill(k)
                 vec_w = _at(v_c, nearest_w)
             mine_w = split_w & (lab_w == k)
-        if not ext_w.any():
-            continue  # no sample of the region reads this layer
-        cover_w = np.ones(hw)
-        if mine_w.any():
-            behind_w = (background[crop][win] if background is not None and k == last - 1
-                        else fill(k + 1))
-            cover_w[mine_w] = split_coverage(lin_w[mine_w], pure[win][mine_w],
-                                             behind_w[mine_w])
-        m = ext_w * cover_w
-        plane = planes[kept]
-        np.multiply(colour_w, m[..., None], out=plane[..., :ch])
-        plane[..., ch] = m
-        if mine_w.any():
-            # premultiplied: what the pixel holds beyond the light behind it, so the
-            # composite at the anchor time is the image itself
-            plane[..., :ch][mine_w] = ((lin_w[mine_w]
-                                        - (1.0 - cover_w[mine_w][:, None]) * behind_w[mine_w])
-                                       * ext_w[mine_w][:, None])
-        # D_k: the vector of the nearest pixel of the (extended) layer.  A layer nearer to a
-        # region pixel than its reach plus 1.5 lies inside the window, so the transform of
-        # the window finds it.  A layer in rigid translation (one vector) needs only the
-        # distance: every nearest pixel carries that vector, and the composite reads it at
-        # the region's pixels only.  A warped layer's field covers the window: the composite
-        # reads it where its samples land.
+        if ext_w.any():  # else no sample of the region reads this layer
+            shapes.append((k, ext_w, vec_w, mine_w))
+
+    # D_k: the vector of the nearest pixel of the (extended) layer.  A layer nearer to a
+    # region pixel than its reach plus 1.5 lies inside the window, so the transform of the
+    # window finds it.  A layer in rigid translation (one vector) needs only the distance:
+    # every nearest pixel carries that vector, and the composite reads it at the region's
+    # pixels only.  A warped layer's field covers the window: the composite reads it where
+    # its samples land.
+    def rigid_vector(ext_w: np.ndarray, vec_w: np.ndarray) -> np.ndarray | None:
         first = vec_w[np.unravel_index(np.argmax(ext_w), hw)]
-        if not (((vec_w[..., 0] != first[0]) | (vec_w[..., 1] != first[1])) & ext_w).any():
-            dist_at = transforms.distance(ext_w, at)
-            d_at = np.broadcast_to(first.astype(np.float32), (at[0].size, 2))
-            vectors[kept][at] = d_at
-        else:
-            dist, nearest = transforms.nearest(~ext_w)
-            dist_at = dist[at]
-            vectors[kept] = _at(vec_w, nearest)
-            d_at = vectors[kept][at]
-            warped[kept] = True
-        farthest = np.hypot(d_at[:, 0], d_at[:, 1]) * max(anchor, 1.0 - anchor)
-        present[kept][at] = dist_at <= farthest + 1.5  # a bilinear footprint reaches sqrt(2) px
-        kept += 1
+        same = ~(((vec_w[..., 0] != first[0]) | (vec_w[..., 1] != first[1])) & ext_w).any()
+        return first if same else None
+
+    rigid = [rigid_vector(ext_w, vec_w) for _, ext_w, vec_w, _ in shapes]
+
+    def reach_of(i: int):
+        ext_w = shapes[i][1]
+        return transforms.distance(ext_w, at) if rigid[i] is not None else \
+            transforms.nearest(~ext_w)
+
+    threads = transforms.threads and len(shapes) > 1 and (os.cpu_count() or 1) > 1
+    with ThreadPoolExecutor(min(len(shapes), os.cpu_count() or 1)) if threads else \
+            contextlib.nullcontext() as pool:
+        reaches = [pool.submit(reach_of, i) for i in range(len(shapes))] if threads else None
+        for i, (k, ext_w, vec_w, mine_w) in enumerate(shapes):
+            if k == last and background is not None:
+                colour_w = np.where((lab_w >= k)[..., None], lin_w, background[crop][win])
+            else:
+                colour_w = lin_w if k == 0 else fill(k)
+            cover_w = np.ones(hw)
+            if mine_w.any():
+                behind_w = (background[crop][win] if background is not None and k == last - 1
+                            else fill(k + 1))
+                cover_w[mine_w] = split_coverage(lin_w[mine_w], pure[win][mine_w],
+                                                 behind_w[mine_w])
+            m = ext_w * cover_w
+            plane = planes[i]
+            np.multiply(colour_w, m[..., None], out=plane[..., :ch])
+            plane[..., ch] = m
+            if mine_w.any():
+                # premultiplied: what the pixel holds beyond the light behind it, so the
+                # composite at the anchor time is the image itself
+                plane[..., :ch][mine_w] = ((lin_w[mine_w] - (1.0 - cover_w[mine_w][:, None])
+                                            * behind_w[mine_w]) * ext_w[mine_w][:, None])
+            found = reaches[i].result() if threads else reach_of(i)
+            if rigid[i] is not None:
+                dist_at = found
+                d_at = np.broadcast_to(rigid[i].astype(np.float32), (at[0].size, 2))
+                vectors[i][reg] = rigid[i]
+            else:
+                dist, nearest = found
+                dist_at = dist[reg]
+                vectors[i] = _at(vec_w, nearest)
+                d_at = vectors[i][reg]
+                warped[i] = True
+            farthest = np.hypot(d_at[:, 0], d_at[:, 1]) * max(anchor, 1.0 - anchor)
+            # a bilinear footprint reaches sqrt(2) px
+            present[i][reg] = dist_at <= farthest + 1.5
+    kept = len(shapes)
     return Layers(origin=(int(r0 + win[0].start), int(c0 + win[1].start)),
                   planes=planes[:kept], vectors=vectors[:kept], flow=own[win],
                   linear=lin_w, region=reg, present=present[:kept], warped=warped[:kept])

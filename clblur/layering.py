@@ -179,9 +179,13 @@ def depth_components(depth: np.ndarray) -> tuple[np.ndarray, int]:
                                           (comp[:-1, :][~down], comp[1:, :][~down]))
                       for x, y in ((a, b), (b, a))]  # x's neighbour y
         target = sliver_targets(interior, mean_w, neighbours)
-        _, comp_new = np.unique(target[comp], return_inverse=True)
-        comp = comp_new.reshape(h, wd)
-        n = int(comp.max()) + 1
+        # renumber the surviving components 0..n-1 in the order of their ids (what
+        # np.unique(target[comp], return_inverse=True) gives, without sorting every pixel:
+        # every component has a pixel, so the ids in use are target's values)
+        used = np.zeros(n, bool)
+        used[target] = True
+        comp = (np.cumsum(used) - 1)[target][comp]
+        n = int(used.sum())
     return comp.astype(np.int32), n
 
 

@@ -599,6 +599,75 @@ def test_distance_to_is_scipys_transform_bit_for_bit():
         np.testing.assert_array_equal(distance_to(inside, at), want[at])
 
 
+def test_nearest_pixel_is_a_nearest_pixel(monkeypatch):
+    """layer_planes._nearest_pixel gives a nearest ``inside`` pixel, as far as a whole-array
+    distance transform's, by each of its routes: the lookup under 4 px, distances to every
+    pixel of a sparse ``inside``, and the transform of a box around the pixels left (ties
+    picked as the whole transform picks them)."""
+    from scipy.ndimage import distance_transform_edt
+
+    from clblur import layer_planes
+
+    rng = np.random.default_rng(5)
+    for brute in (1 << 21, 0):  # the pairs route where it fits, then never
+        monkeypatch.setattr(layer_planes, "_BRUTE_PAIRS", brute)
+        far_seen = 0
+        for case in range(60):
+            h, w = rng.integers(5, 90, 2)
+            if case % 2:  # a sparse grid: many pixels with several nearest ones, far apart
+                inside = np.zeros((h, w), bool)
+                inside[rng.integers(0, 4)::rng.integers(5, 25),
+                       rng.integers(0, 4)::rng.integers(5, 25)] = True
+            else:
+                inside = rng.random((h, w)) < rng.choice([0.003, 0.03, 0.3])
+            inside[rng.integers(h), rng.integers(w)] = True
+            at = (rng.random((h, w)) < 0.2) & ~inside
+            dist, idx = distance_transform_edt(~inside, return_indices=True)
+            ys, xs = np.nonzero(at)
+            ry, rx = layer_planes._nearest_pixel(inside, at)
+            assert inside[ry, rx].all()
+            np.testing.assert_allclose(np.hypot(ry - ys, rx - xs), dist[at], rtol=1e-12)
+            far = dist[at] >= 4.0
+            far_seen += int(far.sum())
+            if not brute:
+                np.testing.assert_array_equal(ry[far], idx[0][at][far])
+                np.testing.assert_array_equal(rx[far], idx[1][at][far])
+        assert far_seen > 100
+
+
+def test_sliver_merge_numbers_the_surfaces_as_unique_does(monkeypatch):
+    """depth_components renumbers the components left after slivers merge 0..n-1 in the
+    order of the components they merged into (np.unique's inverse), without sorting every
+    pixel."""
+    from clblur import layering
+
+    targets = []
+
+    def recorded(*args):
+        targets.append(real(*args))
+        return targets[-1]
+    real = layering.sliver_targets
+    monkeypatch.setattr(layering, "sliver_targets", recorded)
+    rng = np.random.default_rng(9)
+    merged = 0
+    for _ in range(40):
+        h, w = rng.integers(4, 40, 2)
+        blocks = rng.choice([1.0, 3.0, 9.0, np.inf], size=(h // 3 + 1, w // 3 + 1))
+        depth = np.kron(blocks, np.ones((3, 3)))[:h, :w]
+        depth = np.where(rng.random((h, w)) < 0.15, rng.choice([1.5, 4.0, 20.0], (h, w)), depth)
+        targets.clear()
+        comp, n = layering.depth_components(depth)
+        if not targets:
+            continue  # no sliver
+        wi = layering._inverse_depth(depth)
+        _, raw = layering._components(layering._continuous(wi, 1), layering._continuous(wi, 0))
+        uniq, want = np.unique(targets[0][raw], return_inverse=True)
+        assert comp.dtype == np.int32 and n == uniq.size
+        np.testing.assert_array_equal(comp, want.reshape(h, w))
+        merged += int(uniq.size < targets[0].size)
+    assert merged > 5
+
+
 def test_grid_components_number_as_scipy_does():
     """layering._components (OpenCV on a twice-as-fine grid) against the sparse graph."""
     from scipy.sparse import coo_matrix
