@@ -468,6 +468,9 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
            slice(max(inner[1].start, c0) - c0, min(inner[1].stop, c1) - c0))
     reg = region[crop][win]
     at = np.nonzero(reg)
+    # the region's pixels as flat indices of the window: read with np.take and written by
+    # index (a boolean mask of a large window is many times slower either way)
+    reg_flat = np.flatnonzero(reg)
     lab_w, split_w, lin_w, v_w = labels[win], split[win], lin_c[win], v_c[win]
     hw, ch = reg.shape, lin_c.shape[2]
     planes = np.empty((last + 1,) + hw + (ch + 1,), dtype)
@@ -545,16 +548,16 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
             if rigid[i] is not None:
                 dist_at = found
                 d_at = np.broadcast_to(rigid[i].astype(np.float32), (at[0].size, 2))
-                vectors[i][reg] = rigid[i]
+                vectors[i].reshape(-1, 2)[reg_flat] = rigid[i]
             else:
                 dist, nearest = found
-                dist_at = dist[reg]
+                dist_at = _at(dist, reg_flat)
                 vectors[i] = _at(vec_w, nearest)
-                d_at = vectors[i][reg]
+                d_at = _at(vectors[i], reg_flat)
                 warped[i] = True
             farthest = np.hypot(d_at[:, 0], d_at[:, 1]) * max(anchor, 1.0 - anchor)
             # a bilinear footprint reaches sqrt(2) px
-            present[i][reg] = dist_at <= farthest + 1.5
+            present[i].reshape(-1)[reg_flat] = dist_at <= farthest + 1.5
     kept = len(shapes)
     return Layers(origin=(int(r0 + win[0].start), int(c0 + win[1].start)),
                   planes=planes[:kept], vectors=vectors[:kept], flow=own[win],

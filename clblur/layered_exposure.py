@@ -152,7 +152,8 @@ def _inverse_departure(v: np.ndarray, anchor: float, at: tuple[np.ndarray, np.nd
     import cv2
 
     v = np.ascontiguousarray(v, np.float32)
-    own = v[at]
+    # by flat index (np.take): fancy indexing of a frame's vectors is several times slower
+    own = np.take(v.reshape(-1, 2), np.ravel_multi_index(tuple(at), v.shape[:2]), axis=0)
     n = own.shape[0]
     ys, xs = (a.astype(np.float32) for a in at)
     out = np.zeros(n, np.float32)
@@ -169,7 +170,9 @@ def _inverse_departure(v: np.ndarray, anchor: float, at: tuple[np.ndarray, np.nd
         my = rows(ys - own[:, 1] * np.float32(t))
         there = cv2.remap(v, mx, my, cv2.INTER_LINEAR,
                           borderMode=cv2.BORDER_REPLICATE).reshape(-1, 2)[:n]
-        np.maximum(out, abs(t) * np.abs(there - own).max(axis=1), out=out)
+        step = np.abs(there - own)
+        # the larger of x and y (two columns compared, not a reduction over pairs)
+        np.maximum(out, abs(t) * np.maximum(step[:, 0], step[:, 1]), out=out)
     return out
 
 
@@ -221,13 +224,14 @@ def region_mask(v: np.ndarray, anchor: float, tile: int = TILE,
     return out
 
 
-def _where_present(field: np.ndarray, pick: tuple, there: np.ndarray,
+def _where_present(field: np.ndarray, pick: np.ndarray | None, there: np.ndarray,
                    rigid: bool) -> np.ndarray:
-    """A layer's field (vectors or curvature) at the ``pick`` pixels where it is ``there``,
-    n x 2; for a rigid layer, whose field is one value wherever it is present, that value
-    once (1 x 2)."""
-    f = field[pick]
-    return f[np.unravel_index(np.argmax(there), there.shape)][None] if rigid else f[there]
+    """A layer's field (vectors or curvature, h x w x 2) at the ``pick`` pixels (flat
+    indices; None: every pixel) where it is ``there``, n x 2; for a rigid layer, whose field
+    is one value wherever it is present, that value once (1 x 2)."""
+    flat = field.reshape(-1, 2)
+    where = np.flatnonzero(there) if pick is None else pick[there]
+    return flat[where[:1]] if rigid else np.take(flat, where, axis=0)
 
 
 def counts(layers: Layers, samples: int | None,
@@ -239,14 +243,20 @@ def counts(layers: Layers, samples: int | None,
     shape = layers.region.shape if at is None else at[0].shape
     if samples is not None:
         return np.full(shape, samples, np.int32)
-    pick = (Ellipsis,) if at is None else tuple(at)
-    flow = layers.flow[pick]
+    # flat indices of the crop (np.take): fancy or boolean indexing of the large fields
+    # was most of this function's time on real flows
+    pick = None if at is None else np.ravel_multi_index(tuple(at), layers.region.shape)
+
+    def of(a: np.ndarray) -> np.ndarray:  # a (h x w [x 2]) at the picked pixels
+        return a.reshape(shape + a.shape[2:]) if pick is None else \
+            np.take(a.reshape((-1,) + a.shape[2:]), pick, axis=0)
+    flow = of(layers.flow)
     n = sample_counts(flow[..., 0], flow[..., 1])
     reach = layers.present if layers.reach is None else layers.reach
     for k, (d, there) in enumerate(zip(layers.vectors, reach, strict=True)):
         # a layer that can reach the pixel: its D_k there (one layer at a time, only where
         # it is present: far fewer pixels than the crop times the layers)
-        there = there[pick]
+        there = of(there)
         if there.any():
             rigid = not layers.warped[k]
             dk = _where_present(d, pick, there, rigid)

@@ -109,11 +109,11 @@ def run(plan: BlurPlan, backend: Backend = NUMPY,
         rows, cols, values = patch
         # finish the patch as a 1-pixel-wide image with the plan's channels
         column = backend.finish(values[:, None, :], replace(plan, squeeze=False))
-        out = out.copy() if not out.flags.writeable else out
-        if plan.squeeze:
-            out[rows, cols] = column[:, 0, 0]
-        else:
-            out[rows, cols] = column[:, 0]
+        out = out.copy() if not out.flags.writeable or not out.flags.c_contiguous else out
+        # by flat index: fancy (rows, cols) indexing of a whole frame is several times slower
+        flat = out.reshape((-1,) + out.shape[2:])
+        flat[np.ravel_multi_index((rows, cols), out.shape[:2])] = \
+            column[:, 0, 0] if plan.squeeze else column[:, 0]
         return out
     return backend.finish(integrate(backend.linearise(plan), plan), plan)
 

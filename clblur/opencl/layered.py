@@ -161,8 +161,10 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
             crow, cchunk = np.nonzero(occupied.any(axis=2))
             on = occupied[crow, cchunk]  # lanes on the region (none past the crop)
             ccol = cchunk * LANES
-            lane_n = np.zeros(on.shape, np.int32)
-            lane_n[on] = counts  # row-major, as (rows, cols)
+            # the lanes on the region by flat index (boolean masks of this size are slow)
+            lanes_on = np.flatnonzero(on)
+            lane_n = np.zeros(on.size, np.int32)
+            lane_n[lanes_on] = counts  # row-major, as (rows, cols)
             lanes_out = np.empty((crow.size * LANES, channels), np.float32)
             out_buf = cl.Buffer(rt.context, mf.WRITE_ONLY, lanes_out.nbytes)
             items = -(-crow.size // LANE_GROUP) * LANE_GROUP
@@ -170,7 +172,7 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
                         chunks=buf(np.stack([crow, ccol], axis=1).astype(np.int32)),
                         counts=buf(lane_n), n=crow.size, out=out_buf, **args)
             cl.enqueue_copy(rt.queue, lanes_out, out_buf, is_blocking=True)
-            return lanes_out[on.ravel()]
+            return np.take(lanes_out, lanes_on, axis=0)
         out_buf = cl.Buffer(rt.context, mf.WRITE_ONLY, max(out.nbytes, 16))
         pix = np.stack([rows, cols], axis=1).astype(np.int32)
         # the kernel counts samples itself where it can (a host pass over the region's
