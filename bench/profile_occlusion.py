@@ -10,7 +10,7 @@ left out, so the same script profiles an older tree:
 
 Run:  python bench/profile_occlusion.py [--scene static|panning] [--calls 10]
 (``CLBLUR_LAYER_BUILD=device|host`` picks where the layers' transforms run; default: the
-device on a GPU, the host on a CPU device)
+device)
 Prints a Markdown table (per call, mean over the calls after one warm-up call); the
 ``kernel`` rows time each OpenCL launch to its completion (their CPU is all the process's
 threads, the device's included).

@@ -294,6 +294,8 @@ def _nearest_pixel(inside: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.n
     # for them was most of this function's time on real flows)
     ty, tx = ys[todo], xs[todo]
     iy, ix = np.nonzero(inside)
+    if not iy.size:
+        raise ValueError("_nearest_pixel: no inside pixel")
     if iy.size * ty.size <= _BRUTE_PAIRS:
         # few pixels of the layer (a layer of slivers): every pair, the first nearest in
         # row-major order

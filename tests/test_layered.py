@@ -732,9 +732,9 @@ def test_layer_build_is_checked(opencl, monkeypatch):
 
 
 def test_device_layer_build_runs_the_device_transforms(opencl, crossing, monkeypatch):
-    """With build="device" the region, the labels and the layers' transforms run on the
-    device (not silently on the host), and the result is the host build's within the layered
-    tolerance."""
+    """With build="device", and by default on any device, the region, the labels and the
+    layers' transforms run on the device (not silently on the host), and the result is the
+    host build's within the layered tolerance."""
     from clblur.opencl import fill, labels, nearest, region
 
     sc, frame, truth, flow, depth, swept = crossing
@@ -750,6 +750,12 @@ def test_device_layer_build_runs_the_device_transforms(opencl, crossing, monkeyp
     assert not calls
     monkeypatch.setenv("CLBLUR_LAYER_BUILD", "device")
     dev = clblur.blur(frame, flow, "srgb", backend="opencl", depth=depth)
-    assert {"nearest_transform", "distance", "harmonic_fill", "region_and_reach",
-            "layer_labels"} <= set(calls)
+    on_device = {"nearest_transform", "distance", "harmonic_fill", "region_and_reach",
+                 "layer_labels"}
+    assert on_device <= set(calls)
     agree(host, dev)
+    calls.clear()
+    monkeypatch.delenv("CLBLUR_LAYER_BUILD")
+    default = clblur.blur(frame, flow, "srgb", backend="opencl", depth=depth)
+    assert on_device <= set(calls)
+    np.testing.assert_array_equal(default, dev)
