@@ -560,10 +560,10 @@ def test_opencl_cpu_layout_is_the_one_pixel_kernel_bit_for_bit(opencl, crossing)
         np.testing.assert_allclose(one, ref, atol=2e-5, rtol=1e-5)
 
 
-def test_opencl_own_counts_are_the_hosts(opencl, crossing, spinning):
-    """composite_layers counting samples in the kernel (counts.cl) gives the bits of the
+def test_opencl_own_counts_are_the_hosts(opencl, crossing, spinning, monkeypatch):
+    """Both compositing kernels counting samples themselves (counts.cl) give the bits of the
     host's counts (clblur.layered_exposure.counts), on rigid and turning layers, lengths just
-    off integers included."""
+    off integers included; the counts matter (one sample fewer changes the result)."""
     from clblur.layer_planes import prepare
     from clblur.opencl import runtime
     from clblur.opencl.layered import composite
@@ -578,10 +578,16 @@ def test_opencl_own_counts_are_the_hosts(opencl, crossing, spinning):
     for lin, v, d in cases:
         region = layered.region_mask(v, 0.5)
         layers = prepare(lin, v, d, 0.5, region)
-        kw = dict(lanes=False)
-        own = composite(layers, 0.5, None, None, d.shape, own_counts=True, **kw)
-        host = composite(layers, 0.5, None, None, d.shape, own_counts=False, **kw)
-        np.testing.assert_array_equal(own, host)
+        for lanes in (False, True):
+            kw = dict(lanes=lanes)
+            own = composite(layers, 0.5, None, None, d.shape, own_counts=True, **kw)
+            host = composite(layers, 0.5, None, None, d.shape, own_counts=False, **kw)
+            np.testing.assert_array_equal(own, host)
+    fewer = layered.counts(layers, None, np.nonzero(layers.region)) - 1
+    monkeypatch.setattr(layered, "counts", lambda *a, **k: fewer)
+    for lanes in (False, True):
+        short = composite(layers, 0.5, None, None, d.shape, own_counts=False, lanes=lanes)
+        assert not np.array_equal(short, own)
 
 
 def test_distance_to_is_scipys_transform_bit_for_bit():

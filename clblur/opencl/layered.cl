@@ -12,8 +12,9 @@
  *   is read from it), so that with CP = 4 every read is one float4 per tap.
  * - present: K x h x w, 0 where layer k cannot reach the pixel at any sample (skipped).
  * - One work-item per listed pixel (pix: n x 2 (row, col) in the crop); counts: its sample
- *   count N (composite_layers with own_counts != 0: counted in the kernel instead, with
- *   counts.cl's sample_count); weights: N time weights when weighted != 0, else 1/N each,
+ *   count N (with own_counts != 0, on a device with fp64: counted in the kernel instead, with
+ *   counts.cl's sample_count; composite_lanes then reads counts as 1 on the region, 0 off
+ *   it); weights: N time weights when weighted != 0, else 1/N each,
  *   or with ends != 0
  *   (the continuous exposure, clblur/motion.py sample_weight) 1/(N-1) each but half of it
  *   at j = 0 and j = N - 1 (1 when N = 1).
@@ -401,7 +402,8 @@ __kernel void composite_lanes(__global const float *planes, __global const float
                               __global const uchar *present, __global const uchar *warped,
                               __global const float *curvature,
                               __global const int *chunks,
-                              __global const int *counts, __global const float *weights,
+                              __global const int *counts, int own_counts,
+                              __global const float *weights,
                               int weighted, int ends, int n, int layers, int h, int w, int r0,
                               int c0, int fh, int fw, float anchor, __global float *out)
 {
@@ -410,6 +412,9 @@ __kernel void composite_lanes(__global const float *planes, __global const float
         return;
     int row = chunks[2 * i], col0 = chunks[2 * i + 1];
     size_t plane = (size_t)h * w * CP;
+    /* counts: each lane's N (0: not on the region); with own_counts, 1 on the region and N
+     * counted here as composite_layers counts it: the largest over the pixel's own vector
+     * and the vectors of the layers present at it (in the layer loop below) */
     int8 N = vload8(i, counts);
     int ns[LANES];
     vstore8(N, 0, ns);
@@ -419,6 +424,10 @@ __kernel void composite_lanes(__global const float *planes, __global const float
         ats[l] = (size_t)row * w + min(col0 + l, w - 1);
         fxs[l] = flow[2 * ats[l]];
         fys[l] = flow[2 * ats[l] + 1];
+#ifdef HAVE_FP64
+        if (own_counts && ns[l] > 0)
+            ns[l] = sample_count(fxs[l], fys[l]);
+#endif
     }
     float8 fx = vload8(0, fxs), fy = vload8(0, fys);
     /* the layers that can reach any lane, front to back, with their vectors and lane masks */
@@ -441,6 +450,10 @@ __kernel void composite_lanes(__global const float *planes, __global const float
             any |= flags[l];
             vxs[l] = vectors[2 * at];
             vys[l] = vectors[2 * at + 1];
+#ifdef HAVE_FP64
+            if (own_counts && flags[l])
+                ns[l] = max(ns[l], sample_count(vxs[l], vys[l]));
+#endif
 #if CURVED
             cxs[l] = curvature[2 * at];
             cys[l] = curvature[2 * at + 1];
@@ -458,6 +471,7 @@ __kernel void composite_lanes(__global const float *planes, __global const float
         there[m] = vload8(0, flags);
         ++m;
     }
+    N = vload8(0, ns);
     int nmax = max(max(max(N.s0, N.s1), max(N.s2, N.s3)), max(max(N.s4, N.s5), max(N.s6, N.s7)));
     float8 den = convert_float8(max(N - 1, 1));
     float8 n1 = convert_float8(N - 1);

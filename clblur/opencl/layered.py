@@ -13,8 +13,8 @@ Conventions
   reference), composited in float32 by ``clblur/opencl/layered.cl``, and finished on the host.
   By default (``integrator``'s ``build``) the region, the layer labels, the distance
   transforms and the membrane fill run on the device (``clblur/opencl/region.cl``,
-  ``labels.cl``, ``nearest.cl``, ``fill.cl``), and on a GPU the compositing kernel counts
-  its own samples; the rest of ``prepare`` (the split of mixed
+  ``labels.cl``, ``nearest.cl``, ``fill.cl``), and the compositing kernels count their own
+  samples on a device with fp64; the rest of ``prepare`` (the split of mixed
   pixels, the planes' assembly) is still host work.
   Tolerance against the numpy reference: ``docs/tolerances.md`` ("Layered exposure").
 """
@@ -99,9 +99,9 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
     three light channels only) or not (``composite_layers``, one pixel per work-item); the
     default picks it for three channels on a CPU device.  Both give the same bits.
     ``ends``: the ``continuous`` exposure with per-pixel counts (``BlurPlan.ends``).
-    ``own_counts``: whether ``composite_layers`` counts each pixel's samples itself (exact,
-    the host's ``clblur.layered_exposure.counts``); the default does where it can (a device
-    with fp64, straight paths, per-pixel counts, no ``Layers.reach``).
+    ``own_counts``: whether the kernel counts each pixel's samples itself (exact, the host's
+    ``clblur.layered_exposure.counts``); only where it can (a device with fp64, straight
+    paths, per-pixel counts, no ``Layers.reach``), which is the default.
     Returns the exposures of the region's pixels (n x C float32, row-major order of the
     region)."""
     from clblur.opencl import runtime
@@ -150,8 +150,16 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
                     anchor=anchor)
         if lanes and cp != 4:
             raise ValueError("the CPU compositing layout takes three light channels")
+        # the kernel counts samples itself where it can (a host pass over the region's
+        # pixels and every layer cost 5 ms on an H100 host, the kernel's whole run 0.7 ms;
+        # 13 ms of a 0.5 s real-flow half-exposure on PoCL)
+        can_count = (rt.fp64 and samples is None and layers.curvature is None
+                     and layers.reach is None)
+        own = can_count if own_counts is None else bool(own_counts) and can_count
         if lanes or (lanes is None and cp == 4 and not rt.gpu):
-            counts = layered.counts(layers, samples, (rows, cols)).astype(np.int32)
+            # own counts: 1 marks a lane on the region, the kernel counts its samples
+            counts = np.ones(n, np.int32) if own else \
+                layered.counts(layers, samples, (rows, cols)).astype(np.int32)
             # CPU: LANES consecutive pixels of a row per work-item (layered.cl); the chunks
             # of LANES columns that hold region pixels, row-major
             wide = -(-w // LANES) * LANES
@@ -170,15 +178,12 @@ def composite(layers: layered.Layers, anchor: float, samples: int | None,
             items = -(-crow.size // LANE_GROUP) * LANE_GROUP
             program.run("composite_lanes", rt.queue, (items,), (LANE_GROUP,),
                         chunks=buf(np.stack([crow, ccol], axis=1).astype(np.int32)),
-                        counts=buf(lane_n), n=crow.size, out=out_buf, **args)
+                        counts=buf(lane_n), own_counts=int(own), n=crow.size, out=out_buf,
+                        **args)
             cl.enqueue_copy(rt.queue, lanes_out, out_buf, is_blocking=True)
             return np.take(lanes_out, lanes_on, axis=0)
         out_buf = cl.Buffer(rt.context, mf.WRITE_ONLY, max(out.nbytes, 16))
         pix = np.stack([rows, cols], axis=1).astype(np.int32)
-        # the kernel counts samples itself where it can (a host pass over the region's
-        # pixels and every layer cost 5 ms on an H100 host, the kernel's whole run 0.7 ms)
-        own = own_counts if own_counts is not None else (
-            rt.fp64 and samples is None and layers.curvature is None and layers.reach is None)
         counts = np.zeros(1, np.int32) if own else \
             layered.counts(layers, samples, (rows, cols)).astype(np.int32)
         program.run("composite_layers", rt.queue, (-(-n // GROUP) * GROUP,), (GROUP,),
