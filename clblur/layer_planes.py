@@ -214,6 +214,16 @@ class Transforms:
 HOST = Transforms(nearest=_nearest_transform, distance=distance_to, fill=harmonic_fill)
 
 
+def _pool(transforms: Transforms, tasks: int) -> ThreadPoolExecutor | None:
+    """Threads for ``tasks`` independent transforms where they can run side by side (more
+    than one task, more than one core, transforms that release the interpreter lock), else
+    None: run them in turn."""
+    cores = os.cpu_count() or 1
+    if transforms.threads and tasks > 1 and cores > 1:
+        return ThreadPoolExecutor(min(tasks, cores))
+    return None
+
+
 def _inpaint(lin: np.ndarray, known: np.ndarray, depth: float,
              nearest: tuple[np.ndarray, np.ndarray] | None = None,
              needed: np.ndarray | None = None,
@@ -444,8 +454,9 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     # every layer behind the first reads its transform below (the rearmost one not when a
     # plate stands for it); scipy releases the interpreter lock, so they run side by side
     wanted = [k for k in range(1, last + 1) if not (k == last and background is not None)]
-    if len(wanted) > 1 and (os.cpu_count() or 1) > 1 and transforms.threads:
-        with ThreadPoolExecutor(min(len(wanted), os.cpu_count() or 1)) as pool:
+    pool = _pool(transforms, len(wanted))
+    if pool is not None:
+        with pool:
             found = list(pool.map(lambda k: transforms.nearest(labels < k), wanted))
         nearest_at_or_behind.update(zip(wanted, found, strict=True))
 
@@ -522,10 +533,10 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
         return transforms.distance(ext_w, at) if rigid[i] is not None else \
             transforms.nearest(~ext_w)
 
-    threads = transforms.threads and len(shapes) > 1 and (os.cpu_count() or 1) > 1
-    with ThreadPoolExecutor(min(len(shapes), os.cpu_count() or 1)) if threads else \
-            contextlib.nullcontext() as pool:
-        reaches = [pool.submit(reach_of, i) for i in range(len(shapes))] if threads else None
+    pool = _pool(transforms, len(shapes))
+    with pool or contextlib.nullcontext():
+        reaches = None if pool is None else [pool.submit(reach_of, i)
+                                             for i in range(len(shapes))]
         for i, (k, ext_w, vec_w, mine_w) in enumerate(shapes):
             if k == last and background is not None:
                 colour_w = np.where((lab_w >= k)[..., None], lin_w, background[crop][win])
@@ -546,7 +557,7 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
                 # composite at the anchor time is the image itself
                 plane[..., :ch][mine_w] = ((lin_w[mine_w] - (1.0 - cover_w[mine_w][:, None])
                                             * behind_w[mine_w]) * ext_w[mine_w][:, None])
-            found = reaches[i].result() if threads else reach_of(i)
+            found = reach_of(i) if reaches is None else reaches[i].result()
             if rigid[i] is not None:
                 dist_at = found
                 d_at = np.broadcast_to(rigid[i].astype(np.float32), (at[0].size, 2))
