@@ -226,6 +226,33 @@ def test_bad_motion_and_options():
         blur(img, np.zeros((3, 3)))
 
 
+@pytest.mark.parametrize("dtype", [np.float16, np.float32, np.float64])
+def test_check_flow_refuses_exactly_the_bad_components(dtype, rng):
+    """The two-reduction fast path of ``check_flow`` lets through exactly what the counting
+    does: one bad component anywhere (first, last, middle) is refused with its count, and
+    the bounds +-FLOW_LIMIT themselves are accepted."""
+    from clblur.motion import FLOW_LIMIT, check_flow
+
+    flow = rng.uniform(-40, 40, (9, 11, 2)).astype(dtype)
+    check_flow(flow)
+    check_flow(flow[:0])  # empty: nothing to refuse
+    if dtype != np.float16:  # a half cannot hold the limit's neighbours
+        edge = flow.copy()
+        edge[0, 0, 0], edge[-1, -1, 1] = -FLOW_LIMIT, FLOW_LIMIT
+        check_flow(edge)
+    bad_values = [np.nan, np.inf, -np.inf]
+    if dtype != np.float16:
+        bad_values += [np.nextafter(dtype(FLOW_LIMIT), dtype(np.inf)), dtype(-1e9)]
+    for value in bad_values:
+        for at in ((0, 0, 0), (4, 5, 1), (8, 10, 1)):
+            bad = flow.copy()
+            bad[at] = value
+            kind = "NaN or infinite" if not np.isfinite(value) else "beyond"
+            with pytest.raises(ValueError, match=f"contains 1 {kind}|contains 1 value\\(s\\) "
+                                                 f"{kind}"):
+                check_flow(bad)
+
+
 @pytest.mark.parametrize("backend", ["numpy", "opencl"])
 def test_far_flow_with_fixed_samples_reads_the_edge(backend, rng, request):
     """A 1e9 px flow pixel with a fixed sample count equals any other vector that leaves the
