@@ -406,6 +406,10 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
         back = maximum_filter(labels, size=3, mode="nearest")
     split = (front != back) if split_edges else np.zeros(labels.shape, bool)
     labels = np.where(split, front, labels)
+    # a surface whose every pixel is mixed (a line at most 2 px wide) has joined the layers
+    # in front of it whole: behind the deepest layer left there is no pixel at all, so no
+    # transform to the nearest one (a layer without pixels is no layer)
+    deepest = int(labels.max())
     own = v_c  # the image's own vectors, for light no layer covers
     v_c = v_c.copy()
     pure = lin_c.copy()  # at a split pixel: the light of the nearest unmixed pixel of its layer
@@ -453,7 +457,7 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
 
     # every layer behind the first reads its transform below (the rearmost one not when a
     # plate stands for it); scipy releases the interpreter lock, so they run side by side
-    wanted = [k for k in range(1, last + 1) if not (k == last and background is not None)]
+    wanted = [k for k in range(1, deepest + 1) if not (k == last and background is not None)]
     pool = _pool(transforms, len(wanted))
     if pool is not None:
         with pool:
@@ -463,6 +467,8 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     def fill(k: int) -> np.ndarray:
         """The linear image with everything nearer than layer ``k`` reconstructed (on the
         window ``win``)."""
+        if k not in fills and k > deepest:  # nothing at or behind k: nothing to reconstruct
+            fills[k] = lin_c[win].copy()
         if k not in fills:
             # an intermediate layer extends MID_EXTEND_PX under what hides it, and a mixed
             # pixel lies within 2 px of what is behind it: deeper, nothing reads the fill
@@ -500,6 +506,8 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
             ext_w = np.ones(hw, bool)
             vec_w = np.where((lab_w >= k)[..., None], v_w, np.float32(0))
             mine_w = np.zeros(hw, bool)
+        elif k > deepest:
+            continue  # no pixel left on it (above)
         else:
             if k == 0:
                 ext_w, vec_w = lab_w == 0, v_w

@@ -471,6 +471,35 @@ def test_opencl_layered_matches_the_reference(opencl, crossing, dtype, build, mo
 
 
 @BUILDS
+@pytest.mark.parametrize("plate", [False, True])
+def test_a_rearmost_surface_of_mixed_pixels_only_is_no_layer(opencl, build, plate,
+                                                             monkeypatch):
+    """A far surface at most 2 px wide (a wire, a pole) has only mixed pixels: they all join
+    the layers in front, and nothing is left at or behind it.  Both builds skip it as the
+    reference does (the device's nearest transform used to be asked for a transform with no
+    pixel to be nearest to and refused the blur)."""
+    monkeypatch.setenv("CLBLUR_LAYER_BUILD", build)
+    rng = np.random.default_rng(3)
+    h, w = 48, 64
+    img = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    flow = np.zeros((h, w, 2), np.float32)
+    depth = np.full((h, w), 5.0)
+    depth[:, 30:32] = 50.0  # the rearmost surface: a 2 px line
+    depth[20:32, 33:35] = 80.0  # and a second one behind it, as thin
+    depth[10:30, 10:25] = 1.0  # a moving object in front
+    flow[10:30, 10:25] = (6.0, 0.0)
+    labels = layered.layer_labels(depth)
+    assert labels.max() == 3  # four surfaces before the mixed pixels are split
+    opts = dict(background=img[::-1].copy()) if plate else {}
+    ref = clblur.blur(img, flow, "srgb", backend="numpy", depth=depth, **opts)
+    got = clblur.blur(img, flow, "srgb", backend="opencl", depth=depth, **opts)
+    agree(ref, got)
+    # the layered path ran: the object's light lands on the background beyond its silhouette
+    plain = clblur.blur(img, flow, "srgb", backend="numpy")
+    assert not np.array_equal(ref[10:30, 25:31], plain[10:30, 25:31])
+
+
+@BUILDS
 @pytest.mark.parametrize("dtype", [np.uint8, np.float32])
 def test_opencl_turning_layers_match_the_reference(opencl, spinning, dtype, build, monkeypatch):
     """The inverse motion of warped layers (layered.cl inverse_motion) on the device."""
