@@ -10,8 +10,9 @@ Conventions
   through a response.  Integer images carry straight alpha: colour is linearised, then
   premultiplied by the coverage ``a = code / Imax``; after integration the colour exposure is
   divided by the integrated coverage, the response re-applied, and both quantised (colour 0
-  where the coverage is 0).  Float images carry premultiplied alpha: the colour channels are
-  linearised as given and come out premultiplied; coverage is integrated as is.
+  where the coverage rounds to code 0: a transparent pixel has no colour).  Float images
+  carry premultiplied alpha: the colour channels are linearised as given and come out
+  premultiplied; coverage is integrated as is.
 """
 
 from __future__ import annotations
@@ -144,7 +145,11 @@ def finish(acc: np.ndarray, plan: BlurPlan) -> np.ndarray:
     straight = plan.alpha and plan.dtype.kind == "u"
     if straight:
         a = acc[..., -1]
-        seen = a > 0
+        # a pixel whose coverage rounds to code 0 is transparent in the file: it has no
+        # colour (0).  Its float coverage is a rounding residue whose sign and size depend
+        # on the backend's arithmetic (float32 on a device), and colour / coverage there
+        # would write that residue out as a colour
+        seen = quantise(a, plan.dtype) > 0
         acc = acc.copy()
         acc[..., :colour] = np.where(seen[..., None], acc[..., :colour]
                                      / np.where(seen, a, 1.0)[..., None], 0.0)

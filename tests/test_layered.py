@@ -553,6 +553,60 @@ def test_random_small_scenes_build_and_match_the_reference(opencl, build, monkey
             np.testing.assert_allclose(got, ref, atol=2e-5, rtol=1e-5, err_msg=str(seed))
 
 
+def agree_straight(a: np.ndarray, b: np.ndarray) -> None:
+    """The straight-alpha tolerance of docs/tolerances.md: coverage within 1 code, colour
+    times coverage (what composites over anything) within 2 codes; the colour alone is the
+    premultiplied light divided by the coverage, which scales its float32 rounding by
+    1 / coverage (21 codes of a uint16 pixel at coverage 1 / 65535)."""
+    m = np.iinfo(a.dtype).max
+    a, b = a.astype(np.int64), b.astype(np.int64)
+    assert np.abs(a[..., -1] - b[..., -1]).max() <= 1
+    assert np.abs(a[..., :-1] * (a[..., -1:] / m) - b[..., :-1] * (b[..., -1:] / m)).max() <= 2
+
+
+@BUILDS
+def test_random_small_scenes_with_alpha_match_the_reference(opencl, build, monkeypatch):
+    """``_random_scene`` with a coverage channel (0, 1 and anything between), as straight
+    alpha (integer images) or premultiplied (float images), on both backends."""
+    monkeypatch.setenv("CLBLUR_LAYER_BUILD", build)
+    for seed in range(60):
+        rng = np.random.default_rng(seed)
+        img, flow, order, resp, opts = _random_scene(rng)
+        opts.pop("background", None)
+        cover = rng.random(img.shape[:2])
+        cover[rng.random(cover.shape) < 0.3] = 0.0
+        cover[rng.random(cover.shape) < 0.3] = 1.0
+        colour = (img if img.ndim == 3 else img[..., None])[..., :3]
+        if img.dtype == np.float32:
+            img = np.concatenate([colour * cover[..., None], cover[..., None]], axis=2)
+            img = img.astype(np.float32)
+        else:
+            code = np.rint(cover * np.iinfo(img.dtype).max).astype(img.dtype)
+            img = np.concatenate([colour, code[..., None]], axis=2)
+        ref = clblur.blur(img, flow, resp, backend="numpy", depth=order, alpha=True, **opts)
+        got = clblur.blur(img, flow, resp, backend="opencl", depth=order, alpha=True, **opts)
+        if img.dtype.kind == "u":
+            agree_straight(ref, got)
+        else:
+            np.testing.assert_allclose(got, ref, atol=2e-5, rtol=1e-5, err_msg=str(seed))
+
+
+def test_a_transparent_pixel_has_no_colour():
+    """Straight alpha: where the blurred coverage rounds to code 0 the colour is 0, whatever
+    residue the sums left in the coverage (the backends' residues differ)."""
+    from clblur.reference import finish
+    from clblur.request import make_plan
+
+    img = np.zeros((1, 3, 4), np.uint8)
+    plan = make_plan(img, (0.0, 0.0), "srgb", alpha=True)
+    acc = np.zeros((1, 3, 4))
+    acc[0, :, 3] = [1e-9, 0.49 / 255, 0.51 / 255]  # a residue, under and over half a code
+    acc[0, :, :3] = 0.5 * acc[0, :, 3:]  # premultiplied light: mid-grey where it is seen
+    out = finish(acc, plan)
+    assert out[0, :2].tolist() == [[0, 0, 0, 0], [0, 0, 0, 0]]
+    assert out[0, 2, 3] == 1 and out[0, 2, :3].max() > 0
+
+
 @BUILDS
 @pytest.mark.parametrize("dtype", [np.uint8, np.float32])
 def test_opencl_turning_layers_match_the_reference(opencl, spinning, dtype, build, monkeypatch):
