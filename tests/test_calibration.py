@@ -316,3 +316,35 @@ def test_random_pixels_that_darken_as_the_exposure_grows_are_not_fitted(rng):
     assert hit.sum() > 20  # the draw took corrupt pixels ...
     assert not pixels.valid[hit].any()  # ... and none of their values is fitted
     assert pixels.valid[~hit].any(axis=1).mean() > 0.9  # the rest are kept
+
+
+def test_times_that_do_not_belong_to_the_images_are_named(rng):
+    """A times file in the wrong order (here the longest and the shortest swapped) leaves no
+    patch that brightens with the exposure: the error says so and names the first pair out of
+    order, rather than blaming saturation."""
+    from clblur.calibration.sampling import sample_series
+
+    series, _ = make_stack(gamma_offset_curve(0.03, 2.0), rng)
+    t = series.exposures.copy()
+    t[[0, -1]] = t[[-1, 0]]
+    swapped = ExposureSeries.create(series.images, t, names=[f"e{i}.png" for i in range(len(t))])
+    with pytest.raises(ValueError, match=r"do not brighten with their exposure times .* "
+                                         r"e\d\.png \(exposure [\d.e-]+\) is brighter on "
+                                         r"average than e\d\.png"):
+        sample_series(swapped)
+    sample_series(series)  # the right times: samples
+
+
+def test_too_few_pixels_to_hold_an_exposure_out_is_named():
+    """A series so small that holding one exposure out leaves a channel no patch valid in
+    two exposures: the evaluation's refit says that, not the solver's array message."""
+    from clblur.calibration import calibrate
+    from clblur.camera import Camera, random_scene
+
+    radiance = random_scene(np.random.default_rng(0), (4, 4))
+    times = [2.0 ** (i - 2) for i in range(5)]
+    small = ExposureSeries.create([Camera(response="srgb").capture(radiance, t)
+                                   for t in times], times)
+    with pytest.raises(ValueError, match="keep no sample valid in two exposures: too few "
+                                         "usable pixels"):
+        calibrate(small, ["exp"])

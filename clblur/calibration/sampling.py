@@ -103,8 +103,15 @@ class Sampling:
     def drop_exposure(self, index: int) -> Sampling:
         """The same samples without exposure ``index`` (leave-one-exposure-out)."""
         pix = None if self.pixels is None else [p.drop_exposure(index) for p in self.pixels]
-        return Sampling([c.drop_exposure(index) for c in self.per_channel], self.footprint,
-                        self.patch, self.low, self.high, pix)
+        sets = [c.drop_exposure(index) for c in self.per_channel]
+        # a fit of no samples fails inside the solver with a message about its arrays: name
+        # what is missing instead (a small image's few patches, all valid in two exposures)
+        empty = [i for i, c in enumerate(sets) if len(c) == 0]
+        if empty or (pix is not None and any(len(c) == 0 for c in pix)):
+            raise ValueError(f"without exposure {index} (held out), channel(s) {empty or '*'} "
+                             "keep no sample valid in two exposures: too few usable pixels "
+                             "to fit and evaluate a response")
+        return Sampling(sets, self.footprint, self.patch, self.low, self.high, pix)
 
 
 def valid_mask(values: np.ndarray, low: float = VALID_LOW, high: float = VALID_HIGH):
@@ -179,6 +186,7 @@ def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float =
         raise ValueError(f"images of {h} x {w} are too small for {patch} x {patch} patches")
     footprint = np.zeros((h, w), dtype=bool)
     sets = []
+    seen = falling = 0  # patches valid in two exposures, and those that darken on the way
     for c in range(channels):
         means = np.empty((n, h, w), np.float32)
         # a patch is valid only if every pixel in it is: one clipped pixel biases the mean
@@ -196,9 +204,13 @@ def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float =
         ref = int(np.argmax(ok.reshape(n, -1).sum(axis=1)))
         var = _box_mean(_normalised(images[ref][..., c], fs) ** 2, patch) - means[ref] ** 2
         std = np.sqrt(np.maximum(var, 0.0))
-        usable = (ok.sum(axis=0) >= 2) & _monotone(means, ok, tau_order, monotone_tolerance)
+        usable = ok.sum(axis=0) >= 2
         usable[:r, :] = usable[h - r:, :] = False
         usable[:, :r] = usable[:, w - r:] = False
+        valid = int(usable.sum())
+        usable &= _monotone(means, ok, tau_order, monotone_tolerance)
+        seen += valid
+        falling += valid - int(usable.sum())
         rows, cols = _stratified_pick(means.mean(axis=0), std, usable, n_samples, rng)
         if rows.size == 0:
             continue
@@ -209,6 +221,12 @@ def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float =
         for dy in range(-r, r + 1):
             for dx in range(-r, r + 1):
                 footprint[rows + dy, cols + dx] = True
+    if (not sets or sum(len(s) for s in sets) < 8) and falling > seen // 2:
+        # most patches darken as the exposure grows: the times do not belong to the images
+        raise ValueError("no usable calibration samples: the images do not brighten with "
+                         f"their exposure times ({falling} of {seen} patches valid in two "
+                         f"exposures get darker with a longer one; {_out_of_order(series)}); "
+                         "check the times (their order, their units)")
     if not sets or sum(len(s) for s in sets) < 8:
         raise ValueError("no usable calibration samples: every pixel is saturated (>= "
                          f"{high:g} of full scale) or under-exposed (<= {low:g}) in all but at "
@@ -220,6 +238,20 @@ def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float =
     pixels = _random_pixels(images, fs, footprint, n_pixels, rng, tau_order,
                             monotone_tolerance)
     return Sampling(sets, footprint, patch, low, high, pixels)
+
+
+def _out_of_order(series) -> str:
+    """The first pair of exposures, in time order, whose mean code falls although the
+    exposure grows (for a message), or a note that none does on average."""
+    t = series.relative_exposures()
+    order = np.argsort(t, kind="stable")
+    means = [float(series.images[i].mean()) for i in order]
+    for a, b in zip(range(len(order) - 1), range(1, len(order)), strict=True):
+        if means[a] > means[b]:
+            i, j = int(order[a]), int(order[b])
+            return (f"{series.names[i]} (exposure {series.exposures[i]:g}) is brighter on "
+                    f"average than {series.names[j]} (exposure {series.exposures[j]:g})")
+    return "the image means do rise with the exposure"
 
 
 def _random_pixels(images: list[np.ndarray], full_scale: float, footprint: np.ndarray,
