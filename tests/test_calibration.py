@@ -348,3 +348,36 @@ def test_too_few_pixels_to_hold_an_exposure_out_is_named():
     with pytest.raises(ValueError, match="keep no sample valid in two exposures: too few "
                                          "usable pixels"):
         calibrate(small, ["exp"])
+
+
+def test_a_series_must_brighten_with_its_exposures(rng):
+    """check_brightening: a swapped pair of times and a frame repeated under a longer time are
+    refused, naming the images; a right series with a noisy pedestal in its dark frames (whose
+    pixels near black brighten and darken at random) is not."""
+    from clblur.calibration.series import check_brightening
+
+    series, _ = make_stack(gamma_offset_curve(0.03, 2.0), rng)
+    names = [f"e{i}.png" for i in range(N_EXPOSURES)]
+    x = series.relative_exposures()
+    check_brightening(series.images, x, names)
+    swapped = x.copy()
+    swapped[[3, 4]] = swapped[[4, 3]]
+    with pytest.raises(ValueError, match=r"e4\.png is not brighter than e3\.png although its "
+                                         r"exposure is 2x as long: only 0 %"):
+        check_brightening(series.images, swapped, names)
+    repeated = list(series.images)
+    noise = rng.integers(-1, 2, series.images[4].shape)  # the same frame, noise redrawn
+    repeated[3] = np.clip(series.images[4] + noise, 0, 255).astype(np.uint8)
+    with pytest.raises(ValueError, match=r"e3\.png is not brighter than e4\.png"):
+        check_brightening(repeated, x, names)
+
+
+def test_the_shared_series_brighten_with_their_exposures(shared_data):
+    """No false refusal on real brackets: Memorial (a pedestal of 13 - 18 codes, 16 steps)
+    and the Canon 400D JPEGs (EXIF times, clipping below full scale)."""
+    from clblur.calibration import load_series
+    from clblur.calibration.series import check_brightening
+
+    for folder, times in (("memorial", "memorial/shutter_times.txt"), ("canon400d_road", None)):
+        s = load_series(shared_data / folder, None if times is None else shared_data / times)
+        check_brightening(s.images, s.relative_exposures(), s.names, s.white_level)

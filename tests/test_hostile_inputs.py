@@ -290,6 +290,10 @@ def build_corpus(root: Path) -> None:
     manifest("m_series_fnumber_some.json", {"kind": "exposure-series", "images": [
         {"path": "good.png", "exposure": 1, "f_number": 2.8},
         {"path": "good.jpg", "exposure": 2}]})
+    # times that do not belong to the images: the longer exposure is the darker image
+    write_image(d / "half.png", (img // 2).astype(np.uint8))
+    manifest("m_series_darker.json", {"kind": "exposure-series", "images": [
+        {"path": "good.png", "exposure": 1}, {"path": "half.png", "exposure": 2}]})
     (d / "times_twice.txt").write_text("a.png 1/100\na.png 1/50\n")
 
     # batch manifests (CSV)
@@ -530,9 +534,10 @@ def bad_manifest_cases() -> list[Case]:
     study += [("m_pairs_motion_huge.json", "finite"), ("m_pairs_motion_bool.json", "number"),
               ("m_pairs_ratio_huge.json", "finite"), ("m_pairs_anchor_list.json", "anchor"),
               ("m_series_white.json", "saturated"), ("m_series_same_exposure.json", "same"),
-              ("m_series_fnumber_some.json", "f-number")]
+              ("m_series_fnumber_some.json", "f-number"),
+              ("m_series_darker.json", "not brighter")]
     cases += [Case(f"study:{n}", ("study", f"{{in}}/{n}", "--report", "{out}/r.json",
-                                  "--quiet"), match=w) for n, w in study[-7:]]
+                                  "--quiet"), match=w) for n, w in study[-8:]]
     cases += [  # no output may replace an input, nor land in a folder of inputs
         Case("study:figures-in-inputs", ("study", "{in}/m_series_inputs.json", "--report",
                                          "{out}/r.json", "--figures", "{in}/series",
@@ -558,7 +563,8 @@ def bad_manifest_cases() -> list[Case]:
              ("m_series_empty.json", "non-empty"), ("m_series_traversal.json", "outside"),
              ("m_series_negative.json", "positive"), ("m_series_missing.json", "not found"),
              ("m_pairs_empty.json", "non-empty"), ("zero.json", "manifest"),
-             ("symseries", "outside"), ("nope", "not found")]
+             ("symseries", "outside"), ("nope", "not found"),
+             ("m_series_darker.json", "not brighter")]
     cases += [Case(f"calibrate:{n}", ("calibrate", f"{{in}}/{n}", "-o", "{out}/r.json",
                                       "--quiet"), match=w) for n, w in calib]
     cases += [

@@ -14,7 +14,7 @@ from clblur.calibration.evaluate import EVAL_LOW, FLAT_TOLERANCE, evaluate
 from clblur.calibration.fitting import ResponseFit, fit
 from clblur.calibration.models import MODELS, EmorBasis
 from clblur.calibration.sampling import VALID_LOW, sample_series
-from clblur.calibration.series import ExposureSeries, load_series
+from clblur.calibration.series import ExposureSeries, check_brightening, load_series
 
 __all__ = ["Calibration", "available_models", "calibrate"]
 
@@ -67,6 +67,8 @@ def calibrate(source: ExposureSeries | str | os.PathLike, models=None, *, times=
     is (``ExposureSeries.aligned`` registers one)."""
     series = source if isinstance(source, ExposureSeries) else load_series(source, times,
                                                                             align=align)
+    check_brightening(series.images, series.relative_exposures(), series.names,
+                      series.white_level)
     names = list(dict.fromkeys(models)) if models else available_models(emor_dir)
     unknown = [m for m in names if m not in MODELS]
     if unknown:
