@@ -69,7 +69,8 @@ Conventions
   (``F`` the nearest unmixed pixel of that layer, ``B`` the reconstruction behind; least
   squares over the channels, the colour-line model of alpha matting, pulled towards 1/2
   where ``F`` and ``B`` are alike), and carry ``I - (1 - a) B`` premultiplied, so the
-  composite at the anchor time is the image.
+  composite at the anchor time is the image.  A surface whose every pixel is mixed (at most
+  2 px wide) joins the layers in front of it whole: it is no layer.
 * Tiling windows (``plan.extent``) are not supported with an ordering: layered exposure needs
   the whole image.
 """
