@@ -280,6 +280,8 @@ def build_corpus(root: Path) -> None:
              + "0" * 400 + '}]}')
     manifest("m_pairs_anchor_list.json", {"kind": "blur-pair", "pairs": [
         {**pair, "anchor": ["start"]}]})
+    manifest("m_pairs_motion_long.json", {"kind": "blur-pair", "pairs": [
+        {**pair, "motion": [500, 0]}]})  # longer than the image: no path fits in it
     (d / "times_huge.txt").write_text("1e400\n")
     for name in ("white_a.png", "white_b.png"):  # a series with nothing below white
         write_image(d / name, np.full((48, 64, 3), 255, np.uint8))
@@ -535,9 +537,10 @@ def bad_manifest_cases() -> list[Case]:
               ("m_pairs_ratio_huge.json", "finite"), ("m_pairs_anchor_list.json", "anchor"),
               ("m_series_white.json", "saturated"), ("m_series_same_exposure.json", "same"),
               ("m_series_fnumber_some.json", "f-number"),
-              ("m_series_darker.json", "not brighter")]
+              ("m_series_darker.json", "not brighter"),
+              ("m_pairs_motion_long.json", "too small for their motion")]
     cases += [Case(f"study:{n}", ("study", f"{{in}}/{n}", "--report", "{out}/r.json",
-                                  "--quiet"), match=w) for n, w in study[-8:]]
+                                  "--quiet"), match=w) for n, w in study[-9:]]
     cases += [  # no output may replace an input, nor land in a folder of inputs
         Case("study:figures-in-inputs", ("study", "{in}/m_series_inputs.json", "--report",
                                          "{out}/r.json", "--figures", "{in}/series",

@@ -209,6 +209,11 @@ def study(manifest: str | os.PathLike | Manifest, *, report: str | os.PathLike |
     notes: dict = {}
     groups = groups_from_manifest(m, max_pixels, progress, dtypes, align, notes)
     usable = sum(int(g.valid.sum()) for g in groups)
+    sampled = sum(int(g.valid.shape[0]) for g in groups)
+    if sampled < MIN_USABLE:  # too few target pixels whose whole path lies in the image
+        raise ValueError(f"manifest {m.path}: only {sampled} target pixels can be sampled "
+                         "(a pixel's whole blur path or kernel must lie inside the image): "
+                         "the images are too small for their motion or kernel")
     if usable < MIN_USABLE:  # nothing between black and white: nothing to fit or score
         raise ValueError(f"manifest {m.path}: only {usable} sampled pixel values lie between "
                          "the black and white clipping codes; the images are saturated or "
