@@ -24,9 +24,16 @@ import numpy as np
 from clblur.io import read_flow, resolve_inside, write_flow
 from clblur.pixels import quantise
 
-__all__ = ["METHODS", "FlowEstimator", "FlowFolder", "flow_path", "grey8", "save_flows"]
+__all__ = ["DIS_MIN_SIDE", "METHODS", "FlowEstimator", "FlowFolder", "flow_path", "grey8",
+           "save_flows"]
 
 METHODS = ("dis", "farneback")
+# OpenCV's DIS picks its pyramid from the frame size and reads past its levels when the
+# frame is too small for it: with the medium preset, frames 8 - 15 px high and 48 px or more
+# wide crash the process (OpenCV 5.0: 12 x 64, 15 x 256; opencv/opencv#14554) and smaller
+# ones raise.  Every shape with both sides >= 16 ran (16 - 3000 px, scanned); a smaller frame
+# is padded to that by repeating its edge pixels, and its flow cropped back.
+DIS_MIN_SIDE = 16
 
 
 def grey8(image: np.ndarray) -> np.ndarray:
@@ -65,7 +72,12 @@ class FlowEstimator:
         if a.shape != b.shape:
             raise ValueError(f"frames differ in size: {a.shape} and {b.shape}")
         if self._dis is not None:
-            flow = self._dis.calc(a, b, None)
+            h, w = a.shape
+            grow = (max(DIS_MIN_SIDE - h, 0), max(DIS_MIN_SIDE - w, 0))
+            if any(grow):  # (module constant) the edge repeated: as far as DIS reads, still
+                a, b = (cv2.copyMakeBorder(x, 0, grow[0], 0, grow[1], cv2.BORDER_REPLICATE)
+                        for x in (a, b))
+            flow = self._dis.calc(a, b, None)[:h, :w]
         else:
             flow = cv2.calcOpticalFlowFarneback(a, b, None, pyr_scale=0.5, levels=5,
                                                 winsize=15, iterations=3, poly_n=5,

@@ -193,6 +193,22 @@ def test_flow_estimator_sign_convention():
         FlowEstimator("lucas")
 
 
+def test_dis_flow_of_small_frames():
+    """OpenCV's DIS crashes the process on frames 8 - 15 px high and 48 px or more wide
+    (12 x 64 here, opencv/opencv#14554) and raises on smaller ones: such frames are padded
+    with their edge pixels, and the flow of a strip still finds its motion."""
+    import cv2
+
+    rng = np.random.default_rng(1)
+    tex = cv2.GaussianBlur(rng.integers(0, 256, (40, 120), dtype=np.uint8), (0, 0), 2)
+    for h in (12, 9, 5):
+        src, dst = tex[:h, 10:74], tex[:h, 7:71]  # the content moves 3 px right
+        flow = FlowEstimator("dis")(src, dst)
+        assert flow.shape == (h, 64, 2) and np.isfinite(flow).all()
+        np.testing.assert_allclose(np.median(flow.reshape(-1, 2), axis=0), [3, 0], atol=0.2)
+    assert FlowEstimator("dis")(tex[:1, :1], tex[:1, :1]).shape == (1, 1, 2)
+
+
 # --------------------------------------------------------------------------- files
 
 def moving_frames(n: int, h: int = H, w: int = W, step: int = 3) -> list[np.ndarray]:
