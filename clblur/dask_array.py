@@ -71,11 +71,21 @@ def blur(array, motion, response="exp", *, anchor: str = "center", samples: int 
     make_plan(np.zeros((1, 1) + array.shape[2:], array.dtype), (0.0, 0.0), response,
               anchor=anchor, samples=samples, weights=weights, saturation=saturation,
               exposure=exposure)
-    if array.ndim == 3:
-        array = array.rechunk({2: -1})
-    blur_options = dict(response=response, anchor=anchor, samples=samples, weights=weights,
-                        exposure=exposure, saturation=saturation, backend=backend,
-                        device=device)
+    # one layout inside: H x W x C (a grey image is given back as it came, H x W); with a
+    # flow beside it, map_overlap needs both arrays of one rank
+    grey = array.ndim == 2
+    array = (array[..., None] if grey else array).rechunk({2: -1})
+    out = _blur_hwc(array, flow, fixed, a, (h, w), max_displacement,
+                    dict(response=response, anchor=anchor, samples=samples, weights=weights,
+                         exposure=exposure, saturation=saturation, backend=backend,
+                         device=device))
+    return out[..., 0] if grey else out
+
+
+def _blur_hwc(array, flow, fixed, a: float, extent: tuple[int, int], max_displacement,
+              blur_options: dict):
+    """:func:`blur` of an H x W x C array (its channels one chunk)."""
+    h, w = extent
     if flow is not None and max_displacement is None:
         flow = flow.rechunk((array.chunks[0], array.chunks[1], 2))
         return _blur_own_halos(array, flow, _chunk_halos(flow, a), blur_options)
@@ -83,11 +93,14 @@ def blur(array, motion, response="exp", *, anchor: str = "center", samples: int 
         depth = _flow_depth(max_displacement, a)
     else:
         depth = fixed_halo(fixed, a)
+    # a halo beyond the image is the image (positions clamp to its edge): along an axis no
+    # longer than the halo the chunks merge into one, which needs no overlap at all (and
+    # map_overlap refuses a depth larger than the array)
+    depth = (min(depth[0], h), min(depth[1], w))
     array = _rechunk_at_least(array, depth)
+    depth = tuple(0 if len(array.chunks[i]) == 1 else depth[i] for i in (0, 1))
     options = dict(blur_options, fixed=fixed, halo=depth, grid=array.chunks[:2], extent=(h, w))
-    axes = {0: depth[0], 1: depth[1]}
-    if array.ndim == 3:
-        axes[2] = 0
+    axes = {0: depth[0], 1: depth[1], 2: 0}
     block = partial(_blur_block, **options)
     meta = np.empty((0,) * array.ndim, array.dtype)
     if flow is None:

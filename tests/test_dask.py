@@ -58,6 +58,28 @@ def test_grey_float_image_and_depth_beyond_chunks(rng):
     np.testing.assert_array_equal(out.compute(scheduler="sync"), ref)
 
 
+@pytest.mark.parametrize("shape, chunks, motion", [
+    ((34, 6, 3), (13, 22, 3), (25.0, 4.0)),  # a halo of 15 columns beyond 6
+    ((7, 68), (9, 17), (3.0, -20.0)),  # grey, a halo of 12 rows beyond 7
+    ((1, 38, 1), (21, 26, 1), "flow"),  # one row, a flow and its bound
+    ((27, 56), (14, 8), "flow"),  # grey, a flow and its bound
+])
+def test_halos_beyond_the_image_and_grey_images(rng, shape, chunks, motion):
+    """A motion longer than the image (its halo clipped to the image: map_overlap refuses a
+    depth beyond the array) and a grey image beside a 3-D flow with ``max_displacement``
+    (map_overlap takes arrays of one rank): both refused before, bit for bit now."""
+    img = rng.integers(0, 256, shape, dtype=np.uint8)
+    opts = {}
+    if motion == "flow":
+        motion = rng.normal(0, 15, shape[:2] + (2,)).astype(np.float32)
+        opts["max_displacement"] = tuple(np.abs(motion).reshape(-1, 2).max(axis=0))
+    ref = clblur.blur(img, motion, "srgb", backend="numpy")
+    out = cdask.blur(da.from_array(img, chunks=chunks), motion, "srgb", backend="numpy",
+                     **opts)
+    assert out.shape == img.shape
+    np.testing.assert_array_equal(out.compute(scheduler="sync"), ref)
+
+
 def test_max_displacement_given_and_too_small(rng, image):
     flow = _flow(rng, *image.shape[:2])
     x = da.from_array(image, chunks=(16, 16, 3))
