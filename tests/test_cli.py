@@ -181,3 +181,40 @@ def test_depth_exr_channel_is_never_overwritten(tmp_path, scene, capsys):
                "--backend", "numpy") == 2
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
     assert depth.read_bytes() == before
+
+
+def test_images_written_in_what_their_format_holds(tmp_path, capsys):
+    """OpenCV saturates 16-bit codes into an 8-bit format (a 16-bit photo blurred to .jpg came
+    out white), writes no grey + alpha layout and drops alpha from JPEG without a word: 16-bit
+    codes are scaled to the nearest 8-bit ones, grey + alpha goes out as RGBA, and alpha to
+    JPEG is refused (exit 2 from the command line)."""
+    from clblur.errors import InputError
+
+    ramp = np.linspace(0, 65535, 12 * 16 * 3).reshape(12, 16, 3).astype(np.uint16)
+    for suffix in (".bmp", ".webp", ".jpg"):  # BMP and lossless-enough: the codes, scaled
+        write_image(tmp_path / f"r{suffix}", ramp)
+        back = read_image(tmp_path / f"r{suffix}").astype(np.int64)
+        tol = 0 if suffix == ".bmp" else 12  # JPEG and lossy WebP: their own compression
+        assert np.abs(back - np.rint(ramp / 257.0)).max() <= tol, suffix
+    grey_alpha = np.stack([np.arange(12 * 16).reshape(12, 16) % 256,
+                           np.full((12, 16), 200)], axis=-1).astype(np.uint8)
+    write_image(tmp_path / "ga.png", grey_alpha)
+    back = read_image(tmp_path / "ga.png")
+    assert back.shape == (12, 16, 4)
+    assert np.array_equal(back[..., :3], grey_alpha[..., [0, 0, 0]])
+    assert np.array_equal(back[..., 3], grey_alpha[..., 1])
+    with pytest.raises(InputError, match="JPEG cannot hold alpha"):
+        write_image(tmp_path / "ga.jpg", grey_alpha)
+    write_image(tmp_path / "p16.png", ramp)
+    assert main(["blur", str(tmp_path / "p16.png"), str(tmp_path / "o.jpg"),
+                 "--motion=3,0", "--backend", "numpy"]) == 0
+    out = read_image(tmp_path / "o.jpg")
+    assert out.dtype == np.uint8 and (out == 255).mean() < 0.05  # a ramp, not white
+    assert 100 < out.mean() < 155
+    write_image(tmp_path / "rgba.png", np.dstack([ramp[..., :3] // 257,
+                                                  np.full((12, 16), 255)]).astype(np.uint8))
+    capsys.readouterr()
+    assert main(["blur", str(tmp_path / "rgba.png"), str(tmp_path / "a.jpg"),
+                 "--motion=3,0", "--backend", "numpy"]) == 2
+    assert "JPEG cannot hold alpha" in capsys.readouterr().err
+    assert not (tmp_path / "a.jpg").exists()

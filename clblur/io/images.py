@@ -469,6 +469,25 @@ def _read_opencv(path: Path) -> np.ndarray:
     return img
 
 
+# formats OpenCV writes in 8 bits only: it saturates a 16-bit image's codes into them (a
+# 16-bit photo came out white), so the codes are scaled to 8 bits here instead
+EIGHT_BIT_FORMATS = ("jpeg", "bmp", "webp")
+
+
+def _for_opencv(path: Path, fmt: str, image: np.ndarray) -> np.ndarray:
+    """``image`` in a layout and depth OpenCV writes as ``fmt`` without losing what the format
+    can hold: grey + alpha as RGBA (no such OpenCV layout), 16-bit codes scaled to the nearest
+    8-bit ones for 8-bit formats; alpha refused for JPEG (which would drop it silently)."""
+    if image.ndim == 3 and image.shape[2] == 2:
+        image = image[..., [0, 0, 0, 1]]
+    if fmt == "jpeg" and image.ndim == 3 and image.shape[2] == 4:
+        raise InputError(f"{path}: JPEG cannot hold alpha (this image has it); write .png, "
+                         ".tif, .webp or .exr")
+    if image.dtype == np.uint16 and fmt in EIGHT_BIT_FORMATS:
+        image = np.rint(image / 257.0).astype(np.uint8)
+    return image
+
+
 def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
     """Write an image atomically; the format follows the extension (``image_format``)."""
     path = Path(path)
@@ -490,6 +509,7 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
     if image.dtype.kind == "f":
         raise InputError(f"{path.suffix} cannot hold float images; write .tif, .tiff or .exr "
                          "instead")
+    image = _for_opencv(path, fmt, image)
     bgr = image
     if image.ndim == 3 and image.shape[2] in (3, 4):
         bgr = cv2.cvtColor(image, cv2.COLOR_RGBA2BGRA if image.shape[2] == 4
