@@ -139,6 +139,7 @@ def build_corpus(root: Path) -> None:
     (d / "scan.jpg").write_bytes(bytes(scan))
     tifffile.imwrite(d / "lzw.tif", texture, photometric="rgb", tile=(16, 16),
                      compression="lzw")
+    tifffile.imwrite(d / "bilevel.tif", texture[..., 0] > 128)  # 1 bit: no dtype clblur takes
     lzw = bytearray((d / "lzw.tif").read_bytes())
     with tifffile.TiffFile(d / "lzw.tif") as tif:
         at = int(tif.pages[0].dataoffsets[5])
@@ -378,6 +379,8 @@ def image_cases() -> list[Case]:
         blur("{in}/pngas.jpg", "--motion=1,0", match="jpeg"),
         blur("{in}/grey16.png", "--motion=3,0", code=0),
         blur("{in}/rgba.png", "--motion=3,0", code=0),
+        blur("{in}/bilevel.tif", "--motion=3,0", match="dtype bool"),
+        blur("{in}/bilevel.tif", "--motion=3,0", match="dtype bool", out="{out}/o.tif"),
         blur("{in}/float.tif", "--motion=3,0", match="float"),
         blur("{in}/float.tif", "--motion=3,0", code=0, out="{out}/o.tif"),
         blur("{in}/ünï cødé.png", "--motion=3,0", code=0, out="{out}/ü ø.png"),

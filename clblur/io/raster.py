@@ -31,6 +31,7 @@ from clblur.io.images import (
     tiff_log,
 )
 from clblur.io.paths import require_file
+from clblur.pixels import SUPPORTED_DTYPES
 
 __all__ = ["MappedRaster", "OrientedRaster", "TiffWindows", "as_array_like", "create_tiff",
            "is_tiff", "open_image"]
@@ -237,6 +238,7 @@ def open_image(path: str | os.PathLike, max_bytes: int | None = None):
             with tifffile.TiffFile(path) as tif:
                 orientation = _tiff_orientation(tif)
                 axes = tif.series[0].axes
+                dtype = np.dtype(tif.series[0].dtype)
                 page = tif.series[0].pages[0]
                 end = max((o + c for o, c in zip(page.dataoffsets, page.databytecounts,
                                                  strict=False)), default=0)
@@ -248,6 +250,11 @@ def open_image(path: str | os.PathLike, max_bytes: int | None = None):
     if axes not in ("YX", "YXS"):  # e.g. planar RGB (SYX), stacks, pyramids' extra axes
         raise InputError(f"{path}: unsupported TIFF layout {axes!r}; expected rows x columns "
                          "(x samples), i.e. YX or YXS")
+    # refused here, as read_image refuses it, before an output of that dtype is created (a
+    # 1-bit TIFF failed there with tifffile's "cannot write non-contiguous empty file")
+    if dtype not in [np.dtype(d) for d in SUPPORTED_DTYPES]:
+        raise InputError(f"unsupported image {path}: dtype {dtype}; use uint8, uint16, float32 "
+                         "or float64")
 
     def turned(raster):  # a sideways-stored TIFF is read upright, as read_image reads it
         return raster if orientation in (None, 1) else OrientedRaster(raster, orientation)
