@@ -218,3 +218,25 @@ def test_family_ranges_enforced():
         ExpShape(0.0, 1.0, 2.0)
     with pytest.raises(ValueError, match="knots"):
         MonotoneSpline([0.0, 0.5, 0.9], [0.0, 0.0])
+
+
+def test_a_document_key_that_would_be_ignored_is_refused(tmp_path):
+    """A hand-written {"kind": "gamma", "gamma": 2.4} was read as the family's default (gamma
+    2.2) without a word: keys outside a response document's own are refused, in single and
+    per-channel documents, and the documents clblur writes still read."""
+    import json
+
+    from clblur.responses import Gamma, per_channel, response
+
+    for doc in ({"kind": "gamma", "gamma": 2.4}, {"kind": "exp", "k": 3.0},
+                {"kind": "table", "exposure": [0, 1], "value": [0, 1]}):
+        with pytest.raises(ValueError, match="unknown key.*under 'params'"):
+            response(doc)
+    with pytest.raises(ValueError, match=r"per-channel response document has unknown key"):
+        per_channel({"kind": "per-channel", "channels": [Gamma(2.0).to_dict()] * 3,
+                     "note": "x"}, 3)
+    path = tmp_path / "g.json"
+    Gamma(2.4).save(path)
+    assert response(str(path)) == Gamma(2.4)
+    path.write_text(json.dumps({"kind": "gamma", "params": {"gamma": 2.4}}))
+    assert response(str(path)) == Gamma(2.4)

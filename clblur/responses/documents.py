@@ -33,6 +33,11 @@ FAMILY_CLASSES = {**_BY_KIND, "exp-offset": ExpOffset, "gamma-offset": GammaOffs
                   "exp-shape": ExpShape, "polynomial": Polynomial, "emor": Emor}
 
 
+# the keys of a response document (Response.to_dict); a per-channel document has
+# "channels" in place of "params" (channel_set_to_dict)
+_DOCUMENT_KEYS = {"format", "version", "kind", "params"}
+
+
 def for_device(r: Response) -> Response:
     """``r`` itself for a kernel kind (``KIND_CODES``), else its dense ``Table``."""
     return r if r.kind in KIND_CODES else r.as_table()
@@ -42,6 +47,13 @@ def from_dict(doc: dict) -> Response:
     """Build a response from its JSON document (see ``Response.to_dict``)."""
     if not isinstance(doc, dict) or "kind" not in doc:
         raise ValueError("response document must be a JSON object with a 'kind' key")
+    # a key this reader does not take would be ignored, and the family's default used in its
+    # place: {"kind": "gamma", "gamma": 2.4} read as gamma 2.2, without a word
+    unknown = sorted(set(doc) - _DOCUMENT_KEYS)
+    if unknown:
+        raise ValueError(f"response document has unknown key(s) {unknown}; a family's "
+                         "parameters go under 'params', e.g. {\"kind\": \"gamma\", "
+                         "\"params\": {\"gamma\": 2.2}}")
     kind, params = doc["kind"], dict(doc.get("params") or {})
     if kind == "table":
         meta = params.get("meta") or {}
@@ -144,6 +156,9 @@ def _channel_set(spec) -> list[Response] | None:
             raise ValueError(f"cannot read response file {spec}: {e}") from None
     if not (isinstance(doc, dict) and doc.get("kind") == CHANNEL_SET_KIND):
         return None
+    unknown = sorted(set(doc) - {"format", "version", "kind", "channels"})
+    if unknown:
+        raise ValueError(f"per-channel response document has unknown key(s) {unknown}")
     channels = doc.get("channels")
     if not isinstance(channels, list) or not channels:
         raise ValueError("per-channel response document needs a non-empty 'channels' list")
