@@ -218,3 +218,18 @@ def test_images_written_in_what_their_format_holds(tmp_path, capsys):
                  "--motion=3,0", "--backend", "numpy"]) == 2
     assert "JPEG cannot hold alpha" in capsys.readouterr().err
     assert not (tmp_path / "a.jpg").exists()
+
+
+def test_a_per_channel_response_is_checked_against_the_image(tmp_path, capsys):
+    """clblur blur checks a per-channel document against the image's colour channels (it
+    named 1 channel for an RGB image, the first count it had tried)."""
+    import json
+
+    from clblur.responses import Gamma
+
+    write_image(tmp_path / "rgb.png", np.zeros((8, 10, 3), np.uint8))
+    doc = tmp_path / "two.json"
+    doc.write_text(json.dumps({"kind": "per-channel", "channels": [Gamma(2.0).to_dict()] * 2}))
+    assert main(["blur", str(tmp_path / "rgb.png"), str(tmp_path / "o.png"), "--motion=2,0",
+                 "--response", str(doc)]) == 2
+    assert "got 2 per-channel responses for an image with 3 channel(s)" in capsys.readouterr().err

@@ -52,10 +52,10 @@ def run(args: argparse.Namespace) -> int:
     check_output(args.output, args.input, args.flow, args.psf, depth_file,
                  suffixes=tuple(IMAGE_FORMATS))
     parse_size(args.memory_budget)
-    check_response(args.response)
-    check_device(args)
     channels = probe_image(args.input).channels  # the header only: nothing decoded yet
     alpha = args.alpha == "yes" or (args.alpha == "auto" and channels in (2, 4))
+    check_response(args.response, channels=channels - int(alpha))
+    check_device(args)
     if args.depth is not None or alpha:
         _blur_whole(args, alpha)  # layered exposure and alpha need the whole image
     else:

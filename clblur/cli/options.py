@@ -139,14 +139,17 @@ def check_device(args: argparse.Namespace) -> None:
         raise InputError(f"--device {device}: {why} (`clblur info` lists the devices)")
 
 
-def check_response(spec: str, option: str = "--response") -> None:
-    """Parse a response spec before any work, naming the option in the message."""
+def check_response(spec: str, option: str = "--response", channels: int | None = None) -> None:
+    """Parse a response spec before any work, naming the option in the message.
+    ``channels``: the image's colour channels where known (a per-channel document must have
+    as many curves), else any count an image may have."""
     from clblur.responses import per_channel
 
     first = None
-    for channels in (1, 3, 4):  # a per-channel document fits only its own channel count
+    # a per-channel document fits only its own channel count
+    for count in (1, 3, 4) if channels is None else (channels,):
         try:
-            per_channel(spec, channels)
+            per_channel(spec, count)
             return
         except (ValueError, TypeError) as e:
             first = first or e
