@@ -264,7 +264,8 @@ def blur_file(src: str | os.PathLike, dst: str | os.PathLike, motion, *, respons
             "`vips tiffsave IN OUT.tif --tile --bigtiff`)")
     image = open_image(src)
     if not is_tiff(dst) and dst.suffix.lower() != ".exr" and np.dtype(image.dtype).kind == "f":
-        raise InputError(f"{dst.suffix} cannot hold float images; write .tif or .tiff instead")
+        raise InputError(f"{dst.suffix} cannot hold float images; write .tif, .tiff or .exr "
+                         "instead")
     options = dict(response=response, anchor=anchor, samples=samples, weights=weights,
                    backend=backend, saturation=saturation, device=device, tile=tile,
                    memory_budget=max(budget - whole, 1), progress=progress, exposure=exposure)
