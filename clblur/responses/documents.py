@@ -49,7 +49,8 @@ def from_dict(doc: dict) -> Response:
         raise ValueError("response document must be a JSON object with a 'kind' key")
     # a key this reader does not take would be ignored, and the family's default used in its
     # place: {"kind": "gamma", "gamma": 2.4} read as gamma 2.2, without a word
-    unknown = sorted(set(doc) - _DOCUMENT_KEYS)
+    own = _DOCUMENT_KEYS | ({"channels"} if doc["kind"] == CHANNEL_SET_KIND else set())
+    unknown = sorted(set(doc) - own)
     if unknown:
         raise ValueError(f"response document has unknown key(s) {unknown}; a family's "
                          "parameters go under 'params', e.g. {\"kind\": \"gamma\", "
