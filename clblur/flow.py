@@ -74,7 +74,7 @@ class FlowEstimator:
         if self._dis is not None:
             h, w = a.shape
             grow = (max(DIS_MIN_SIDE - h, 0), max(DIS_MIN_SIDE - w, 0))
-            if any(grow):  # (module constant) the edge repeated: as far as DIS reads, still
+            if any(grow):  # too small for DIS (DIS_MIN_SIDE): pad with the edge pixels
                 a, b = (cv2.copyMakeBorder(x, 0, grow[0], 0, grow[1], cv2.BORDER_REPLICATE)
                         for x in (a, b))
             flow = self._dis.calc(a, b, None)[:h, :w]

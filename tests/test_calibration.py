@@ -328,9 +328,8 @@ def test_times_that_do_not_belong_to_the_images_are_named(rng):
     t = series.exposures.copy()
     t[[0, -1]] = t[[-1, 0]]
     swapped = ExposureSeries.create(series.images, t, names=[f"e{i}.png" for i in range(len(t))])
-    with pytest.raises(ValueError, match=r"do not brighten with their exposure times .* "
-                                         r"e\d\.png \(exposure [\d.e-]+\) is brighter on "
-                                         r"average than e\d\.png"):
+    with pytest.raises(ValueError, match=r"e\d\.png is not brighter than e\d\.png although "
+                                         r"its exposure is [\d.]+x as long"):
         sample_series(swapped)
     sample_series(series)  # the right times: samples
 

@@ -222,11 +222,16 @@ def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float =
             for dx in range(-r, r + 1):
                 footprint[rows + dy, cols + dx] = True
     if (not sets or sum(len(s) for s in sets) < 8) and falling > seen // 2:
-        # most patches darken as the exposure grows: the times do not belong to the images
+        # most patches darken as the exposure grows: the times do not belong to the images.
+        # The series check names the pair where it can judge one (calibrate runs it first)
+        from clblur.calibration.series import check_brightening
+
+        check_brightening(series.images, series.relative_exposures(), series.names,
+                          series.white_level)
         raise ValueError("no usable calibration samples: the images do not brighten with "
                          f"their exposure times ({falling} of {seen} patches valid in two "
-                         f"exposures get darker with a longer one; {_out_of_order(series)}); "
-                         "check the times (their order, their units)")
+                         "exposures get darker with a longer one); check the times (their "
+                         "order, their units)")
     if not sets or sum(len(s) for s in sets) < 8:
         raise ValueError("no usable calibration samples: every pixel is saturated (>= "
                          f"{high:g} of full scale) or under-exposed (<= {low:g}) in all but at "
@@ -238,20 +243,6 @@ def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float =
     pixels = _random_pixels(images, fs, footprint, n_pixels, rng, tau_order,
                             monotone_tolerance)
     return Sampling(sets, footprint, patch, low, high, pixels)
-
-
-def _out_of_order(series) -> str:
-    """The first pair of exposures, in time order, whose mean code falls although the
-    exposure grows (for a message), or a note that none does on average."""
-    t = series.relative_exposures()
-    order = np.argsort(t, kind="stable")
-    means = [float(series.images[i].mean()) for i in order]
-    for a, b in zip(range(len(order) - 1), range(1, len(order)), strict=True):
-        if means[a] > means[b]:
-            i, j = int(order[a]), int(order[b])
-            return (f"{series.names[i]} (exposure {series.exposures[i]:g}) is brighter on "
-                    f"average than {series.names[j]} (exposure {series.exposures[j]:g})")
-    return "the image means do rise with the exposure"
 
 
 def _random_pixels(images: list[np.ndarray], full_scale: float, footprint: np.ndarray,
