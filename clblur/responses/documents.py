@@ -33,9 +33,10 @@ FAMILY_CLASSES = {**_BY_KIND, "exp-offset": ExpOffset, "gamma-offset": GammaOffs
                   "exp-shape": ExpShape, "polynomial": Polynomial, "emor": Emor}
 
 
-# the keys of a response document (Response.to_dict); a per-channel document has
+# the keys of a response document (Response.to_dict) and of a per-channel one, which has
 # "channels" in place of "params" (channel_set_to_dict)
 _DOCUMENT_KEYS = {"format", "version", "kind", "params"}
+_CHANNEL_SET_KEYS = {"format", "version", "kind", "channels"}
 
 
 def for_device(r: Response) -> Response:
@@ -49,7 +50,7 @@ def from_dict(doc: dict) -> Response:
         raise ValueError("response document must be a JSON object with a 'kind' key")
     # a key this reader does not take would be ignored, and the family's default used in its
     # place: {"kind": "gamma", "gamma": 2.4} read as gamma 2.2, without a word
-    own = _DOCUMENT_KEYS | ({"channels"} if doc["kind"] == CHANNEL_SET_KIND else set())
+    own = _CHANNEL_SET_KEYS if doc["kind"] == CHANNEL_SET_KIND else _DOCUMENT_KEYS
     unknown = sorted(set(doc) - own)
     if unknown:
         raise ValueError(f"response document has unknown key(s) {unknown}; a family's "
@@ -157,7 +158,7 @@ def _channel_set(spec) -> list[Response] | None:
             raise ValueError(f"cannot read response file {spec}: {e}") from None
     if not (isinstance(doc, dict) and doc.get("kind") == CHANNEL_SET_KIND):
         return None
-    unknown = sorted(set(doc) - {"format", "version", "kind", "channels"})
+    unknown = sorted(set(doc) - _CHANNEL_SET_KEYS)
     if unknown:
         raise ValueError(f"per-channel response document has unknown key(s) {unknown}")
     channels = doc.get("channels")

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clblur.calibration.series import check_brightening, photometric_exposure
+from clblur.calibration.series import photometric_exposure
 from clblur.io import (
     atomic_write_text,
     light_channels,
@@ -27,7 +27,7 @@ from clblur.study.model import Group
 from clblur.study.pairs import pair_group
 from clblur.study.report import build_report, figures, markdown
 from clblur.study.select import Selection, select
-from clblur.study.series import clip_code, series_groups
+from clblur.study.series import series_groups
 from clblur.study.stacks import stack_group
 
 __all__ = ["DEFAULT_PIXELS", "StudyResult", "groups_from_manifest", "split_summary", "study",
@@ -88,14 +88,10 @@ def groups_from_manifest(manifest: Manifest, max_pixels: int = DEFAULT_PIXELS,
             imgs = [reg.crop(im, i) for i, im in enumerate(imgs)]
             if notes is not None:
                 notes["registration"] = describe(reg, [e.path.name for e in manifest.images])
-        light = photometric_exposure([e.exposure for e in manifest.images],
-                                     [e.f_number for e in manifest.images])
-        check_brightening(imgs, light, [e.path.name for e in manifest.images],
-                          clip_code(imgs, light) / 255)
         left_out: dict = {}
         groups = series_groups(imgs, [e.exposure for e in manifest.images],
                                [e.f_number for e in manifest.images], max_pixels=max_pixels,
-                               notes=left_out)
+                               notes=left_out, names=[e.path.name for e in manifest.images])
         if notes is not None and left_out["clip_code"] < 255:
             notes["clipping"] = (f"the series clips at code {left_out['clip_code']} of 255 "
                                  "(below full scale): pixels at or above it are censored")

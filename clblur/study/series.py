@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-from clblur.calibration.series import photometric_exposure
+from clblur.calibration.series import check_brightening, photometric_exposure
 from clblur.pixels import series_clip_level, series_padding
 from clblur.study.histograms import Taps, as_hwc, build_group, sample_grid, shifted
 from clblur.study.model import Group
@@ -87,11 +87,14 @@ def _black_bound(image: np.ndarray, padding: np.ndarray) -> np.ndarray:
 
 def series_groups(images: list[np.ndarray], exposures: list[float],
                   f_numbers: list[float | None] | None = None, *,
-                  max_pixels: int = 60000, notes: dict | None = None) -> list[Group]:
+                  max_pixels: int = 60000, notes: dict | None = None,
+                  names: list[str] | None = None) -> list[Group]:
     """The study groups of an exposure series: each image predicts the next shorter one and
     the one after (module doc).  ``notes``, when given, receives what was left out as no
     light: ``clip_code`` (below 255 for a camera that clips below full scale) and
-    ``padding`` (``{image index: fraction of its pixels}``, ``clblur.pixels.series_padding``)."""
+    ``padding`` (``{image index: fraction of its pixels}``, ``clblur.pixels.series_padding``).
+    A series whose images do not brighten with their exposures is refused, the two images
+    named by ``names`` (``clblur.calibration.series.check_brightening``)."""
     if len(images) != len(exposures) or len(images) < 2:
         raise ValueError("an exposure series needs at least 2 images, one exposure each")
     h = photometric_exposure(exposures, f_numbers).tolist()
@@ -106,6 +109,8 @@ def series_groups(images: list[np.ndarray], exposures: list[float],
         raise ValueError(f"series images differ in shape: "
                          f"{sorted({im.shape for im in imgs})}")
     top = clip_code(imgs, h)
+    names = [f"image {i}" for i in range(len(images))] if names is None else names
+    check_brightening(imgs, h, [names[i] for i in order], top / 255)
     # a constant border a registration padded a frame with holds no light: its pixels are
     # neither targets nor sources, and its zeros do not bound a black level
     pads = series_padding(imgs, h)
