@@ -67,11 +67,12 @@ import numpy as np
 
 from clblur.pixels import imax
 
-__all__ = ["MIN_NCC", "MIN_PIXELS", "TIE_NCC", "TURN_PX", "Registration", "align_series",
-           "describe", "pair_shift", "summary"]
+__all__ = ["MIN_NCC", "MIN_OVERLAP", "MIN_PIXELS", "TIE_NCC", "TURN_PX", "Registration",
+           "align_series", "describe", "pair_shift", "summary"]
 
 MIN_NCC = 0.3  # least correlation of a trusted link
 MIN_PIXELS = 256  # least compared pixels (at the search level) of a trusted link
+MIN_OVERLAP = 16  # px: least side of the window registered images share (or the image's)
 TIE_NCC = 1e-3  # correlations this close cannot choose between shifts
 _LOW, _HIGH = 0.02, 0.98  # clipped: at or beyond these fractions of full scale
 _SEARCH_SIDE = 512  # px: the longer side of the level searched whole
@@ -477,8 +478,9 @@ def align_series(images: list[np.ndarray], exposures, turns: bool = True) -> Reg
     shifts[order] = chained
     lo = np.maximum(-shifts.min(axis=0), 0)
     hi = np.array([h, w]) - np.maximum(shifts.max(axis=0), 0)
-    if shifts.any() and np.any(hi - lo < min(16, h, w)):
-        raise ValueError(f"exposure series: the images overlap by less than 16 px after "
+    need = min(MIN_OVERLAP, h, w)
+    if shifts.any() and np.any(hi - lo < need):
+        raise ValueError(f"exposure series: the images overlap by less than {need} px after "
                          f"registration (shifts {shifts.tolist()}); are they of one scene?")
     window = (slice(int(lo[0]), int(hi[0])), slice(int(lo[1]), int(hi[1])))
     return Registration(shifts, window, int(order[n // 2]), tuple(sorted(unregistered)))
@@ -507,9 +509,10 @@ def _turned(links: list[np.ndarray], order: np.ndarray, unregistered: list[int],
     moved = maps @ centre - centre[:2]
     shifts = np.rint(moved[:, ::-1]).astype(np.int64)
     y0, y1, x0, x1 = _chain_window(maps, shape)
-    if y1 - y0 + 1 < min(16, h) or x1 - x0 + 1 < min(16, w):
-        raise ValueError("exposure series: the images overlap by less than 16 px after "
-                         "registration; are they of one scene?")
+    need = (min(MIN_OVERLAP, h), min(MIN_OVERLAP, w))
+    if y1 - y0 + 1 < need[0] or x1 - x0 + 1 < need[1]:
+        raise ValueError(f"exposure series: the images overlap by less than {need[0]} x "
+                         f"{need[1]} px after registration; are they of one scene?")
     window = (slice(y0, y1 + 1), slice(x0, x1 + 1))
     return Registration(shifts, window, int(order[n // 2]), tuple(sorted(unregistered)), maps,
                         tuple(sorted(untold)))
