@@ -233,3 +233,10 @@ def test_a_per_channel_response_is_checked_against_the_image(tmp_path, capsys):
     assert main(["blur", str(tmp_path / "rgb.png"), str(tmp_path / "o.png"), "--motion=2,0",
                  "--response", str(doc)]) == 2
     assert "got 2 per-channel responses for an image with 3 channel(s)" in capsys.readouterr().err
+    # clblur video checks before it reads a frame: the counts an image can have, not one
+    (tmp_path / "frames").mkdir()
+    assert main(["video", str(tmp_path / "frames"), str(tmp_path / "out"),
+                 "--response", str(doc)]) == 2
+    err = capsys.readouterr().err
+    assert "got 2 per-channel responses; a per-channel document needs one per colour " \
+           "channel of the images (1, 3 or 4)" in err and "1 channel" not in err

@@ -145,15 +145,18 @@ def check_response(spec: str, option: str = "--response", channels: int | None =
     as many curves), else any count an image may have."""
     from clblur.responses import per_channel
 
-    first = None
+    errors = []
     # a per-channel document fits only its own channel count
     for count in (1, 3, 4) if channels is None else (channels,):
         try:
             per_channel(spec, count)
             return
         except (ValueError, TypeError) as e:
-            first = first or e
-    text = " ".join(str(first).split())
+            errors.append(" ".join(str(e).split()))
+    text = errors[0]
+    if len(set(errors)) > 1:  # only the count failed, and the image is not known yet
+        text = (errors[0].split(" for an image")[0] + "; a per-channel document needs one "
+                "per colour channel of the images (1, 3 or 4)")
     raise InputError(text if spec in text else f"{option} {spec}: {text}")
 
 
