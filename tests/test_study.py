@@ -365,6 +365,27 @@ def test_black_level_is_found_per_channel():
     assert r["extended"]["heldout_rmse"] < MARGIN * r["baseline"]["heldout_rmse"]
 
 
+def test_black_level_is_found_beside_a_free_response_shape():
+    # a linear sensor 7.7 codes above black with shot noise (raw data): a free response
+    # shape absorbs much of a pedestal over the codes the data span, and a joint fit started
+    # at no black level stayed in that basin (shape exponent 2.7, no black level) although
+    # the pedestal predicts better.  The fit also starts from a pedestal
+    # (``crossfit._pedestal_start``), and the study names both.
+    from clblur.study.series import series_groups
+
+    rng = np.random.default_rng(2)
+    cam = Camera(response="linear", black_level=0.03, noise_a=5e-4, noise_b=5e-6)
+    scene = random_scene(rng, (48, 64), 3, low=0.03, high=0.8)
+    times = [4.0, 2.0, 1.0, 0.5]
+    groups = series_groups([cam.capture(scene * 0.25, t, rng=rng) for t in times], times)
+    r = study_groups("exposure-series", groups).report
+    effects = r["extended"]["effects"]
+    assert "black_level" in effects and "channel_shape" not in effects, effects
+    found = {f["effect"]: f["estimate"] for f in r["findings"] if f["significant"]}
+    assert found["black_level"]["black_level_codes"] == pytest.approx(255 * 0.03, abs=1.5)
+    assert found["response_shape"]["gamma"] == pytest.approx(1.0, abs=0.05)
+
+
 def test_truncated_long_exposure_is_quantisation_not_gain():
     # a gamma-2.2 frame stack whose long exposure was truncated: the bias of -0.5 codes is
     # named quantisation, and the response is found (the GoPro case of issue 9).  Seen

@@ -56,9 +56,9 @@ class FoldWorker:
         self._proc.stdin.flush()
 
     def submit(self, free: list[str], start: dict, warm: dict | None,
-               shape_search: bool) -> None:
+               shape_search: bool, search: bool = True) -> None:
         """Start a fit (``crossfit.fit`` on the held fold); ``result`` returns it."""
-        self._send((free, start, warm, shape_search))
+        self._send((free, start, warm, shape_search, search))
 
     def result(self) -> dict:
         """The parameters of the fit last submitted."""
@@ -94,11 +94,12 @@ def main() -> None:
         groups, nvalid, bounds = pickle.load(source)
         while True:
             try:
-                free, start, warm, shape_search = pickle.load(source)
+                free, start, warm, shape_search, search = pickle.load(source)
             except EOFError:
                 return
             try:
-                answer = ("ok", fit(groups, free, start, nvalid, bounds, warm, shape_search))
+                answer = ("ok", fit(groups, free, start, nvalid, bounds, warm, shape_search,
+                                    search))
             except Exception:  # the parent raises it, with this traceback
                 import traceback
 
