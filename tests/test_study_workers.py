@@ -77,3 +77,22 @@ def test_remembered_products_give_the_predictions_computed_afresh():
     held = g.__dict__["_products"]
     assert held and len(held) <= _PRODUCTS_KEPT * 2 * g.channels
     assert "_products" not in pickle.loads(pickle.dumps(g)).__dict__
+
+
+def test_improve_keeps_the_better_fit_of_each_fold():
+    """``Folds.improve`` descends from the given starts and keeps, per fold, whichever fit
+    of the model fits that fold better: a poorer cached fit is replaced, and a kept fit is
+    never worse than the one cached."""
+    from clblur.study.crossfit import penalised_nll
+
+    null = null_params()
+    model = frozenset({"black_level", "response_shape"})
+    with _folds() as folds:
+        good = folds.fit(model, [null, null], 3)
+        nll = [penalised_nll(part, p) for part, p in zip(folds.part, good, strict=True)]
+        assert penalised_nll(folds.part[0], null) > nll[0] + 1.0  # the comparison can fail
+        folds.cache[(model, None)] = [null, good[1]]  # fold 0's fit forgotten
+        assert folds.improve(model, good, 3)
+        kept = folds.fit(model, [null, null], 3)
+        assert penalised_nll(folds.part[0], kept[0]) <= nll[0] + 1e-6
+        assert penalised_nll(folds.part[1], kept[1]) <= nll[1]

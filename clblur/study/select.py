@@ -156,6 +156,13 @@ def _select(groups: list[Group], folds: Folds, nblocks: int, alpha: float, min_g
         # effect's own parameters (the response shape's basins), which the new model moves little
         p_e = folds.fit(model | {effect}, p_base, channels, only, earlier.get(effect))
         earlier[effect] = p_e
+        if progress is not None:
+            progress.update(1)
+        return score(effect, p_base, p_e)
+
+    def score(effect: str, p_base: list[dict], p_e: list[dict]):
+        """The held-out test of ``p_e`` (the model with ``effect``) against ``p_base``,
+        recorded as the effect's finding of this round."""
         if effect == "noise":
             d = folds.block_nll(p_base) - folds.block_nll(p_e)
             d = d[used]
@@ -170,8 +177,6 @@ def _select(groups: list[Group], folds: Folds, nblocks: int, alpha: float, min_g
         findings[effect] = Finding(effect, False, t, pv, est,
                                    explain(effect, est, False, gain,
                                            replaced_by=replaced_by.get(effect)), gain, rnd)
-        if progress is not None:
-            progress.update(1)
         return effect, pv, gain, p_e
 
     cur_params = folds.fit(current, [null, null], channels)
@@ -191,6 +196,16 @@ def _select(groups: list[Group], folds: Folds, nblocks: int, alpha: float, min_g
             tested = [test(current | nuisance, e, [cur_params[0], cur_params[1]])
                       for e in candidates if e != "noise"]
             winners = [r for r in tested if r[1] < level and r[2] >= min_gain]
+            base_model = current | nuisance
+            if _better_base(folds, base_model, winners, channels):
+                # a winner's fit showed the current model a better basin: every winner is
+                # measured again from there, so what it gains is its own
+                p_base = folds.fit(base_model, cur_params, channels)
+                tested = [score(e, p_base, p_e) if any(e == w[0] for w in winners)
+                          else (e, pv, gain, p_e) for e, pv, gain, p_e in tested]
+                winners = [r for r in tested if r[1] < level and r[2] >= min_gain]
+                if "noise" not in base_model:
+                    cur_params = p_base
             winners_all = list(winners)
             if not winners and "noise" in candidates:
                 winners = [r for r in [test(current, "noise", cur_params)]
@@ -295,6 +310,24 @@ def _nested(a: str, b: str, channels: int) -> bool:
 # effects a swap never moves: the conditional fits hold the rest of the model fixed, and the
 # discrete flips have no null start to replace
 _NO_SWAP = CONDITIONAL | {"psf_orientation", "noise"}
+
+
+def _better_base(folds: Folds, model: frozenset, winners: list[tuple], channels: int) -> bool:
+    """Whether a winner's fit, its effect at the null value, gives ``model`` (the current
+    model with the round's nuisance) a better fit than its own search found on either fold
+    (``Folds.improve``, which then keeps it).
+
+    A test's extension searches starts of its own (the response shape's, a pedestal), so
+    its fit can find a basin of the shared parameters that the current model's fit missed.
+    Measured against the poorer fit, the extension gains what the optimiser found: a
+    linear camera 7.7 codes above black, once its black level had joined, passed
+    ``channel_shape`` with exponents within 0.3 % of each other and 0.010 nats per value.
+    """
+    improved = False
+    for effect, *_, p_e in winners:
+        if effect not in _NO_SWAP:
+            improved |= folds.improve(model, _at_null(p_e, effect, channels), channels)
+    return improved
 
 
 def _current_fit(folds: Folds, current: frozenset, candidates: list[str],
