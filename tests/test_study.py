@@ -650,3 +650,24 @@ def test_study_reads_the_light_of_grey_and_colour_files(tmp_path):
     write_image(tmp_path / "rgba.png", np.dstack([grey, grey, grey, alpha]))
     np.testing.assert_array_equal(_read_light(tmp_path / "la.tif"), grey[..., None])
     assert _read_light(tmp_path / "rgba.png").shape == (3, 4, 3)
+
+
+def test_a_black_level_left_out_beside_the_shape_is_noted_where_the_data_start_high():
+    """The report says when the data cannot tell a black level from the response shape's
+    toe: only where the shape joined without it and the darkest codes lie well above 0."""
+    from clblur.study.select import TOE_CODES, Finding, _note_toe
+
+    def black(significant=False):
+        return Finding("black_level", significant, 0.1, 0.5, {}, "black_level: x.", 0.0, 1)
+
+    high = {"black": (0.0, 30 / 255), "black1": (0.0, 28 / 255)}
+    low = {"black": (0.0, (TOE_CODES - 1) / 255)}
+    shape = frozenset({"response_shape"})
+    for findings, current, bounds, noted in (
+            ({"black_level": black()}, shape, high, True),
+            ({"black_level": black()}, shape, low, False),  # the data reach near black
+            ({"black_level": black()}, frozenset({"response_imax"}), high, False),
+            ({"black_level": black(True)}, shape | {"black_level"}, high, False)):
+        _note_toe(findings, current, bounds)
+        text = findings["black_level"].explanation
+        assert ("no code below about 28" in text) is noted, text

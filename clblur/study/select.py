@@ -275,6 +275,7 @@ def _select(groups: list[Group], folds: Folds, nblocks: int, alpha: float, min_g
         findings[out].significant = False
         findings[out].explanation = explain(out, findings[out].estimate, False,
                                             findings[out].nll_gain, replaced_by=into)
+    _note_toe(findings, current, folds.bounds)
     ranked = [findings[e] for e in order] + sorted(
         (f for e, f in findings.items() if e not in order), key=lambda f: -f.statistic)
     base_p = folds.fit(frozenset(), [null, null], channels)
@@ -289,6 +290,37 @@ def _select(groups: list[Group], folds: Folds, nblocks: int, alpha: float, min_g
     b_rmse, b_nll, b_pred = heldout_scores(groups, base_p)
     x_rmse, x_nll, x_pred = heldout_scores(groups, cur_params)
     return Selection(order, ranked, full, b_rmse, x_rmse, b_nll, x_nll, b_pred, x_pred, skip)
+
+
+# codes: a black level can hide below the darkest codes the data show when they lie this far
+# up or more (``_note_toe``)
+TOE_CODES = 3.0
+
+
+def _note_toe(findings: dict[str, Finding], current: frozenset,
+              bounds: dict[str, tuple[float, float]]) -> None:
+    """Add to a black level left out beside a joined response shape that the data cannot
+    tell the two apart below their darkest codes.
+
+    The free shape bends its toe so that the darkest codes seen map near zero light, and so
+    absorbs much of a pedestal that lies below them: on exposure series of a gamma-2.2
+    camera 10 codes above black, whose darkest codes lay near 30, the pedestal beat the
+    absorbing shape by 0.0003 - 0.0006 nats per value, far below the least gain
+    (``docs/studies/method.md``, Detection limits).  A report that names only the shape
+    there should say so; the darkest codes are the black level's bound
+    (``physical_bounds``, the darkest patches of a series)."""
+    black = findings.get("black_level")
+    levels = [hi for name, (_, hi) in bounds.items() if name.startswith("black")]
+    if (black is None or black.significant or "black_level" in current
+            or "response_shape" not in current or not levels):
+        return
+    dark = 255.0 * min(levels)
+    if dark >= TOE_CODES:
+        black.explanation += (
+            f" The data show no code below about {dark:.0f}: a black level under that "
+            "trades with the toe of the response shape, which can absorb it over the codes "
+            "seen, so these data may not tell the two apart (frames that reach near black "
+            "do).")
 
 
 def _testable_again(contained: set[str], current: frozenset, candidates: list[str],
