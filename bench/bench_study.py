@@ -5,6 +5,7 @@
     python bench/bench_study.py series [--data DIR] [--results FILE]
     python bench/bench_study.py null   [--seeds 40] [--results bench/results_study_null.md]
     python bench/bench_study.py memory [--trees BEFORE .] [--results FILE]
+    python bench/bench_study.py pedestal [--seeds 4] [--results bench/results_study_pedestal.md]
 
 ``speed``: renders a 1000 x 1000 RGB pair with the virtual camera (uniform motion (14, 5) px,
 a 15 % exposure-gain mismatch, then a 1000 x 1000 PSF pair), writes PNGs and a manifest in a
@@ -18,6 +19,9 @@ resident memory and time of ``clblur calibrate`` on the full-size bracket (7 x 1
 models exp and spline), each tree of ``--trees`` in a process of its own, interleaved.
 ``null``: false findings on null data, the seeds cycling through a vector pair, a PSF pair,
 a frame stack and an exposure series without and with sensor noise.
+``pedestal``: whether a black level is named beside a camera curve that is not Eq. 3 (the
+free response shape can absorb a pedestal), on exposure series of linear, gamma-2.2, sRGB
+and Eq. 3 cameras, and false black levels on the first two without one.
 """
 
 from __future__ import annotations
@@ -254,6 +258,46 @@ def null(results: Path, seeds: int) -> None:
     _write(results, lines)
 
 
+# camera curve, black level (normalised), sensor noise a (b = a / 100)
+PEDESTAL_CASES = (("linear", 0.03, 5e-4), ("gamma:2.2", 0.04, 0.0), ("srgb", 0.06, 0.0),
+                  ("exp", 0.04, 5e-4), ("linear", 0.0, 5e-4), ("gamma:2.2", 0.0, 5e-4))
+
+
+def pedestal(results: Path, seeds: int) -> None:
+    """A black level beside a camera curve the paper's Eq. 3 is not: 48 x 64 exposure
+    series one stop apart (4, 2, 1, 1/2), seeds 1.. per case (``PEDESTAL_CASES``)."""
+    from clblur.study.series import series_groups
+
+    lines = [_header(f"pedestal --seeds {seeds}"),
+             "| camera | black level (codes) | noise a | seed | selected | black level "
+             "estimate (codes) | seconds |", "|---|---:|---:|---:|---|---:|---:|"]
+    named = {}
+    for curve, level, noise in PEDESTAL_CASES:
+        for seed in range(1, seeds + 1):
+            rng = np.random.default_rng(seed)
+            cam = Camera(black_level=level, noise_a=noise, noise_b=noise / 100,
+                         **({} if curve == "exp" else {"response": curve}))
+            scene = random_scene(rng, (48, 64), 3, low=0.03,
+                                 high=0.35 if curve == "exp" else 0.8)
+            times = [4.0, 2.0, 1.0, 0.5]
+            t0 = time.perf_counter()
+            groups = series_groups([cam.capture(scene * 0.25, t, rng=rng) for t in times],
+                                   times)
+            sel = study_groups("exposure-series", groups).selection
+            est = next(f for f in sel.findings if f.effect == "black_level").estimate
+            key = (curve, level, noise)
+            named[key] = named.get(key, 0) + ("black_level" in sel.effects)
+            lines.append(f"| {curve} | {255 * level:.1f} | {noise:g} | {seed} | "
+                         f"{', '.join(sel.effects) or '-'} | "
+                         f"{est.get('black_level_codes', 0.0):.2f} | "
+                         f"{time.perf_counter() - t0:.0f} |")
+            print(lines[-1], flush=True)
+    lines += ["", "`black_level` selected: " + "; ".join(
+        f"{c} {255 * b:.1f} codes, a = {n:g}: {k} of {seeds}"
+        for (c, b, n), k in named.items()) + "."]
+    _write(results, lines)
+
+
 def _cpu() -> float:
     """CPU seconds of this process and of its children that have ended (the study fits
     one fold in a child process, ``clblur.study.fold_worker``, ended with each study)."""
@@ -285,7 +329,7 @@ def _write(path: Path, lines: list[str]) -> None:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("mode", choices=("speed", "limits", "series", "null", "memory"))
+    p.add_argument("mode", choices=("speed", "limits", "series", "null", "memory", "pedestal"))
     p.add_argument("--trees", nargs="+", default=["."],
                    help="memory: source trees to compare (PYTHONPATH of each run)")
     p.add_argument("--data", type=Path, help="series: shared data folder (default CLBLUR_DATA)")
@@ -304,6 +348,8 @@ def main() -> None:
         memory(a.results or Path("bench/results_calibrate_memory.md"), a.data, a.trees)
     elif a.mode == "null":
         null(a.results or Path("bench/results_study_null.md"), a.seeds)
+    elif a.mode == "pedestal":
+        pedestal(a.results or Path("bench/results_study_pedestal.md"), a.seeds)
     else:
         name = "results_study_limits" + ("_noisy" if a.noise else "") + ".md"
         limits(a.results or Path("bench") / name, a.seeds, a.noise, a.effects)

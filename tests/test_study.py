@@ -366,7 +366,7 @@ def test_black_level_is_found_per_channel():
 
 
 def test_black_level_is_found_beside_a_free_response_shape():
-    # a linear sensor 7.7 codes above black with shot noise (raw data): a free response
+    # a linear sensor 7.65 codes above black with shot noise (raw data): a free response
     # shape absorbs much of a pedestal over the codes the data span, and a joint fit started
     # at no black level stayed in that basin (shape exponent 2.7, no black level) although
     # the pedestal predicts better.  The fit also starts from a pedestal

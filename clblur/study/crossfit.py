@@ -400,7 +400,7 @@ def _pedestal_start(groups: list[Group], first: dict, blacks: list[str], names: 
 
     A free shape absorbs much of a pedestal over the codes the data span: started at no
     black level, the joint fit stays in that basin, although the basin with the pedestal
-    predicts better (a linear camera 7.7 codes above black read as a shape of exponent 2.7
+    predicts better (a linear camera 7.65 codes above black read as a shape of exponent 2.7
     with no black level on two seeds of four).  So the black level is set at fractions of its
     bound (the darkest codes), the shape projected from the cross-exposure curve above it
     (``shape_starts``), and the start whose objective is lowest is returned (``None`` where

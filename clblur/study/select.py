@@ -352,7 +352,7 @@ def _better_base(folds: Folds, model: frozenset, winners: list[tuple], channels:
     A test's extension searches starts of its own (the response shape's, a pedestal), so
     its fit can find a basin of the shared parameters that the current model's fit missed.
     Measured against the poorer fit, the extension gains what the optimiser found: a
-    linear camera 7.7 codes above black, once its black level had joined, passed
+    linear camera 7.65 codes above black, once its black level had joined, passed
     ``channel_shape`` with exponents within 0.3 % of each other and 0.010 nats per value.
     """
     improved = False
