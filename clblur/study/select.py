@@ -31,7 +31,9 @@ Conventions
   then the simplest of those, ``_joining``), the rest are re-tested against the enlarged
   model, until none is significant.  Systematic effects are tested with the noise model
   free in both fits (a nuisance); ``noise`` itself is tested only when no systematic
-  effect is significant.
+  effect is significant.  A winner's fit with its effect at null is also a start for the
+  current model; where it fits a fold better, the winners are tested again from there
+  (``_better_base``), so no winner gains what only its own search found.
   Findings are ranked by the order they joined, then by statistic.
 * Exchange: when none joins, a joined effect is replaced by a rival (significant in the
   round it joined) whose model predicts the held-out blocks significantly better in its
