@@ -79,11 +79,14 @@ def test_remembered_products_give_the_predictions_computed_afresh():
     assert "_products" not in pickle.loads(pickle.dumps(g)).__dict__
 
 
-def test_improve_keeps_the_better_fit_of_each_fold():
+@pytest.mark.parametrize("processes", ["1", "0"])
+def test_improve_keeps_the_better_fit_of_each_fold(monkeypatch, processes):
     """``Folds.improve`` descends from the given starts and keeps, per fold, whichever fit
     of the model fits that fold better: a poorer cached fit is replaced, and a kept fit is
-    never worse than the one cached."""
+    never worse than the one cached (fold 1 in the worker, and in this process)."""
     from clblur.study.crossfit import penalised_nll
+
+    monkeypatch.setenv("CLBLUR_STUDY_PROCESSES", processes)
 
     null = null_params()
     model = frozenset({"black_level", "response_shape"})
