@@ -39,6 +39,22 @@ _DOCUMENT_KEYS = {"format", "version", "kind", "params"}
 _CHANNEL_SET_KEYS = {"format", "version", "kind", "channels"}
 
 
+def _check_keys(doc: dict) -> None:
+    """Refuse keys outside the document's own set (a per-channel document's or a single
+    response's): a key this reader does not take would be ignored, and the family's default
+    used in its place: {"kind": "gamma", "gamma": 2.4} read as gamma 2.2, without a word."""
+    if doc.get("kind") == CHANNEL_SET_KIND:
+        unknown = sorted(set(doc) - _CHANNEL_SET_KEYS)
+        if unknown:
+            raise ValueError(f"per-channel response document has unknown key(s) {unknown}")
+        return
+    unknown = sorted(set(doc) - _DOCUMENT_KEYS)
+    if unknown:
+        raise ValueError(f"response document has unknown key(s) {unknown}; a family's "
+                         "parameters go under 'params', e.g. {\"kind\": \"gamma\", "
+                         "\"params\": {\"gamma\": 2.2}}")
+
+
 def for_device(r: Response) -> Response:
     """``r`` itself for a kernel kind (``KIND_CODES``), else its dense ``Table``."""
     return r if r.kind in KIND_CODES else r.as_table()
@@ -48,14 +64,7 @@ def from_dict(doc: dict) -> Response:
     """Build a response from its JSON document (see ``Response.to_dict``)."""
     if not isinstance(doc, dict) or "kind" not in doc:
         raise ValueError("response document must be a JSON object with a 'kind' key")
-    # a key this reader does not take would be ignored, and the family's default used in its
-    # place: {"kind": "gamma", "gamma": 2.4} read as gamma 2.2, without a word
-    own = _CHANNEL_SET_KEYS if doc["kind"] == CHANNEL_SET_KIND else _DOCUMENT_KEYS
-    unknown = sorted(set(doc) - own)
-    if unknown:
-        raise ValueError(f"response document has unknown key(s) {unknown}; a family's "
-                         "parameters go under 'params', e.g. {\"kind\": \"gamma\", "
-                         "\"params\": {\"gamma\": 2.2}}")
+    _check_keys(doc)
     kind, params = doc["kind"], dict(doc.get("params") or {})
     if kind == "table":
         meta = params.get("meta") or {}
@@ -158,9 +167,7 @@ def _channel_set(spec) -> list[Response] | None:
             raise ValueError(f"cannot read response file {spec}: {e}") from None
     if not (isinstance(doc, dict) and doc.get("kind") == CHANNEL_SET_KIND):
         return None
-    unknown = sorted(set(doc) - _CHANNEL_SET_KEYS)
-    if unknown:
-        raise ValueError(f"per-channel response document has unknown key(s) {unknown}")
+    _check_keys(doc)
     channels = doc.get("channels")
     if not isinstance(channels, list) or not channels:
         raise ValueError("per-channel response document needs a non-empty 'channels' list")
