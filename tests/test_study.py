@@ -102,6 +102,10 @@ def _check_estimate(effect: str, est: dict, truth: float) -> None:
         assert np.hypot(est["shift_x"], est["shift_y"]) == pytest.approx(truth, abs=0.05)
     elif effect == "psf_orientation":
         assert est["flipped_groups"] == [0]
+    elif effect == "exposure_times":  # each inner image off by exp(+-m), ends held
+        logs = np.log(list(est["exposure_factors"].values()))
+        assert len(logs) == 3
+        np.testing.assert_allclose(np.abs(logs), truth, atol=0.01)
     elif effect == "psf_scale":  # histograms at 0.8, 1, 1.25, interpolated between
         assert est["scale"] == pytest.approx(truth, abs=0.03) or \
             est["scale"] == pytest.approx(1 / truth, abs=0.03)
@@ -384,6 +388,34 @@ def test_black_level_is_found_beside_a_free_response_shape():
     found = {f["effect"]: f["estimate"] for f in r["findings"] if f["significant"]}
     assert found["black_level"]["black_level_codes"] == pytest.approx(255 * 0.03, abs=1.5)
     assert found["response_shape"]["gamma"] == pytest.approx(1.0, abs=0.05)
+
+
+def test_exif_times_rounded_to_nominal_values_are_named_exposure_times():
+    # a one-stop bracket of 1/8 ... 1/256 s whose files say 1/8, 1/15, 1/30, 1/60, 1/125,
+    # 1/250 (the marked shutter speeds): the stated ratios are off by up to 6.7 %.  The
+    # study names the images' own exposures beside the camera's gamma-2.2 curve, and
+    # measures each inner image's factor against the line through the end images.
+    from clblur.study.series import series_groups
+
+    rng = np.random.default_rng(1)
+    cam = Camera(response="gamma:2.2", noise_a=2e-4, noise_b=2e-6)
+    scene = random_scene(rng, (48, 64), 3, low=0.03, high=0.8)
+    true = [2.0 ** -k for k in range(3, 9)]
+    told = [1 / 8, 1 / 15, 1 / 30, 1 / 60, 1 / 125, 1 / 250]
+    groups = series_groups([cam.capture(scene * 8, t, rng=rng) for t in true], told)
+    r = study_groups("exposure-series", groups).report
+    assert {"exposure_times", "response_shape"} <= set(r["extended"]["effects"]), \
+        r["extended"]["effects"]
+    # truth: true / told, with the line through the two end images taken out
+    dev = np.log(np.array(true) / told)
+    x = np.log(told)
+    dev -= dev[0] + (dev[-1] - dev[0]) * (x - x[0]) / (x[-1] - x[0])
+    found = {f["effect"]: f for f in r["findings"]}["exposure_times"]
+    factors = found["estimate"]["exposure_factors"]
+    assert list(factors) == ["1", "2", "3", "4"]
+    np.testing.assert_allclose(np.log(list(factors.values())), dev[1:-1], atol=0.02)
+    assert all(lo < f < hi for f, (lo, hi) in zip(
+        factors.values(), found["interval"]["exposure_factors"].values(), strict=True))
 
 
 def test_truncated_long_exposure_is_quantisation_not_gain():

@@ -1,7 +1,8 @@
 """Exact compression of a group for the likelihood fits: pixels that predict alike, pooled.
 
 A target pixel's prediction depends on its source codes (its histogram rows), the exposure
-ratio and its position only through vignetting.  In an exposure series every pixel reads one
+ratio (and its image pair, where the images have exposures of their own) and its position
+only through vignetting.  In an exposure series every pixel reads one
 source code per channel, so among tens of thousands of pixels there are only a few hundred
 distinct predictions per channel and ratio.  The Gaussian likelihood of pixels sharing one
 prediction ``mu`` and variance ``s2`` needs only their count ``N``, sum ``S1`` and sum of
@@ -34,7 +35,8 @@ __all__ = ["compact"]
 _WORTH = 0.3
 
 
-def compact(g: Group, position_matters: bool, geometric: bool = False) -> Group:
+def compact(g: Group, position_matters: bool, geometric: bool = False,
+            images_matter: bool = False) -> Group:
     """``g`` with pixels of identical prediction pooled (cached on ``g``), or ``g`` itself
     where that would not pay.
 
@@ -49,15 +51,21 @@ def compact(g: Group, position_matters: bool, geometric: bool = False) -> Group:
         True when a geometric variant (misregistration, psf_scale, psf_orientation) is free
         or active: then its rows must be identical too, and the pooled group keeps them.
         Otherwise the pooled group has no variants.
+    images_matter : bool
+        True when the series' images have exposures of their own (``effects``' ``lt:I``
+        free or nonzero): then rows of different image pairs with the same nominal ratio
+        predict apart, and the pair is part of what must be identical.
     """
     cache = g.__dict__.setdefault("_compact", {})
-    key = (position_matters, geometric)
+    images_matter = images_matter and g.images is not None
+    key = (position_matters, geometric, images_matter)
     if key not in cache:
-        cache[key] = _compact(g, position_matters, geometric)
+        cache[key] = _compact(g, position_matters, geometric, images_matter)
     return cache[key]
 
 
-def _compact(g: Group, position_matters: bool, geometric: bool) -> Group:
+def _compact(g: Group, position_matters: bool, geometric: bool,
+             images_matter: bool) -> Group:
     n, nc = g.target.shape
     ratio = np.broadcast_to(np.asarray(g.ratio, np.float64), (n,))
     keys = sorted(g.hist)
@@ -78,6 +86,8 @@ def _compact(g: Group, position_matters: bool, geometric: bool) -> Group:
         fields = [*cols, *vals, ratio]
         if position_matters:
             fields.append(g.r2)
+        if images_matter:
+            fields += [g.images[:, 0], g.images[:, 1]]
         table = np.column_stack([np.asarray(f, np.float64) for f in fields])
         # multi-code rows stay apart: a unique last column
         table = np.column_stack([table, np.where(single, -1.0, np.arange(n, dtype=np.float64))])
@@ -130,7 +140,8 @@ def _assemble(g: Group, blocks: list, nc: int, variants: dict) -> Group:
     out = Group(g.name, target, valid, g.rows[take], g.cols[take], g.shape, ratio,
                 {k: per_channel(hs) for k, hs in g.hist.items()}, per_channel(g.hist_sq),
                 g.r2[take], g.block[take] if g.block is not None else None,
-                g.fold[take] if g.fold is not None else None, g.source_clipped)
+                g.fold[take] if g.fold is not None else None, g.source_clipped,
+                None if g.images is None else g.images[take])
     out.__dict__["stats"] = stats
     out.__dict__["variants"] = {
         e: {v: {key: per_channel(hs) for key, hs in hist.items()} for v, hist in d.items()}
@@ -138,7 +149,7 @@ def _assemble(g: Group, blocks: list, nc: int, variants: dict) -> Group:
     # path weight sums are the same in every channel: read them from the full rows (the
     # pooled ones are empty outside their channel)
     out.__dict__["_norms"] = {i: g.time_norm(i)[take] for i, k in g.hist if k == 0}
-    for k in ("darkest", "gid"):
+    for k in ("darkest", "gid", "inner_images"):
         if k in g.__dict__:
             out.__dict__[k] = g.__dict__[k]
     return out

@@ -22,7 +22,7 @@ import numpy as np
 from scipy import optimize
 
 from clblur.study.compact import compact
-from clblur.study.effects import EFFECTS, PARAMS, black_names
+from clblur.study.effects import EFFECTS, PARAMS, black_names, exposure_deviations, param_range
 from clblur.study.model import WARP_KEYS, Group, time_ok
 from clblur.study.shape_start import shape_starts
 from clblur.study.variants import (
@@ -38,7 +38,7 @@ from clblur.study.variants import (
 __all__ = ["CONDITIONAL", "assign_blocks", "applicable", "physical_bounds", "fit", "fit_all",
            "penalised_nll",
            "Folds", "free_params",
-           "average_params", "heldout_scores"]
+           "average_params", "heldout_scores", "series_images"]
 
 
 def fold_part(g: Group, f: int) -> Group:
@@ -96,6 +96,23 @@ def applicable(groups: list[Group]) -> dict[str, str]:
         out["psf_scale"] = "no motion between source and target (stack or series)"
     if not has_variant(groups, "misregistration"):
         out["misregistration"] = "groups built without shifted histograms"
+    if not series_images(groups):
+        out["exposure_times"] = ("no exposure series of three images or more (the longest and "
+                                 "the shortest exposure fix the scale and the exponent)")
+    return out
+
+
+def series_images(groups: list[Group]) -> tuple[int, ...]:
+    """The images of an exposure series whose own exposure a fit can free (``lt:I``): all
+    but the longest and the shortest (``effects``); empty outside a series."""
+    return tuple(sorted({i for g in groups for i in g.__dict__.get("inner_images", ())}))
+
+
+def _expand(free: list[str], groups: list[Group]) -> list[str]:
+    """``free`` with ``lt`` (``exposure_times``) read as one ``lt:I`` per inner image."""
+    out = []
+    for n in free:
+        out += [f"lt:{i}" for i in series_images(groups)] if n == "lt" else [n]
     return out
 
 
@@ -333,17 +350,20 @@ def _fit_continuous(groups: list[Group], free: list[str], start: dict, nvalid: i
                     bounds: dict[str, tuple[float, float]] | None = None,
                     warm: dict | None = None, shape_search: bool = False,
                     search: bool = True) -> dict:
-    names = list(dict.fromkeys(free))
+    names = list(dict.fromkeys(_expand(free, groups)))
     if not names:
         return dict(start)
+    # an image's exposure that an earlier fit left out starts at its nominal value
+    start = {**{n: param_range(n)[0] for n in names if n not in start}, **start}
     bounds = bounds or {}
-    lo = np.array([bounds.get(n, PARAMS[n][1:])[0] for n in names])
-    hi = np.array([bounds.get(n, PARAMS[n][1:])[1] for n in names])
+    lo = np.array([bounds.get(n, param_range(n)[1:])[0] for n in names])
+    hi = np.array([bounds.get(n, param_range(n)[1:])[1] for n in names])
     hi = np.maximum(hi, lo + 1e-9)
     # pixels that predict alike, pooled: the same likelihood, far fewer rows (series); with
     # a geometric variant in play its rows must be identical too, which rarely pays
     position = "vig" in names or start.get("vig", 0.0) != 0.0
-    groups = [compact(g, position, geometric(names, start)) for g in groups]
+    timed = any(n.startswith("lt:") for n in names) or any(exposure_deviations(start).values())
+    groups = [compact(g, position, geometric(names, start), timed) for g in groups]
 
     def objective(z, s0):
         p = dict(s0)

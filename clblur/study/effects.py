@@ -44,6 +44,15 @@ nested model and can be tested against the simpler one.  Parameters (``PARAMS``)
 * ``pscale``: factor on every motion displacement (PSF resampled).
 * ``flip:G``: 1 if group ``G``'s motion is turned by 180 degrees (discrete, per group).
   (``clblur.study.variants`` for the last four.)
+* ``lt:I``: log factor on the exposure of image ``I`` of an exposure series (its index in
+  the manifest) against its nominal time.  The longest and the shortest exposure are held
+  at their nominal values: a factor common to every image is no change of any ratio, and
+  one growing as a power of the exposure (``t -> t^a``) is the response's own exponent
+  (``I^-1 -> (I^-1)^a``, the exponential ambiguity of Grossberg & Nayar 2003), so neither
+  can be told from the data; holding two images fixes both, and the rest are measured
+  against the nominal line through them (as ``clblur.calibration``'s ``refine_times``
+  holds the mean and the trend).  ``Effect.params`` names them ``lt``; a fit frees one per
+  inner image of its series (``series_images``).
 """
 
 from __future__ import annotations
@@ -51,7 +60,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 __all__ = ["EFFECTS", "EFFECT_NAMES", "PARAMS", "Effect", "black_levels", "black_names",
-           "channel_exponents", "channel_gains", "effective_gamma", "explain", "readable_estimate"]
+           "channel_exponents", "channel_gains", "effect_keys", "effective_gamma", "explain",
+           "exposure_deviations", "format_value", "param_range", "readable_estimate"]
 
 # name: (null value, lower bound, upper bound)
 PARAMS: dict[str, tuple[float, float, float]] = {
@@ -70,6 +80,9 @@ PARAMS: dict[str, tuple[float, float, float]] = {
     "sx": (0.0, -1.0, 1.0),
     "sy": (0.0, -1.0, 1.0),
     "pscale": (1.0, 0.8, 1.25),
+    # each inner image's log exposure factor (``lt:I``): shutters and rounded EXIF times are
+    # off by a few percent, a worn or mistimed shutter by tens of percent
+    "lt": (0.0, -0.4, 0.4),
 }
 for _m in (1, 2, 3, 4):
     PARAMS[f"w{_m}"] = (0.0, -2.0, 2.0)
@@ -109,6 +122,7 @@ _EFFECT_PARAMS = {
     "psf_orientation": ("flip",),  # discrete, one per group (select.fit)
     "psf_scale": ("pscale",),
     "response_imax": ("rho",),
+    "exposure_times": ("lt",),  # one per inner image of the series (``lt:I``, crossfit.fit)
 }
 
 EFFECTS: dict[str, Effect] = {e.name: e for e in (
@@ -139,6 +153,9 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
            "Imax per camera"),
     Effect("channel_shape", "the colour channels' responses differ in contrast (a film's dye "
            "layers, per-channel tone curves): one exponent per channel"),
+    Effect("exposure_times", "each image of the exposure series got its own exposure (or "
+           "gain), off its nominal time: a mechanical shutter's error, an aperture that does "
+           "not stop down exactly, a time stored rounded (1/60 s for 1/64 s)"),
 )}
 EFFECT_NAMES = tuple(EFFECTS)
 
@@ -182,12 +199,39 @@ def readable_estimate(effect: str, p: dict[str, float], channels: int) -> dict:
         return {"shift_x": p["sx"], "shift_y": p["sy"]}
     if effect == "psf_scale":
         return {"scale": p["pscale"]}
+    if effect == "exposure_times":
+        dev = exposure_deviations(p)
+        return {"exposure_factors": {str(i): math.exp(d) for i, d in dev.items()},
+                "largest_stops": max((abs(d) / math.log(2.0) for d in dev.values()),
+                                     default=0.0)}
     if effect == "psf_orientation":
         flips = sorted((k for k in p if k.startswith("flip:")), key=lambda k: int(k[5:]))
         return {"flipped_groups": [int(k[5:]) for k in flips if p[k] >= 0.5],
                 "flipped_fraction": (sum(p[k] >= 0.5 for k in flips) / len(flips)
                                      if flips else 0.0)}
     raise ValueError(f"unknown effect {effect!r}")
+
+
+def exposure_deviations(p: dict[str, float]) -> dict[int, float]:
+    """Each image's log exposure factor that ``p`` holds (``lt:I``), by image index."""
+    return dict(sorted((int(k[3:]), float(v)) for k, v in p.items() if k.startswith("lt:")))
+
+
+def param_range(name: str) -> tuple[float, float, float]:
+    """``PARAMS``' (null, lower, upper) of a parameter, ``lt:I`` taking ``lt``'s."""
+    return PARAMS[name.split(":", 1)[0]]
+
+
+def effect_keys(effect: str, channels: int, p: dict[str, float]) -> list[str]:
+    """The keys of ``p`` that ``effect`` frees: ``Effect.params``, with ``lt`` read as the
+    ``lt:I`` that ``p`` holds and ``flip`` as the ``flip:G``."""
+    out = []
+    for n in EFFECTS[effect].params(channels):
+        if n in ("lt", "flip"):
+            out += [k for k in p if k.startswith(n + ":")]
+        else:
+            out.append(n)
+    return out
 
 
 def effective_gamma(p: dict[str, float], low: float = 0.2, high: float = 0.8,
@@ -245,7 +289,7 @@ def explain(effect: str, estimate: dict, significant: bool, gain_nll: float,
     ``select``'s exchange step, ``gain`` the held-out change of the exchange;
     ``replaced_by``: the effect that took this one's place."""
     e = EFFECTS[effect]
-    size = ", ".join(f"{k}={_fmt(v)}" for k, v in estimate.items())
+    size = ", ".join(f"{k}={format_value(v)}" for k, v in estimate.items())
     if significant and replaced:
         verdict = ("significant: adding it improved the held-out fit by "
                    f"{gain_nll:.3g} nats per pixel value in its round; it then took the "
@@ -266,7 +310,11 @@ def explain(effect: str, estimate: dict, significant: bool, gain_nll: float,
     return f"{effect}: {e.what}. Fitted {size}; {verdict}."
 
 
-def _fmt(v) -> str:
+def format_value(v) -> str:
+    """An estimate's value for a sentence or a table: 3 significant digits, lists (per
+    channel) in brackets, dicts (per image) in braces."""
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k}: {format_value(x)}" for k, x in v.items()) + "}"
     if isinstance(v, list):
         return "[" + ", ".join(f"{x:.3g}" if isinstance(x, float) else str(x) for x in v) + "]"
     return f"{v:.3g}"

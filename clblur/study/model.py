@@ -7,9 +7,11 @@ or the next image of an exposure series) is predicted from 8-bit *source* codes 
 short frames, previous exposure) as
 
     E(p)    = sum_q M(p, q) T[code(q)] / V(q)          (linear-domain average, Eq. 8)
-    pred(p) = 255 * (beta + (1 - beta) I(m(p) E(p))),   m = ratio * gain * gain_c * V(p)
+    pred(p) = 255 * (beta + (1 - beta) I(m(p) E(p))),   m = ratio * gain * gain_c * V(p) * X
 
-with ``T`` the inverse response table over the 256 codes.  Because ``T`` acts per code,
+with ``T`` the inverse response table over the 256 codes and ``X = exp(lt_t - lt_s)`` the
+factor an exposure series' target and source images put on their nominal ratio with
+exposures of their own (``effects``' ``lt:I``; ``Group.images``).  Because ``T`` acts per code,
 ``M @ onehot(code)`` collapses to a *code histogram* ``H[p, c]`` (weight of source code ``c``
 in pixel ``p``'s average).  Non-uniform time weights and vignetting enter linearly in a few
 extra histograms (time weights ``P1 = 2s - 1``, ``P2 = 6s^2 - 6s + 1``; ``1/V = 1 + 2c r^2 +
@@ -33,7 +35,13 @@ import numpy as np
 import scipy.sparse as sp
 
 from clblur.responses import ExpShape
-from clblur.study.effects import PARAMS, black_levels, channel_exponents, channel_gains
+from clblur.study.effects import (
+    PARAMS,
+    black_levels,
+    channel_exponents,
+    channel_gains,
+    exposure_deviations,
+)
 
 __all__ = ["CODES", "TOP", "WARP_KEYS", "Group", "forward", "inverse_table", "null_params",
            "gaussian_nll", "predict", "shape", "time_ok"]
@@ -66,6 +74,9 @@ class Group:
     block: np.ndarray = field(default=None)  # (n,) global block id
     fold: np.ndarray = field(default=None)  # (n,) 0 or 1
     source_clipped: bool = False
+    # (n, 2) int: each row's source and target image in its exposure series (manifest
+    # indices), for the images' own exposures (``effects``' ``lt:I``); None outside a series
+    images: np.ndarray | None = None
 
     def time_norm(self, i: int) -> np.ndarray:
         """Row sums of time term ``i`` (the same for every channel), cached."""
@@ -114,7 +125,8 @@ class Group:
                      self.cols[idx], self.shape, ratio,
                      {k: [h[idx] for h in v] for k, v in self.hist.items()},
                      [h[idx] for h in self.hist_sq], self.r2[idx], self.block[idx],
-                     self.fold[idx], self.source_clipped)
+                     self.fold[idx], self.source_clipped,
+                     None if self.images is None else self.images[idx])
 
 
 def shape(p: dict[str, float], factor: float = 1.0) -> ExpShape:
@@ -203,7 +215,8 @@ def predict(g: Group, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
         e[:, c] = num
         source[:, c] = g.product(("sq", c), g.hist_sq[c], src_table)
     e /= np.maximum(norm, 1e-12)[:, None]
-    m = (g.ratio * np.exp(p["gain"]) * vig_out)[:, None] * np.asarray(gains)[None, :]
+    m = (g.ratio * np.exp(p["gain"]) * vig_out * _exposure_factor(g, p))[:, None] \
+        * np.asarray(gains)[None, :]
     x = m * e
     v, dv = _forward(curves, factors, x, g.valid if "stats" in g.__dict__ else None)
     beta = np.asarray(betas)[None, :]
@@ -216,6 +229,19 @@ def predict(g: Group, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
     var = np.maximum(1.0 / 12.0 + p.get("nc", 0.0) + s * s * (na2 * x + nb2)
                      + (s * m) ** 2 * source, 1.0 / 12.0)
     return pred, var
+
+
+def _exposure_factor(g: Group, p: dict[str, float]) -> float | np.ndarray:
+    """Each row's factor on its nominal exposure ratio from its two images' own exposures
+    (``lt:I``, ``effects``): ``exp(lt_target - lt_source)``; 1 outside a series."""
+    dev = exposure_deviations(p)
+    if g.images is None or not any(dev.values()):
+        return 1.0
+    logs = np.zeros(int(g.images.max(initial=0)) + 1)
+    for i, d in dev.items():
+        if i < logs.size:
+            logs[i] = d
+    return np.exp(logs[g.images[:, 1]] - logs[g.images[:, 0]])
 
 
 def _forward(curves: dict, factors: list[float], x: np.ndarray,

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clblur.study.effects import EFFECT_NAMES, black_levels, channel_exponents
+from clblur.study.effects import EFFECT_NAMES, black_levels, channel_exponents, format_value
 from clblur.study.model import Group, inverse_table, null_params, shape
 from clblur.study.select import Selection
 
@@ -81,7 +81,7 @@ def markdown(report: dict, title: str = "Study", figures: list[str] | None = Non
         t = "-" if f["statistic"] is None else f"{f['statistic']:.2f}"
         p = "-" if f["p_value"] is None else f"{f['p_value']:.2g}"
         est = "-" if f["estimate"] is None else ", ".join(
-            f"{k}={_short(v)}" for k, v in f["estimate"].items())
+            f"{k}={format_value(v)}" for k, v in f["estimate"].items())
         ci = "-" if not f.get("interval") else ", ".join(
             f"{k} {_range(v)}" for k, v in f["interval"].items())
         lines.append(f"| {f['effect']} | {'yes' if f['significant'] else 'no'} | {t} | {p} "
@@ -101,17 +101,14 @@ def markdown(report: dict, title: str = "Study", figures: list[str] | None = Non
     return "\n".join(lines) + "\n"
 
 
-def _range(v: list) -> str:
-    """An interval ``[a, b]``, or a list of them (one per channel), for the table."""
+def _range(v: list | dict) -> str:
+    """An interval ``[a, b]``, or a list of them (one per channel) or a dict (one per
+    image), for the table."""
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k}: {_range(x)}" for k, x in v.items()) + "}"
     if v and isinstance(v[0], list):
         return "[" + ", ".join(_range(x) for x in v) + "]"
     return f"[{v[0]:.3g}, {v[1]:.3g}]"
-
-
-def _short(v) -> str:
-    if isinstance(v, list):
-        return "[" + ", ".join(f"{x:.3g}" if isinstance(x, float) else str(x) for x in v) + "]"
-    return f"{v:.3g}"
 
 
 def grid_image(g: Group, values: np.ndarray) -> np.ndarray:

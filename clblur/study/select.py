@@ -66,7 +66,7 @@ from clblur.study.crossfit import (
     heldout_scores,
     physical_bounds,
 )
-from clblur.study.effects import EFFECTS, PARAMS, explain, readable_estimate
+from clblur.study.effects import EFFECTS, effect_keys, explain, param_range, readable_estimate
 from clblur.study.model import WARP_KEYS, Group, null_params, time_ok
 from clblur.study.significance import t_test, weighted_test
 from clblur.study.variants import pack, pixel_nll
@@ -375,8 +375,8 @@ def _current_fit(folds: Folds, current: frozenset, candidates: list[str],
 def _at_null(fits: list[dict], effect: str, channels: int) -> list[dict]:
     """Each fold's parameters with ``effect``'s at their null values (the effect taken out,
     the rest kept as a start)."""
-    null = null_params()
-    return [{**q, **{n: null[n] for n in EFFECTS[effect].params(channels)}} for q in fits]
+    return [{**q, **{n: param_range(n)[0] for n in effect_keys(effect, channels, q)}}
+            for q in fits]
 
 
 def _best_swap(folds: Folds, current: frozenset, order: list[str],
@@ -419,7 +419,7 @@ def _best_swap(folds: Folds, current: frozenset, order: list[str],
     improve, simplify = [], []
     for e, c in pairs:
         model = (current - {e}) | {c} | nuisance
-        start = [{**q, **{n: earlier[c][f][n] for n in EFFECTS[c].params(channels)}}
+        start = [{**q, **{n: earlier[c][f][n] for n in effect_keys(c, channels, earlier[c][f])}}
                  for f, q in enumerate(_at_null(base, e, channels))]
         p = folds.fit(model, start, channels, shape_search="response_shape" in model)
         d, _, pv = _weighted_gain(folds, base, p, used)
@@ -583,12 +583,12 @@ def intervals(groups: list[Group], p: dict, effect: str, channels: int,
     method, :func:`_effective_gamma_interval`), with the family's exponent as ``exponent``:
     the keys of ``effects.readable_estimate``.
     """
-    names = [n for n in EFFECTS[effect].params(channels) if n in PARAMS]
+    names = effect_keys(effect, channels, p)
     if not names or effect == "psf_orientation":
         return None
     bounds = bounds or {}
-    lo = np.array([bounds.get(n, PARAMS[n][1:])[0] for n in names])
-    hi = np.array([bounds.get(n, PARAMS[n][1:])[1] for n in names])
+    lo = np.array([bounds.get(n, param_range(n)[1:])[0] for n in names])
+    hi = np.array([bounds.get(n, param_range(n)[1:])[1] for n in names])
     h = 1e-4 * (hi - lo)
     # finite differences around a point at least one step inside the bounds (an estimate on
     # a bound, such as rho = 1, would otherwise step out of the family's range)
@@ -656,6 +656,9 @@ def intervals(groups: list[Group], p: dict, effect: str, channels: int,
         out = {"black_level_codes": [255.0 * max(lo.mean(), mean - mhalf),
                                      255.0 * min(hi.mean(), mean + mhalf)],
                "channel_codes": [[255.0 * a, 255.0 * b] for a, b in ranges]}
+    elif effect == "exposure_times":  # as readable_estimate: the factor on each image's time
+        out = {"exposure_factors": {n[3:]: [math.exp(a), math.exp(b)]
+                                    for n, (a, b) in zip(names, ranges, strict=True)}}
     else:
         out = {}
         for n, (a, b) in zip(names, ranges, strict=True):

@@ -135,6 +135,10 @@ def series_groups(images: list[np.ndarray], exposures: list[float],
                         h[j] / h[k], vignetting=False, timed=False,
                         variants={"misregistration": {sh: shifted(taps, *sh) for sh in SHIFTS}},
                         darkest=np.minimum(floors[k], floors[j]))
+        # which images each row reads, for the images' own exposures (``effects``' lt:I):
+        # the longest and the shortest are held at their nominal times, the rest are free
+        g.images = np.tile(np.array([order[k], order[j]], np.intp), (g.rows.size, 1))
+        g.__dict__["inner_images"] = tuple(sorted(int(i) for i in order[1:-1]))
         if top < 255:
             # a camera that clips below full scale: a code at its clip point is no measure
             # of light, in the target (censored like 255) nor in the source

@@ -77,7 +77,7 @@ def subset(g: Group, keep: np.ndarray) -> Group:
     out.__dict__["variants"] = {
         e: {k: {key: [h[idx] for h in hs] for key, hs in hist.items()} for k, hist in d.items()}
         for e, d in g.__dict__.get("variants", {}).items()}
-    for k in ("darkest", "gid"):
+    for k in ("darkest", "gid", "inner_images"):
         if k in g.__dict__:
             out.__dict__[k] = g.__dict__[k]
     return out
@@ -127,12 +127,17 @@ def _concat(gs: list[Group]) -> Group:
               {key: stack(lambda g, key=key: g.hist[key]) for key in first.hist},
               stack(lambda g: g.hist_sq), np.concatenate([g.r2 for g in gs]),
               np.concatenate([g.block for g in gs]), np.concatenate([g.fold for g in gs]),
-              any(g.source_clipped for g in gs))
+              any(g.source_clipped for g in gs),
+              np.concatenate([g.images for g in gs])
+              if all(g.images is not None for g in gs) else None)
     var = first.__dict__.get("variants", {})
     g.__dict__["variants"] = {
         e: {k: {key: stack(lambda g, e=e, k=k, key=key: g.__dict__["variants"][e][k][key])
                 for key in hist} for k, hist in d.items()} for e, d in var.items()}
     g.__dict__["darkest"] = np.min([darkest_codes(m) for m in gs], axis=0)
+    inner = {i for m in gs for i in m.__dict__.get("inner_images", ())}
+    if inner:
+        g.__dict__["inner_images"] = tuple(sorted(inner))
     return g
 
 
