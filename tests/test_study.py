@@ -106,6 +106,12 @@ def _check_estimate(effect: str, est: dict, truth: float) -> None:
         logs = np.log(list(est["exposure_factors"].values()))
         assert len(logs) == 3
         np.testing.assert_allclose(np.abs(logs), truth, atol=0.01)
+    elif effect == "white_balance":  # each inner image's R up and B down, or the reverse
+        gains = est["channel_gains"]
+        assert len(gains) == 3
+        for g in gains.values():
+            np.testing.assert_allclose(np.abs(np.log(g)), [truth, 0.0, truth], atol=0.01)
+            assert np.log(g[0]) == pytest.approx(-np.log(g[2]), abs=0.01)
     elif effect == "psf_scale":  # histograms at 0.8, 1, 1.25, interpolated between
         assert est["scale"] == pytest.approx(truth, abs=0.03) or \
             est["scale"] == pytest.approx(1 / truth, abs=0.03)

@@ -22,7 +22,7 @@ import numpy as np
 from scipy import optimize
 
 from clblur.study.compact import compact
-from clblur.study.effects import EFFECTS, PARAMS, black_names, exposure_deviations, param_range
+from clblur.study.effects import EFFECTS, PARAMS, black_names, param_range
 from clblur.study.model import WARP_KEYS, Group, time_ok
 from clblur.study.shape_start import shape_starts
 from clblur.study.variants import (
@@ -97,8 +97,11 @@ def applicable(groups: list[Group]) -> dict[str, str]:
     if not has_variant(groups, "misregistration"):
         out["misregistration"] = "groups built without shifted histograms"
     if not series_images(groups):
-        out["exposure_times"] = ("no exposure series of three images or more (the longest and "
-                                 "the shortest exposure fix the scale and the exponent)")
+        out["exposure_times"] = out["white_balance"] = (
+            "no exposure series of three images or more (the longest and the shortest "
+            "exposure fix the scale and the exponent)")
+    elif groups[0].channels < 2:
+        out["white_balance"] = "single-channel images"
     return out
 
 
@@ -109,10 +112,17 @@ def series_images(groups: list[Group]) -> tuple[int, ...]:
 
 
 def _expand(free: list[str], groups: list[Group]) -> list[str]:
-    """``free`` with ``lt`` (``exposure_times``) read as one ``lt:I`` per inner image."""
+    """``free`` with ``lt`` (``exposure_times``) read as one ``lt:I`` per inner image, and
+    ``lw`` (``white_balance``) as one ``lw:I:c`` per inner image and channel but the first."""
     out = []
     for n in free:
-        out += [f"lt:{i}" for i in series_images(groups)] if n == "lt" else [n]
+        if n == "lt":
+            out += [f"lt:{i}" for i in series_images(groups)]
+        elif n == "lw":
+            out += [f"lw:{i}:{c}" for i in series_images(groups)
+                    for c in range(1, groups[0].channels)]
+        else:
+            out.append(n)
     return out
 
 
@@ -362,7 +372,8 @@ def _fit_continuous(groups: list[Group], free: list[str], start: dict, nvalid: i
     # pixels that predict alike, pooled: the same likelihood, far fewer rows (series); with
     # a geometric variant in play its rows must be identical too, which rarely pays
     position = "vig" in names or start.get("vig", 0.0) != 0.0
-    timed = any(n.startswith("lt:") for n in names) or any(exposure_deviations(start).values())
+    timed = (any(n.startswith(("lt:", "lw:")) for n in names)
+             or any(v for k, v in start.items() if k.startswith(("lt:", "lw:"))))
     groups = [compact(g, position, geometric(names, start), timed) for g in groups]
 
     def objective(z, s0):

@@ -53,13 +53,20 @@ nested model and can be tested against the simpler one.  Parameters (``PARAMS``)
   against the nominal line through them (as ``clblur.calibration``'s ``refine_times``
   holds the mean and the trend).  ``Effect.params`` names them ``lt``; a fit frees one per
   inner image of its series (``series_images``).
+* ``lw:I:c``: log white-balance factor of channel ``c`` (1, 2, ...) against channel 0 in
+  image ``I`` of an exposure series, normalised per image to a geometric mean of 1 as
+  ``cg`` is (the common part is ``lt``'s).  A camera's auto white balance sets the gains
+  shot by shot (EXIF ``WhiteBalance`` 0).  The same two images are held as for ``lt``, for
+  the same reasons per channel (a power of the exposure per channel is ``channel_shape``).
+  ``Effect.params`` names them ``lw``.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["EFFECTS", "EFFECT_NAMES", "PARAMS", "Effect", "black_levels", "black_names",
+__all__ = ["EFFECTS", "EFFECT_NAMES", "PARAMS", "Effect", "balance_deviations", "black_levels",
+           "black_names",
            "channel_exponents", "channel_gains", "effect_keys", "effective_gamma", "explain",
            "exposure_deviations", "format_value", "param_range", "readable_estimate"]
 
@@ -83,6 +90,7 @@ PARAMS: dict[str, tuple[float, float, float]] = {
     # each inner image's log exposure factor (``lt:I``): shutters and rounded EXIF times are
     # off by a few percent, a worn or mistimed shutter by tens of percent
     "lt": (0.0, -0.4, 0.4),
+    "lw": (0.0, -0.5, 0.5),  # each inner image's log white-balance factor (``lw:I:c``)
 }
 for _m in (1, 2, 3, 4):
     PARAMS[f"w{_m}"] = (0.0, -2.0, 2.0)
@@ -123,6 +131,7 @@ _EFFECT_PARAMS = {
     "psf_scale": ("pscale",),
     "response_imax": ("rho",),
     "exposure_times": ("lt",),  # one per inner image of the series (``lt:I``, crossfit.fit)
+    "white_balance": ("lw",),  # per inner image and channel but the first (``lw:I:c``)
 }
 
 EFFECTS: dict[str, Effect] = {e.name: e for e in (
@@ -156,6 +165,8 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
     Effect("exposure_times", "each image of the exposure series got its own exposure (or "
            "gain), off its nominal time: a mechanical shutter's error, an aperture that does "
            "not stop down exactly, a time stored rounded (1/60 s for 1/64 s)"),
+    Effect("white_balance", "each image of the exposure series got its own white balance (a "
+           "camera's auto white balance sets its channel gains shot by shot)"),
 )}
 EFFECT_NAMES = tuple(EFFECTS)
 
@@ -204,6 +215,9 @@ def readable_estimate(effect: str, p: dict[str, float], channels: int) -> dict:
         return {"exposure_factors": {str(i): math.exp(d) for i, d in dev.items()},
                 "largest_stops": max((abs(d) / math.log(2.0) for d in dev.values()),
                                      default=0.0)}
+    if effect == "white_balance":
+        return {"channel_gains": {str(i): [math.exp(v) for v in logs]
+                                  for i, logs in balance_deviations(p, channels).items()}}
     if effect == "psf_orientation":
         flips = sorted((k for k in p if k.startswith("flip:")), key=lambda k: int(k[5:]))
         return {"flipped_groups": [int(k[5:]) for k in flips if p[k] >= 0.5],
@@ -217,17 +231,29 @@ def exposure_deviations(p: dict[str, float]) -> dict[int, float]:
     return dict(sorted((int(k[3:]), float(v)) for k, v in p.items() if k.startswith("lt:")))
 
 
+def balance_deviations(p: dict[str, float], channels: int) -> dict[int, list[float]]:
+    """Each image's log white-balance factors that ``p`` holds (``lw:I:c``), by image
+    index: one per channel, normalised to a mean of 0 (a geometric mean of 1)."""
+    out: dict[int, list[float]] = {}
+    for k, v in p.items():
+        if k.startswith("lw:"):
+            i, c = (int(x) for x in k[3:].split(":"))
+            out.setdefault(i, [0.0] * channels)[c] = float(v)
+    return {i: [v - sum(logs) / channels for v in logs] for i, logs in sorted(out.items())}
+
+
 def param_range(name: str) -> tuple[float, float, float]:
-    """``PARAMS``' (null, lower, upper) of a parameter, ``lt:I`` taking ``lt``'s."""
+    """``PARAMS``' (null, lower, upper) of a parameter, ``lt:I`` taking ``lt``'s (and
+    ``lw:I:c`` ``lw``'s)."""
     return PARAMS[name.split(":", 1)[0]]
 
 
 def effect_keys(effect: str, channels: int, p: dict[str, float]) -> list[str]:
     """The keys of ``p`` that ``effect`` frees: ``Effect.params``, with ``lt`` read as the
-    ``lt:I`` that ``p`` holds and ``flip`` as the ``flip:G``."""
+    ``lt:I`` that ``p`` holds (``lw`` as the ``lw:I:c``, ``flip`` as the ``flip:G``)."""
     out = []
     for n in EFFECTS[effect].params(channels):
-        if n in ("lt", "flip"):
+        if n in ("lt", "lw", "flip"):
             out += [k for k in p if k.startswith(n + ":")]
         else:
             out.append(n)

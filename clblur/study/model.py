@@ -11,7 +11,8 @@ short frames, previous exposure) as
 
 with ``T`` the inverse response table over the 256 codes and ``X = exp(lt_t - lt_s)`` the
 factor an exposure series' target and source images put on their nominal ratio with
-exposures of their own (``effects``' ``lt:I``; ``Group.images``).  Because ``T`` acts per code,
+exposures of their own (``effects``' ``lt:I``; ``Group.images``), times, per channel, the
+factor of their own white balance (``lw:I:c``).  Because ``T`` acts per code,
 ``M @ onehot(code)`` collapses to a *code histogram* ``H[p, c]`` (weight of source code ``c``
 in pixel ``p``'s average).  Non-uniform time weights and vignetting enter linearly in a few
 extra histograms (time weights ``P1 = 2s - 1``, ``P2 = 6s^2 - 6s + 1``; ``1/V = 1 + 2c r^2 +
@@ -37,6 +38,7 @@ import scipy.sparse as sp
 from clblur.responses import ExpShape
 from clblur.study.effects import (
     PARAMS,
+    balance_deviations,
     black_levels,
     channel_exponents,
     channel_gains,
@@ -216,7 +218,7 @@ def predict(g: Group, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
         source[:, c] = g.product(("sq", c), g.hist_sq[c], src_table)
     e /= np.maximum(norm, 1e-12)[:, None]
     m = (g.ratio * np.exp(p["gain"]) * vig_out * _exposure_factor(g, p))[:, None] \
-        * np.asarray(gains)[None, :]
+        * np.asarray(gains)[None, :] * _balance_factor(g, p, nc)
     x = m * e
     v, dv = _forward(curves, factors, x, g.valid if "stats" in g.__dict__ else None)
     beta = np.asarray(betas)[None, :]
@@ -240,6 +242,19 @@ def _exposure_factor(g: Group, p: dict[str, float]) -> float | np.ndarray:
     logs = np.zeros(int(g.images.max(initial=0)) + 1)
     for i, d in dev.items():
         if i < logs.size:
+            logs[i] = d
+    return np.exp(logs[g.images[:, 1]] - logs[g.images[:, 0]])
+
+
+def _balance_factor(g: Group, p: dict[str, float], channels: int) -> float | np.ndarray:
+    """Each row's per-channel factor (n, C) from its two images' own white balance
+    (``lw:I:c``, ``effects``); 1 outside a series."""
+    dev = balance_deviations(p, channels)
+    if g.images is None or not any(any(v) for v in dev.values()):
+        return 1.0
+    logs = np.zeros((int(g.images.max(initial=0)) + 1, channels))
+    for i, d in dev.items():
+        if i < logs.shape[0]:
             logs[i] = d
     return np.exp(logs[g.images[:, 1]] - logs[g.images[:, 0]])
 

@@ -659,6 +659,9 @@ def intervals(groups: list[Group], p: dict, effect: str, channels: int,
     elif effect == "exposure_times":  # as readable_estimate: the factor on each image's time
         out = {"exposure_factors": {n[3:]: [math.exp(a), math.exp(b)]
                                     for n, (a, b) in zip(names, ranges, strict=True)}}
+    elif effect == "white_balance":  # image I, channel c: its gain against channel 0
+        out = {"gain_against_first_channel": {n[3:]: [math.exp(a), math.exp(b)]
+                                              for n, (a, b) in zip(names, ranges, strict=True)}}
     else:
         out = {}
         for n, (a, b) in zip(names, ranges, strict=True):

@@ -6,7 +6,8 @@ realistic range (``RANGES``) unless given.  Scenes are small random radiance map
 effect is ``response_shape`` (a power law), ``response_imax`` (Eq. 3 with ``Imax`` above
 the top code) or ``channel_shape`` (Eq. 3 with another exponent in R and in B).
 ``exposure_times`` renders a five-image series whose three inner images were each exposed
-``exp(+-m)`` times their stated time.
+``exp(+-m)`` times their stated time; ``white_balance`` the same series with each inner
+image's R gain ``exp(+-m)`` and B gain its inverse.
 
 Why these kinds: with the paper's exponential a black offset cancels in an equal-exposure pair
 (``1 - g = prod (1 - f)^w`` just scales by ``1 - beta``), so ``black_level`` is hidden in an
@@ -48,6 +49,7 @@ RANGES = {
     "response_imax": (0.2, 0.6),  # rho = full scale / Imax of the camera's Eq. 3
     "channel_shape": (0.1, 0.25),  # |log| of the R and B factor on Eq. 3's exponent (G fixed)
     "exposure_times": (0.04, 0.12),  # |log| of each inner image's factor on its nominal time
+    "white_balance": (0.04, 0.12),  # |log| of each inner image's R and B gain (G fixed)
 }
 CLIP = 6.2 / 3.0  # exposure at which Exp(3) reaches code 255
 
@@ -100,13 +102,20 @@ def scenario(effects: dict[str, float | None], rng: np.random.Generator,
         times = [4.0, 2.0, 1.0, 0.5]
         imgs = [camera.capture(scene * 0.25, t, rng=rng) for t in times]
         return Scenario("exposure-series", series_groups(imgs, times), mag)
-    if "exposure_times" in mag:
-        # five stops told, each inner image exposed a factor exp(+-m) off its time (the
-        # longest and the shortest are the reference: effects, lt:I)
+    if "exposure_times" in mag or "white_balance" in mag:
+        # five stops told; each inner image exposed a factor exp(+-m) off its time, or with
+        # its R and B gains turned apart by exp(+-m) (the longest and the shortest are the
+        # reference: effects, lt:I and lw:I:c)
         times = [8.0, 4.0, 2.0, 1.0, 0.5]
-        off = [0.0, *(mag["exposure_times"] * rng.choice([-1.0, 1.0], 3)), 0.0]
-        imgs = [camera.capture(scene * 0.125, t * math.exp(d), rng=rng)
-                for t, d in zip(times, off, strict=True)]
+        m = mag.get("exposure_times", mag.get("white_balance"))
+        off = [0.0, *(m * rng.choice([-1.0, 1.0], 3)), 0.0]
+        if "exposure_times" in mag:
+            imgs = [camera.capture(scene * 0.125, t * math.exp(d), rng=rng)
+                    for t, d in zip(times, off, strict=True)]
+        else:
+            imgs = [camera.capture(scene * 0.125, t, rng=rng,
+                                   channel_gains=(math.exp(d), 1.0, math.exp(-d)))
+                    for t, d in zip(times, off, strict=True)]
         return Scenario("exposure-series", series_groups(imgs, times), mag)
     length = float(rng.uniform(12, 16) if "vignetting" in mag else rng.uniform(6, 12))
     angle = float(rng.uniform(-0.4, 0.4)) + (math.pi if rng.random() < 0.5 else 0.0)
