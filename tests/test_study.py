@@ -424,6 +424,19 @@ def test_exif_times_rounded_to_nominal_values_are_named_exposure_times():
         factors.values(), found["interval"]["exposure_factors"].values(), strict=True))
 
 
+def test_a_fit_run_to_the_edge_of_its_range_is_named():
+    # an estimate the optimiser left on a bound is not a measurement (Memorial's free
+    # exposure times bowed to theirs); a null value on its bound is no symptom
+    from clblur.study.select import on_edge
+
+    fits = [{"lt:1": 0.4, "lt:2": 0.1}, {"lt:1": 0.39, "lt:2": -0.1}]
+    assert on_edge("exposure_times", fits, 3) == ["lt:1"]
+    blacks = [{"black": 0.0, "black1": 0.02, "black2": 0.01}]
+    assert on_edge("black_level", blacks, 3, {"black1": (0.0, 0.02)}) == ["black1"]
+    assert on_edge("noise", [{"na": 0.0, "nb": 0.0, "nc": 0.0}], 3) == []
+    assert on_edge("response_imax", [{"rho": 1.0}], 3) == []
+
+
 def test_truncated_long_exposure_is_quantisation_not_gain():
     # a gamma-2.2 frame stack whose long exposure was truncated: the bias of -0.5 codes is
     # named quantisation, and the response is found (the GoPro case of issue 9).  Seen

@@ -71,7 +71,7 @@ from clblur.study.model import WARP_KEYS, Group, null_params, time_ok
 from clblur.study.significance import t_test, weighted_test
 from clblur.study.variants import pack, pixel_nll
 
-__all__ = ["Finding", "Selection", "select", "intervals", "MIN_GAIN", "assign_blocks",
+__all__ = ["Finding", "Selection", "select", "intervals", "MIN_GAIN", "assign_blocks", "on_edge",
            "applicable", "physical_bounds", "fit", "t_test", "weighted_test"]
 
 
@@ -178,7 +178,8 @@ def _select(groups: list[Group], folds: Folds, nblocks: int, alpha: float, min_g
         est = readable_estimate(effect, average_params(p_e), channels)
         findings[effect] = Finding(effect, False, t, pv, est,
                                    explain(effect, est, False, gain,
-                                           replaced_by=replaced_by.get(effect)), gain, rnd)
+                                           replaced_by=replaced_by.get(effect))
+                                   + _edge_note(effect, p_e, channels, folds.bounds), gain, rnd)
         return effect, pv, gain, p_e
 
     cur_params = folds.fit(current, [null, null], channels)
@@ -323,6 +324,40 @@ def _note_toe(findings: dict[str, Finding], current: frozenset,
             "trades with the toe of the response shape, which can absorb it over the codes "
             "seen, so these data may not tell the two apart (frames that reach near black "
             "do).")
+
+
+def on_edge(effect: str, fits: list[dict], channels: int,
+            bounds: dict[str, tuple[float, float]] | None = None) -> list[str]:
+    """The parameters of ``effect`` that a fit in ``fits`` left on a bound of their range
+    other than their null value (``effects.PARAMS``, or ``bounds``: a black level's darkest
+    code).  A null on its bound (no black level, no extra noise, ``rho = 1``) is no
+    symptom; a factor driven to the end of its range is: the data did not stop it."""
+    bounds = bounds or {}
+    out = set()
+    for q in fits:
+        for n in effect_keys(effect, channels, q):
+            if n not in q or n.startswith("flip:"):
+                continue
+            null, lo, hi = param_range(n)
+            lo, hi = bounds.get(n, (lo, hi))
+            tol = 1e-4 * (hi - lo)
+            v = q[n]
+            if (abs(v - lo) <= tol and lo != null) or (abs(v - hi) <= tol and hi != null):
+                out.add(n)
+    return sorted(out)
+
+
+def _edge_note(effect: str, fits: list[dict], channels: int,
+               bounds: dict[str, tuple[float, float]]) -> str:
+    """A sentence for a finding whose fit ran to the edge of a parameter's range (on_edge):
+    its estimate is where the optimiser stopped, not a measurement.  Memorial's free
+    exposure times, not significant, bowed to the bound of two frames while the curve's warp
+    gave way (docs/studies/validation.md)."""
+    edge = on_edge(effect, fits, channels, bounds)
+    if not edge:
+        return ""
+    return (f" Its fit ran to the edge of the range of {', '.join(edge)}: the data do not pin "
+            "this effect down there, and the estimate is no measurement of it.")
 
 
 def _testable_again(contained: set[str], current: frozenset, candidates: list[str],
