@@ -52,9 +52,10 @@ def compact(g: Group, position_matters: bool, geometric: bool = False,
         or active: then its rows must be identical too, and the pooled group keeps them.
         Otherwise the pooled group has no variants.
     images_matter : bool
-        True when the series' images have exposures of their own (``effects``' ``lt:I``
-        free or nonzero): then rows of different image pairs with the same nominal ratio
-        predict apart, and the pair is part of what must be identical.
+        True when the series' images have exposures or white balances of their own
+        (``effects``' ``lt:I``, ``lw:I:c`` free or nonzero): then rows of different image
+        pairs with the same nominal ratio predict apart, and the pair is part of what must
+        be identical.
     """
     cache = g.__dict__.setdefault("_compact", {})
     images_matter = images_matter and g.images is not None

@@ -77,7 +77,8 @@ class Group:
     fold: np.ndarray = field(default=None)  # (n,) 0 or 1
     source_clipped: bool = False
     # (n, 2) int: each row's source and target image in its exposure series (manifest
-    # indices), for the images' own exposures (``effects``' ``lt:I``); None outside a series
+    # indices), for the images' own exposures and white balance (``effects``' ``lt:I``,
+    # ``lw:I:c``); None outside a series
     images: np.ndarray | None = None
 
     def time_norm(self, i: int) -> np.ndarray:
@@ -217,8 +218,9 @@ def predict(g: Group, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
         e[:, c] = num
         source[:, c] = g.product(("sq", c), g.hist_sq[c], src_table)
     e /= np.maximum(norm, 1e-12)[:, None]
-    m = (g.ratio * np.exp(p["gain"]) * vig_out * _exposure_factor(g, p))[:, None] \
-        * np.asarray(gains)[None, :] * _balance_factor(g, p, nc)
+    own = {i: [d] for i, d in exposure_deviations(p).items()}
+    m = ((g.ratio * np.exp(p["gain"]) * vig_out)[:, None] * np.asarray(gains)[None, :]
+         * _image_factors(g, own, 1) * _image_factors(g, balance_deviations(p, nc), nc))
     x = m * e
     v, dv = _forward(curves, factors, x, g.valid if "stats" in g.__dict__ else None)
     beta = np.asarray(betas)[None, :]
@@ -233,26 +235,14 @@ def predict(g: Group, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
     return pred, var
 
 
-def _exposure_factor(g: Group, p: dict[str, float]) -> float | np.ndarray:
-    """Each row's factor on its nominal exposure ratio from its two images' own exposures
-    (``lt:I``, ``effects``): ``exp(lt_target - lt_source)``; 1 outside a series."""
-    dev = exposure_deviations(p)
-    if g.images is None or not any(dev.values()):
-        return 1.0
-    logs = np.zeros(int(g.images.max(initial=0)) + 1)
-    for i, d in dev.items():
-        if i < logs.size:
-            logs[i] = d
-    return np.exp(logs[g.images[:, 1]] - logs[g.images[:, 0]])
-
-
-def _balance_factor(g: Group, p: dict[str, float], channels: int) -> float | np.ndarray:
-    """Each row's per-channel factor (n, C) from its two images' own white balance
-    (``lw:I:c``, ``effects``); 1 outside a series."""
-    dev = balance_deviations(p, channels)
+def _image_factors(g: Group, dev: dict[int, list[float]], width: int) -> float | np.ndarray:
+    """Each row's factor (n, ``width``) from its two images' own log factors ``dev``
+    (``{image: one per column}``): ``exp(dev_target - dev_source)``; 1 outside a series or
+    where every factor is 0.  The exposures (``lt:I``) take one column, the white balance
+    (``lw:I:c``) one per channel (``effects``)."""
     if g.images is None or not any(any(v) for v in dev.values()):
         return 1.0
-    logs = np.zeros((int(g.images.max(initial=0)) + 1, channels))
+    logs = np.zeros((int(g.images.max(initial=0)) + 1, width))
     for i, d in dev.items():
         if i < logs.shape[0]:
             logs[i] = d
