@@ -435,6 +435,27 @@ def test_a_fit_run_to_the_edge_of_its_range_is_named():
     assert on_edge("black_level", blacks, 3, {"black1": (0.0, 0.02)}) == ["black1"]
     assert on_edge("noise", [{"na": 0.0, "nb": 0.0, "nc": 0.0}], 3) == []
     assert on_edge("response_imax", [{"rho": 1.0}], 3) == []
+    # rho's least value is the family's own limit (the power law), a measurement
+    assert on_edge("response_imax", [{"rho": 1e-3}], 3) == []
+
+
+def test_the_edge_note_outlives_a_rewritten_verdict():
+    # a verdict is rewritten when an effect is exchanged or found negligible; the note on
+    # the bound belongs to the fit, not to the verdict, and stays
+    from clblur.study.select import Finding
+
+    f = Finding("exposure_times", False, 1.0, 0.3, {"exposure_factors": {"1": 1.49}}, "",
+                0.001, 1, edge=["lt:1"])
+    f.explain(False, 0.001, replaced_by="response_shape")
+    assert "replaced by response_shape" in f.explanation
+    assert "edge of the range of lt:1" in f.explanation and "no measurement" in f.explanation
+    f.explain(False, 0.001, too_small=True)
+    assert "negligible" in f.explanation and "edge of the range of lt:1" in f.explanation
+    f.explain(True, 0.05)
+    assert "the effect may be larger" in f.explanation
+    f.edge = []
+    f.explain(True, 0.05)
+    assert "edge" not in f.explanation
 
 
 def test_truncated_long_exposure_is_quantisation_not_gain():

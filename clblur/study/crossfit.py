@@ -22,7 +22,15 @@ import numpy as np
 from scipy import optimize
 
 from clblur.study.compact import compact
-from clblur.study.effects import EFFECTS, PARAMS, black_names, param_range
+from clblur.study.effects import (
+    EFFECTS,
+    PARAMS,
+    PER_IMAGE,
+    black_names,
+    image_keys,
+    is_per_image,
+    param_range,
+)
 from clblur.study.model import WARP_KEYS, Group, time_ok
 from clblur.study.shape_start import shape_starts
 from clblur.study.variants import (
@@ -116,11 +124,8 @@ def _expand(free: list[str], groups: list[Group]) -> list[str]:
     ``lw`` (``white_balance``) as one ``lw:I:c`` per inner image and channel but the first."""
     out = []
     for n in free:
-        if n == "lt":
-            out += [f"lt:{i}" for i in series_images(groups)]
-        elif n == "lw":
-            out += [f"lw:{i}:{c}" for i in series_images(groups)
-                    for c in range(1, groups[0].channels)]
+        if n in PER_IMAGE:
+            out += image_keys(n, series_images(groups), groups[0].channels)
         else:
             out.append(n)
     return out
@@ -372,8 +377,8 @@ def _fit_continuous(groups: list[Group], free: list[str], start: dict, nvalid: i
     # pixels that predict alike, pooled: the same likelihood, far fewer rows (series); with
     # a geometric variant in play its rows must be identical too, which rarely pays
     position = "vig" in names or start.get("vig", 0.0) != 0.0
-    timed = (any(n.startswith(("lt:", "lw:")) for n in names)
-             or any(v for k, v in start.items() if k.startswith(("lt:", "lw:"))))
+    timed = (any(is_per_image(n) for n in names)
+             or any(v for k, v in start.items() if is_per_image(k)))
     groups = [compact(g, position, geometric(names, start), timed) for g in groups]
 
     def objective(z, s0):

@@ -65,10 +65,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["EFFECTS", "EFFECT_NAMES", "PARAMS", "Effect", "balance_deviations", "black_levels",
-           "black_names",
+__all__ = ["EFFECTS", "EFFECT_NAMES", "FAMILY_LIMITS", "INDEXED", "PARAMS", "PER_IMAGE",
+           "Effect", "balance_deviations", "black_levels", "black_names",
            "channel_exponents", "channel_gains", "effect_keys", "effective_gamma", "explain",
-           "exposure_deviations", "format_value", "param_range", "readable_estimate"]
+           "exposure_deviations", "format_value", "image_keys", "is_per_image", "param_range",
+           "readable_estimate"]
 
 # name: (null value, lower bound, upper bound)
 PARAMS: dict[str, tuple[float, float, float]] = {
@@ -92,6 +93,10 @@ PARAMS: dict[str, tuple[float, float, float]] = {
     "lt": (0.0, -0.4, 0.4),
     "lw": (0.0, -0.5, 0.5),  # each inner image's log white-balance factor (``lw:I:c``)
 }
+# bounds that stand for a limit of the family itself, not for the end of a search:
+# ``rho -> 0`` is the power law (Imax -> infinity, a linear camera for gamma 1), which the
+# fit reaches at 1e-3 to within a thousandth of a code; an estimate there is a measurement
+FAMILY_LIMITS: dict[str, float] = {"rho": PARAMS["rho"][1]}
 for _m in (1, 2, 3, 4):
     PARAMS[f"w{_m}"] = (0.0, -2.0, 2.0)
 for _c in (1, 2, 3):
@@ -242,6 +247,27 @@ def balance_deviations(p: dict[str, float], channels: int) -> dict[int, list[flo
     return {i: [v - sum(logs) / channels for v in logs] for i, logs in sorted(out.items())}
 
 
+# parameters with one value per inner image of a series (``lt:I``, ``lw:I:c``) or per group
+# (``flip:G``): ``Effect.params`` names their stem, a fit's dict holds the indexed keys
+PER_IMAGE = ("lt", "lw")
+INDEXED = PER_IMAGE + ("flip",)
+
+
+def image_keys(stem: str, images, channels: int) -> list[str]:
+    """The keys a per-image stem (``PER_IMAGE``) stands for on a series whose free images
+    are ``images``: ``lt:I`` per image, ``lw:I:c`` per image and channel but the first."""
+    if stem == "lt":
+        return [f"lt:{i}" for i in images]
+    if stem == "lw":
+        return [f"lw:{i}:{c}" for i in images for c in range(1, channels)]
+    raise ValueError(f"{stem!r} is not a per-image parameter")
+
+
+def is_per_image(key: str) -> bool:
+    """Whether ``key`` is one image's own parameter (``lt:I``, ``lw:I:c``)."""
+    return key.split(":", 1)[0] in PER_IMAGE and ":" in key
+
+
 def param_range(name: str) -> tuple[float, float, float]:
     """``PARAMS``' (null, lower, upper) of a parameter, ``lt:I`` taking ``lt``'s (and
     ``lw:I:c`` ``lw``'s)."""
@@ -253,7 +279,7 @@ def effect_keys(effect: str, channels: int, p: dict[str, float]) -> list[str]:
     ``lt:I`` that ``p`` holds (``lw`` as the ``lw:I:c``, ``flip`` as the ``flip:G``)."""
     out = []
     for n in EFFECTS[effect].params(channels):
-        if n in ("lt", "lw", "flip"):
+        if n in INDEXED:
             out += [k for k in p if k.startswith(n + ":")]
         else:
             out.append(n)

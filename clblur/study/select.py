@@ -66,7 +66,14 @@ from clblur.study.crossfit import (
     heldout_scores,
     physical_bounds,
 )
-from clblur.study.effects import EFFECTS, effect_keys, explain, param_range, readable_estimate
+from clblur.study.effects import (
+    EFFECTS,
+    FAMILY_LIMITS,
+    effect_keys,
+    explain,
+    param_range,
+    readable_estimate,
+)
 from clblur.study.model import WARP_KEYS, Group, null_params, time_ok
 from clblur.study.significance import t_test, weighted_test
 from clblur.study.variants import pack, pixel_nll
@@ -95,6 +102,14 @@ class Finding:
     nll_gain: float  # held-out nats per pixel
     round: int
     interval: dict | None = None  # 95 % confidence interval per estimate, when significant
+    edge: list[str] = field(default_factory=list)  # parameters its fit left on a bound
+
+    def explain(self, significant: bool, gain: float, **how) -> None:
+        """Write the finding's sentence (``effects.explain``; ``how``: its ``too_small``,
+        ``replaced`` or ``replaced_by``), with the edge note (``_edge_note``) however often
+        the verdict is rewritten."""
+        self.explanation = (explain(self.effect, self.estimate, significant, gain, **how)
+                            + _edge_note(self.edge, significant))
 
 
 @dataclass
@@ -176,10 +191,9 @@ def _select(groups: list[Group], folds: Folds, nblocks: int, alpha: float, min_g
                 d, t, pv = _against_mirror(folds, p_e, (d, t, pv), used)
         gain = float(d.sum()) / max(nvalid, 1)
         est = readable_estimate(effect, average_params(p_e), channels)
-        findings[effect] = Finding(effect, False, t, pv, est,
-                                   explain(effect, est, False, gain,
-                                           replaced_by=replaced_by.get(effect))
-                                   + _edge_note(effect, p_e, channels, folds.bounds), gain, rnd)
+        f = findings[effect] = Finding(effect, False, t, pv, est, "", gain, rnd,
+                                       edge=on_edge(effect, p_e, channels, folds.bounds))
+        f.explain(False, gain, replaced_by=replaced_by.get(effect))
         return effect, pv, gain, p_e
 
     cur_params = folds.fit(current, [null, null], channels)
@@ -215,9 +229,8 @@ def _select(groups: list[Group], folds: Folds, nblocks: int, alpha: float, min_g
                            if r[1] < level and r[2] >= min_gain]
             for e, pv, gain, _ in tested:
                 if pv < level and gain < min_gain:
-                    f = findings[e]
-                    f.explanation = explain(e, f.estimate, False, gain, too_small=True,
-                                            replaced_by=replaced_by.get(e))
+                    findings[e].explain(False, gain, too_small=True,
+                                        replaced_by=replaced_by.get(e))
             winners = _sufficient(winners, folds, level, used)
             if not winners:
                 break
@@ -226,7 +239,7 @@ def _select(groups: list[Group], folds: Folds, nblocks: int, alpha: float, min_g
                              rnd) for c, *_ in winners_all
                          if c not in (e, "noise") and not _nested(c, e, channels)}
             findings[e].significant = True
-            findings[e].explanation = explain(e, findings[e].estimate, True, gain)
+            findings[e].explain(True, gain)
             order.append(e)
             current = current | {e}
             cur_params = folds.fit(current, cur_params, channels)
@@ -276,8 +289,7 @@ def _select(groups: list[Group], folds: Folds, nblocks: int, alpha: float, min_g
         replaced[into] = (out, gain)
         replaced_by[out] = into
         findings[out].significant = False
-        findings[out].explanation = explain(out, findings[out].estimate, False,
-                                            findings[out].nll_gain, replaced_by=into)
+        findings[out].explain(False, findings[out].nll_gain, replaced_by=into)
     _note_toe(findings, current, folds.bounds)
     ranked = [findings[e] for e in order] + sorted(
         (f for e, f in findings.items() if e not in order), key=lambda f: -f.statistic)
@@ -287,8 +299,8 @@ def _select(groups: list[Group], folds: Folds, nblocks: int, alpha: float, min_g
     for f in ranked:
         if f.significant:
             f.estimate = readable_estimate(f.effect, full, channels)
-            f.explanation = explain(f.effect, f.estimate, True, f.nll_gain,
-                                    replaced=replaced.get(f.effect))
+            f.edge = on_edge(f.effect, [full], channels, folds.bounds)
+            f.explain(True, f.nll_gain, replaced=replaced.get(f.effect))
             f.interval = intervals(groups, full, f.effect, channels, folds.bounds)
     b_rmse, b_nll, b_pred = heldout_scores(groups, base_p)
     x_rmse, x_nll, x_pred = heldout_scores(groups, cur_params)
@@ -331,7 +343,9 @@ def on_edge(effect: str, fits: list[dict], channels: int,
     """The parameters of ``effect`` that a fit in ``fits`` left on a bound of their range
     other than their null value (``effects.PARAMS``, or ``bounds``: a black level's darkest
     code).  A null on its bound (no black level, no extra noise, ``rho = 1``) is no
-    symptom; a factor driven to the end of its range is: the data did not stop it."""
+    symptom, nor is a bound that is a limit of the family (``effects.FAMILY_LIMITS``: ``rho``
+    at its least, the power law); a factor driven to the end of its range is: the data did
+    not stop it."""
     bounds = bounds or {}
     out = set()
     for q in fits:
@@ -342,22 +356,26 @@ def on_edge(effect: str, fits: list[dict], channels: int,
             lo, hi = bounds.get(n, (lo, hi))
             tol = 1e-4 * (hi - lo)
             v = q[n]
-            if (abs(v - lo) <= tol and lo != null) or (abs(v - hi) <= tol and hi != null):
+            at = [b for b in (lo, hi) if abs(v - b) <= tol and b != null]
+            if at and FAMILY_LIMITS.get(n) not in at:
                 out.add(n)
     return sorted(out)
 
 
-def _edge_note(effect: str, fits: list[dict], channels: int,
-               bounds: dict[str, tuple[float, float]]) -> str:
-    """A sentence for a finding whose fit ran to the edge of a parameter's range (on_edge):
-    its estimate is where the optimiser stopped, not a measurement.  Memorial's free
-    exposure times, not significant, bowed to the bound of two frames while the curve's warp
-    gave way (docs/studies/validation.md)."""
-    edge = on_edge(effect, fits, channels, bounds)
+def _edge_note(edge: list[str], significant: bool = False) -> str:
+    """A sentence for a finding whose fit ran to the edge of a parameter's range
+    (``on_edge``): its estimate is where the optimiser stopped, not a measurement.
+    Memorial's free exposure times, not significant, bowed to the bound of two frames while
+    the curve's warp gave way (docs/studies/validation.md).  For a finding that joined the
+    model the bound is what the fit could not pass: the effect may be larger."""
     if not edge:
         return ""
-    return (f" Its fit ran to the edge of the range of {', '.join(edge)}: the data do not pin "
-            "this effect down there, and the estimate is no measurement of it.")
+    where = f" Its fit ran to the edge of the range of {', '.join(edge)}:"
+    if significant:
+        return (where + " the estimate there is the range's limit, not a measurement, and "
+                "the effect may be larger.")
+    return where + (" the data do not pin this effect down there, and the estimate is no "
+                    "measurement of it.")
 
 
 def _testable_again(contained: set[str], current: frozenset, candidates: list[str],
