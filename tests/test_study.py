@@ -452,7 +452,7 @@ def test_the_edge_note_outlives_a_rewritten_verdict():
     f.explain(False, 0.001, too_small=True)
     assert "negligible" in f.explanation and "edge of the range of lt:1" in f.explanation
     f.explain(True, 0.05)
-    assert "the effect may be larger" in f.explanation
+    assert "significant" in f.explanation and "that limit, not a measurement" in f.explanation
     f.edge = []
     f.explain(True, 0.05)
     assert "edge" not in f.explanation

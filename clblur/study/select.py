@@ -367,13 +367,13 @@ def _edge_note(edge: list[str], significant: bool = False) -> str:
     (``on_edge``): its estimate is where the optimiser stopped, not a measurement.
     Memorial's free exposure times, not significant, bowed to the bound of two frames while
     the curve's warp gave way (docs/studies/validation.md).  For a finding that joined the
-    model the bound is what the fit could not pass: the effect may be larger."""
+    model the bound is what the fit could not pass (the range's end, or what the data allow:
+    a black level at the darkest code they show), so its estimate is that limit."""
     if not edge:
         return ""
     where = f" Its fit ran to the edge of the range of {', '.join(edge)}:"
     if significant:
-        return (where + " the estimate there is the range's limit, not a measurement, and "
-                "the effect may be larger.")
+        return where + " the estimate there is that limit, not a measurement of the effect."
     return where + (" the data do not pin this effect down there, and the estimate is no "
                     "measurement of it.")
 
