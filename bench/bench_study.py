@@ -237,8 +237,9 @@ def null(results: Path, seeds: int) -> None:
     kinds = ("vector pair", "PSF pair", "frame stack", "exposure series",
              "noisy exposure series")
     lines = [_header(f"null --seeds {seeds}"),
-             "| seed | data | significant findings | seconds |", "|---:|---|---|---:|"]
-    false = 0
+             "| seed | data | significant findings | structure left | seconds |",
+             "|---:|---|---|---|---:|"]
+    false = left = 0
     for s in range(seeds):
         rng = np.random.default_rng(7000 + s)
         t0 = time.perf_counter()
@@ -252,12 +253,22 @@ def null(results: Path, seeds: int) -> None:
         r = study_groups(sc.kind, sc.groups).report
         found = [f["effect"] for f in r["findings"] if f["significant"]]
         false += bool(set(found) - set(sc.truth))
+        lo = r["leftover"]
+        left += lo["structure"]
         lines.append(f"| {7000 + s} | {kind} | {', '.join(found) or '-'} | "
-                     f"{time.perf_counter() - t0:.0f} |")
+                     f"{_leftover_cell(lo)} | {time.perf_counter() - t0:.0f} |")
         print(lines[-1], flush=True)
     lines += ["", f"Seeds with any false finding: {false} of {seeds} "
-              f"({100.0 * false / seeds:.1f} %; the design bound is 5 %)."]
+              f"({100.0 * false / seeds:.1f} %; the design bound is 5 %).",
+              "", f"Seeds where the model is said to leave structure (`clblur.study.leftover`; "
+              f"the largest t of its two alternatives in the column): {left} of {seeds}."]
     _write(results, lines)
+
+
+def _leftover_cell(lo: dict) -> str:
+    """``yes``/``no`` and the larger statistic of the leftover test's two alternatives."""
+    t = max(lo["by_code"]["statistic"], lo["by_group"]["statistic"])
+    return f"{'yes' if lo['structure'] else 'no'} (t = {t:.1f})"
 
 
 # camera curve, black level (normalised), sensor noise a (b = a / 100)

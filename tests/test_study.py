@@ -19,7 +19,7 @@ from clblur.study.model import forward, inverse_table, null_params, predict
 from clblur.study.report import markdown
 from clblur.study.synthetic import RANGES, null_stack, scenario
 
-REPORT_KEYS = {"kind", "baseline", "findings", "extended", "gain"}
+REPORT_KEYS = {"kind", "baseline", "findings", "extended", "gain", "leftover"}
 FINDING_KEYS = {"effect", "significant", "statistic", "p_value", "estimate", "interval",
                 "explanation"}
 # the extended model must cut the held-out RMSE at least this much (noise: the held-out NLL)
@@ -122,12 +122,16 @@ def test_null_data_give_no_finding_on_95_percent_of_seeds():
     # 48 x 64 scenes: python bench/bench_study.py null, bench/results_study_null.md)
     seeds = range(20)
     false = []
+    left = []  # structure said to be left by a model that is exactly true
     for s in seeds:
         sc = scenario({}, np.random.default_rng(5000 + s), shape=(24, 40), psf=s % 2 == 1)
         r = study_groups(sc.kind, sc.groups).report
         if any(f["significant"] for f in r["findings"]):
             false.append(s)
+        if r["leftover"]["structure"]:
+            left.append(s)
     assert len(false) <= 1, f"false findings on seeds {false}"
+    assert len(left) <= 1, f"structure left on seeds {left}"
 
 
 @pytest.mark.parametrize("pair", [("response_shape", "noise"),
@@ -143,6 +147,7 @@ def test_pairs_of_effects_are_both_found(pair):
 def test_frame_stack_null_and_response():
     null = study_groups("frame-stack", null_stack(np.random.default_rng(3)).groups).report
     assert not any(f["significant"] for f in null["findings"])
+    assert not null["leftover"]["structure"]
     sc = null_stack(np.random.default_rng(4), gamma=2.2)
     r = study_groups("frame-stack", sc.groups).report
     assert r["findings"][0]["effect"] == "response_shape"
@@ -422,6 +427,37 @@ def test_exif_times_rounded_to_nominal_values_are_named_exposure_times():
     np.testing.assert_allclose(np.log(list(factors.values())), dev[1:-1], atol=0.02)
     assert all(lo < f < hi for f, (lo, hi) in zip(
         factors.values(), found["interval"]["exposure_factors"].values(), strict=True))
+
+
+@pytest.mark.parametrize("amplitude", [0.0, 0.1])
+def test_a_cause_outside_the_vocabulary_is_reported_as_structure_left(amplitude):
+    # an in-camera tone curve that changes from frame to frame (adaptive tone mapping: each
+    # frame's codes raised to a power of its own) is none of the study's effects; the
+    # nearest named ones absorb part of it, and the leftover test says that the rest is
+    # there, and where.  The same series without it leaves nothing.
+    from clblur.study.series import series_groups
+
+    rng = np.random.default_rng(2)
+    cam = Camera(response="gamma:2.2", noise_a=2e-4, noise_b=2e-6)
+    scene = random_scene(rng, (48, 64), 3, low=0.03, high=0.8)
+    times = [2.0 ** -k for k in range(3, 9)]
+    powers = amplitude * rng.choice([-1, 1], len(times)) * rng.uniform(0.5, 1, len(times))
+    frames = []
+    for t, q in zip(times, powers, strict=True):
+        v = cam.capture(scene * 8, t, rng=rng) / 255.0
+        frames.append(np.round(255.0 * v ** (1.0 + q)).astype(np.uint8))
+    r = study_groups("exposure-series", series_groups(frames, times)).report
+    left = r["leftover"]
+    assert left["structure"] == (amplitude > 0), left
+    if amplitude:
+        by_group = left["by_group"]
+        assert by_group["significant"] and by_group["gain"] > 0.02
+        worst = by_group["largest"][0]
+        assert worst["group"].startswith("step") and abs(worst["offset_codes"]) > 1.0
+        text = markdown(r)
+        assert "structure that no effect of the vocabulary explains" in text
+    else:
+        assert "What the model leaves: no structure" in markdown(r)
 
 
 def test_a_fit_run_to_the_edge_of_its_range_is_named():

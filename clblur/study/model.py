@@ -181,8 +181,9 @@ def time_ok(p: dict[str, float]) -> bool:
     return bool(w.min() > 0.02)
 
 
-def predict(g: Group, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
-    """Predicted target codes and residual variances (n, C)."""
+def predict(g: Group, p: dict[str, float], source_share: bool = False) -> tuple[np.ndarray, ...]:
+    """Predicted target codes and residual variances (n, C); with ``source_share`` also the
+    share of each variance that the source's own noise carries (``study.leftover``)."""
     n, nc = g.target.shape
     gains = channel_gains(p, nc)
     time_c = (1.0, p["t1"], p["t2"])
@@ -230,8 +231,11 @@ def predict(g: Group, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
     # never below the stored code's own rounding variance (1/12 code^2): the optimiser
     # explores negative noise coefficients, where the sum would go to zero or below and
     # the likelihood to NaN; with physical (non-negative) coefficients this changes nothing
-    var = np.maximum(1.0 / 12.0 + p.get("nc", 0.0) + s * s * (na2 * x + nb2)
-                     + (s * m) ** 2 * source, 1.0 / 12.0)
+    from_source = (s * m) ** 2 * source
+    var = np.maximum(1.0 / 12.0 + p.get("nc", 0.0) + s * s * (na2 * x + nb2) + from_source,
+                     1.0 / 12.0)
+    if source_share:
+        return pred, var, np.clip(from_source / var, 0.0, 1.0)
     return pred, var
 
 

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from clblur.study.effects import EFFECT_NAMES, black_levels, channel_exponents, format_value
+from clblur.study.leftover import describe
 from clblur.study.model import Group, inverse_table, null_params, shape
 from clblur.study.select import Selection
 
@@ -36,7 +37,15 @@ def build_report(kind: str, sel: Selection) -> dict:
                      "params": {k: float(v) for k, v in sel.params.items()},
                      "heldout_rmse": sel.extended_rmse, "heldout_nll": sel.extended_nll},
         "gain": sel.baseline_rmse - sel.extended_rmse,
+        **({} if sel.leftover is None else {"leftover": _plain_leftover(sel.leftover)}),
     }
+
+
+def _plain_leftover(left: dict) -> dict:
+    """``leftover``'s result with numpy scalars as plain floats (JSON)."""
+    return {k: (v if not isinstance(v, dict) else
+                {kk: (vv if isinstance(vv, (list, bool)) else float(vv)) for kk, vv in v.items()})
+            for k, v in left.items()}
 
 
 def _finding(f) -> dict:
@@ -87,6 +96,8 @@ def markdown(report: dict, title: str = "Study", figures: list[str] | None = Non
         lines.append(f"| {f['effect']} | {'yes' if f['significant'] else 'no'} | {t} | {p} "
                      f"| {est} | {ci} |")
     lines += ["", "Findings:", ""] + [f"- {f['explanation']}" for f in report["findings"]]
+    if "leftover" in report:
+        lines += ["", describe(report["leftover"])]
     if "splits" in report:
         sp = report["splits"]
         lines += ["", f"Repeated over {sp['count']} splits of the blocks into two folds "

@@ -74,6 +74,7 @@ from clblur.study.effects import (
     param_range,
     readable_estimate,
 )
+from clblur.study.leftover import leftover
 from clblur.study.model import WARP_KEYS, Group, null_params, time_ok
 from clblur.study.significance import t_test, weighted_test
 from clblur.study.variants import pack, pixel_nll
@@ -124,6 +125,7 @@ class Selection:
     baseline_pred: list[np.ndarray] = field(default_factory=list)  # cross-fitted, per group
     extended_pred: list[np.ndarray] = field(default_factory=list)
     not_testable: dict[str, str] = field(default_factory=dict)
+    leftover: dict | None = None  # what the extended model leaves (``study.leftover``)
 
 
 
@@ -304,7 +306,9 @@ def _select(groups: list[Group], folds: Folds, nblocks: int, alpha: float, min_g
             f.interval = intervals(groups, full, f.effect, channels, folds.bounds)
     b_rmse, b_nll, b_pred = heldout_scores(groups, base_p)
     x_rmse, x_nll, x_pred = heldout_scores(groups, cur_params)
-    return Selection(order, ranked, full, b_rmse, x_rmse, b_nll, x_nll, b_pred, x_pred, skip)
+    left = leftover(folds, cur_params, used, groups, alpha, min_gain)
+    return Selection(order, ranked, full, b_rmse, x_rmse, b_nll, x_nll, b_pred, x_pred, skip,
+                     left)
 
 
 # codes: a black level can hide below the darkest codes the data show when they lie this far

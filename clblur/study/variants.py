@@ -197,8 +197,9 @@ class _Mix:
         return out
 
 
-def predict(g: Group, p: dict) -> tuple[np.ndarray, np.ndarray]:
-    """``model.predict`` with the geometric variants mixed in and the storage offset added."""
+def predict(g: Group, p: dict, source_share: bool = False) -> tuple[np.ndarray, ...]:
+    """``model.predict`` with the geometric variants mixed in and the storage offset added
+    (``source_share``: as there)."""
     terms = _terms(g, p)
     if terms:
         var = g.__dict__["variants"]
@@ -213,9 +214,9 @@ def predict(g: Group, p: dict) -> tuple[np.ndarray, np.ndarray]:
         # one memory of products for both (Group.product): hist_sq is the group's own
         mixed.__dict__["_products"] = g.__dict__.setdefault("_products", {})
         g = mixed
-    pred, var_ = _model_predict(g, p)
+    pred, *rest = _model_predict(g, p, source_share)
     q = p.get("qoff", 0.0)
-    return (pred + q if q else pred), var_
+    return (pred + q if q else pred), *rest
 
 
 def pixel_nll(g: Group, p: dict) -> np.ndarray:
