@@ -44,6 +44,9 @@ Conventions
   tested for removal by the same test, and the weakest that adds nothing leaves
   (``_redundant``): the exchange reached the other way round.  After either, the effects
   that were contained in the one that left are candidates again (``_testable_again``).
+* What is left: the final model is tested against per-code offsets that name no cause
+  (``clblur.study.leftover``), so a cause outside the vocabulary is reported as structure
+  left rather than passed over (``Selection.leftover``).
 """
 
 from __future__ import annotations
