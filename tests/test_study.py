@@ -460,6 +460,21 @@ def test_a_cause_outside_the_vocabulary_is_reported_as_structure_left(amplitude)
         assert "What the model leaves: no structure" in markdown(r)
 
 
+def test_a_noisy_source_is_no_structure_left():
+    # a noisy source code predicts too high where few pixels are brighter (regression to
+    # the mean); binned by the prediction, these null series (shot noise a = 1e-3) read as
+    # structure left; binned by the model's estimate of the noise-free code, they do not
+    from clblur.study.synthetic import null_series
+
+    for seed in (9002, 9003):
+        r = study_groups("exposure-series",
+                         null_series(np.random.default_rng(seed), noise=1e-3).groups).report
+        assert [f["effect"] for f in r["findings"] if f["significant"]] == ["noise"], seed
+        left = r["leftover"]
+        assert not left["structure"], (seed, left)
+        assert max(left["by_code"]["gain"], left["by_group"]["gain"]) < 0.003, (seed, left)
+
+
 def test_a_fit_run_to_the_edge_of_its_range_is_named():
     # an estimate the optimiser left on a bound is not a measurement (Memorial's free
     # exposure times bowed to theirs); a null value on its bound is no symptom
