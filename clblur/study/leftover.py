@@ -25,10 +25,16 @@ offset 0 there.  The two alternatives share the study's false-positive rate
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from clblur.study.significance import weighted_test
 from clblur.study.variants import predict
+
+if TYPE_CHECKING:
+    from clblur.study.crossfit import Folds
+    from clblur.study.model import Group
 
 __all__ = ["CODE_BIN", "GROUP_BIN", "MIN_COUNT", "leftover", "describe"]
 
@@ -37,7 +43,7 @@ GROUP_BIN = 32.0
 MIN_COUNT = 20
 
 
-def _level(g, p: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _level(g: Group, p: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The prediction and variance of ``g``'s values under ``p``, and the code each value
     is binned by: the prediction moved towards the observation by the share of the
     variance that the source's noise carries, ``pred + share (y - pred)``.
@@ -66,7 +72,7 @@ def _keys(level: np.ndarray, rows_group: np.ndarray | None, width: float,
     return key
 
 
-def _offsets(folds, params: list[dict], f: int, block_group: np.ndarray | None, width: float,
+def _offsets(folds: Folds, params: list[dict], f: int, block_group: np.ndarray | None, width: float,
              size: int) -> tuple[np.ndarray, np.ndarray]:
     """Fold ``f``'s mean residual per bin under its own fit (precision-weighted), and the
     count of valid values behind each; bins with fewer than ``MIN_COUNT`` get 0."""
@@ -85,7 +91,7 @@ def _offsets(folds, params: list[dict], f: int, block_group: np.ndarray | None, 
     return out, cnt
 
 
-def _alternative(folds, params: list[dict], used: np.ndarray, block_group: np.ndarray | None,
+def _alternative(folds: Folds, params: list[dict], used: np.ndarray, block_group: np.ndarray | None,
                  width: float, ngroups: int) -> dict:
     channels = folds.part[0][0].channels
     nbins = int(np.ceil(256.0 / width))
@@ -117,8 +123,8 @@ def _alternative(folds, params: list[dict], used: np.ndarray, block_group: np.nd
             "counts": count, "width": width, "nbins": nbins, "channels": channels}
 
 
-def leftover(folds, params: list[dict], used: np.ndarray, groups: list, alpha: float,
-             min_gain: float) -> dict:
+def leftover(folds: Folds, params: list[dict], used: np.ndarray, groups: list[Group],
+             alpha: float, min_gain: float) -> dict:
     """Test the model ``params`` (per fold) against per-bin offsets (module doc).
 
     Args:
