@@ -43,8 +43,8 @@ from clblur.study.variants import (
     subset,
 )
 
-__all__ = ["CONDITIONAL", "assign_blocks", "applicable", "physical_bounds", "fit", "fit_all",
-           "penalised_nll",
+__all__ = ["CONDITIONAL", "assign_blocks", "applicable", "block_terms", "physical_bounds",
+           "fit", "fit_all", "penalised_nll",
            "Folds", "free_params",
            "average_params", "heldout_scores", "series_images"]
 
@@ -274,22 +274,13 @@ class Folds:
         makes the test conservative under the null).  ``A_b = sum_p delta^2 / var``: the
         block's share of the information, for the degrees of freedom.
         """
-        d = np.zeros(self.nblocks)
-        u = np.zeros(self.nblocks)
-        a = np.zeros(self.nblocks)
+        out = np.zeros((3, self.nblocks))
         for f in (0, 1):
             for g in self.part[f]:
                 pb, var = predict(g, base[1 - f])
                 pe, _ = predict(g, ext[1 - f])
-                delta = np.where(g.valid, pe - pb, 0.0)
-                y = g.target
-                d += np.bincount(g.block, (delta * (y - 0.5 * (pb + pe)) / var).sum(axis=1),
-                                 minlength=self.nblocks)
-                u += np.bincount(g.block, (delta * (y - pe) / var).sum(axis=1),
-                                 minlength=self.nblocks)
-                a += np.bincount(g.block, (delta * delta / var).sum(axis=1),
-                                 minlength=self.nblocks)
-        return d, u, a
+                out += block_terms(g, pb, pe, var, self.nblocks)
+        return out[0], out[1], out[2]
 
     def block_nll(self, params: list[dict]) -> np.ndarray:
         """Held-out NLL per block: fold f scored with the parameters fitted on the other."""
@@ -299,6 +290,20 @@ class Folds:
                 out += np.bincount(g.block, weights=pixel_nll(g, params[1 - f]),
                                    minlength=self.nblocks)
         return out
+
+
+def block_terms(g: Group, pb: np.ndarray, pe: np.ndarray, var: np.ndarray,
+                nblocks: int) -> np.ndarray:
+    """``(D_b, U_b, A_b)`` of ``Folds.block_score`` (3 x ``nblocks``) of ``g``'s held-out
+    values, from the base and the extended prediction ``pb``, ``pe`` and the base variance
+    ``var`` (values that are not valid count for nothing)."""
+    delta = np.where(g.valid, pe - pb, 0.0)
+    y = g.target
+    return np.stack([
+        np.bincount(g.block, (delta * (y - 0.5 * (pb + pe)) / var).sum(axis=1),
+                    minlength=nblocks),
+        np.bincount(g.block, (delta * (y - pe) / var).sum(axis=1), minlength=nblocks),
+        np.bincount(g.block, (delta * delta / var).sum(axis=1), minlength=nblocks)])
 
 
 def fit(groups: list[Group], free: list[str], start: dict, nvalid: int,

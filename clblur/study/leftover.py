@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from clblur.study.crossfit import block_terms
 from clblur.study.significance import weighted_test
 from clblur.study.variants import predict
 
@@ -97,23 +98,15 @@ def _alternative(folds: Folds, params: list[dict], used: np.ndarray, block_group
     nbins = int(np.ceil(256.0 / width))
     size = nbins * channels * (ngroups if block_group is not None else 1)
     fitted = [_offsets(folds, params, f, block_group, width, size) for f in (0, 1)]
-    d = np.zeros(folds.nblocks)
-    u = np.zeros(folds.nblocks)
-    a = np.zeros(folds.nblocks)
+    terms = np.zeros((3, folds.nblocks))
     for f in (0, 1):
         offsets = fitted[1 - f][0]  # learnt on the other fold's own rows
         for g in folds.part[f]:
             pb, var, level = _level(g, params[1 - f])
             rg = None if block_group is None else block_group[g.block]
-            delta = np.where(g.valid, offsets[_keys(level, rg, width, channels)], 0.0)
-            pe = pb + delta
-            y = g.target
-            d += np.bincount(g.block, (delta * (y - 0.5 * (pb + pe)) / var).sum(axis=1),
-                             minlength=folds.nblocks)
-            u += np.bincount(g.block, (delta * (y - pe) / var).sum(axis=1),
-                             minlength=folds.nblocks)
-            a += np.bincount(g.block, (delta * delta / var).sum(axis=1),
-                             minlength=folds.nblocks)
+            pe = pb + offsets[_keys(level, rg, width, channels)]
+            terms += block_terms(g, pb, pe, var, folds.nblocks)
+    d, u, a = terms
     reach = used & (a > 1e-12)
     t, p = weighted_test(d[reach], u[reach], a[reach])
     count = fitted[0][1] + fitted[1][1]
