@@ -180,9 +180,12 @@ def describe(result: dict) -> str:
                      f"t = {r['statistic']:.2f}, p = {r['p_value']:.2g}")
     if not result["structure"]:
         return ("What the model leaves: no structure. Tested against " + "; ".join(parts)
-                + ". Neither predicts the held-out blocks significantly better, so the "
-                "extended model's mean is adequate to the precision of these data.")
-    label = "by_code" if result["by_code"]["significant"] else "by_group"
+                + ". Neither predicts the held-out blocks both significantly better and by "
+                "the least gain that counts, so the extended model's mean is adequate to "
+                "the precision of these data.")
+    # the alternative that gains the more, of those that count, says where
+    label = max((k for k in ("by_code", "by_group") if result[k]["significant"]),
+                key=lambda k: result[k]["gain"])
     spots = []
     for item in result[label]["largest"][:3]:
         where = f"codes {item['codes'][0]:.0f}-{item['codes'][1]:.0f}"
@@ -194,6 +197,9 @@ def describe(result: dict) -> str:
     causes = ("a cause outside the vocabulary (a tone curve that changes between frames, "
               "flare, a soft knee, processing that depends on the image) or a named effect "
               "of the wrong form")
+    if label == "by_group":
+        causes += (", or, where a few pairs or steps carry it, something of their own (a "
+                   "pair's kernel or alignment, a frame's exposure or processing)")
     return ("What the model leaves: structure that no effect of the vocabulary explains. "
             "Tested against " + "; ".join(parts) + ". The data depart from the extended "
             "model most at " + "; ".join(spots) + " (observed minus the model, by the "
