@@ -202,7 +202,10 @@ def test_cli_writes_report_markdown_and_figures(tmp_path, rng):
     r = json.loads((tmp_path / "r.json").read_text())
     assert r["kind"] == "blur-pair" and r["findings"][0]["effect"] == "exposure_gain"
     assert "exposure_gain" in (tmp_path / "r.md").read_text()
-    assert {"residuals_0.png", "profile_0.png", "response.png"} <= {
+    assert "What the model leaves" in (tmp_path / "r.md").read_text()
+    prof = r["leftover"]["by_code"]
+    assert np.shape(prof["offsets"]) == np.shape(prof["counts"]) == (3, 16)
+    assert {"residuals_0.png", "profile_0.png", "response.png", "leftover.png"} <= {
         p.name for p in (tmp_path / "fig").iterdir()}
 
 

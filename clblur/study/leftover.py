@@ -133,7 +133,8 @@ def leftover(folds: Folds, params: list[dict], used: np.ndarray, groups: list[Gr
         ``channels``, and per alternative (``by_code``, ``by_group``) its ``statistic``,
         ``p_value``, ``gain`` (held-out nats per value), ``significant`` and the
         ``largest`` departures (up to five bins: channel, codes, group name, mean offset in
-        codes, values).
+        codes, values); ``by_code`` also its whole profile: ``offsets`` and ``counts``
+        (channels x bins, both folds pooled) and ``bin_codes``, the bin's width.
     """
     nvalid = max(sum(folds.nvalid), 1)
     block_group = np.zeros(folds.nblocks, np.int64)
@@ -147,6 +148,11 @@ def leftover(folds: Folds, params: list[dict], used: np.ndarray, groups: list[Gr
         significant = bool(r["p_value"] < alpha / 2 and gain >= min_gain)
         out[label] = {"statistic": r["statistic"], "p_value": r["p_value"], "gain": gain,
                       "significant": significant, "largest": _largest(r, names)}
+        if bg is None:  # the whole profile, per channel (``report.figures``' leftover.png)
+            shape = (r["channels"], r["nbins"])
+            out[label]["offsets"] = r["offsets"].reshape(shape).tolist()
+            out[label]["counts"] = r["counts"].reshape(shape).astype(int).tolist()
+            out[label]["bin_codes"] = r["width"]
     out["structure"] = out["by_code"]["significant"] or out["by_group"]["significant"]
     out["channels"] = folds.part[0][0].channels
     return out

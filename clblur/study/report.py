@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from clblur.study.effects import EFFECT_NAMES, black_levels, channel_exponents, format_value
-from clblur.study.leftover import describe
+from clblur.study.leftover import MIN_COUNT, describe
 from clblur.study.model import Group, inverse_table, null_params, shape
 from clblur.study.select import Selection
 
@@ -201,5 +201,32 @@ def figures(sel: Selection, groups: list[Group], out: Path, max_groups: int = 2)
     ax.legend()
     ax.set_title("response")
     save(fig, "response.png")
+    if sel.leftover is not None:
+        save(_leftover_figure(plt, sel.leftover, names, colours), "leftover.png")
     return written
+
+
+def _leftover_figure(plt, left: dict, names: tuple, colours: tuple):
+    """What the extended model leaves, per code (``study.leftover``'s pooled offsets): the
+    mean residual of each bin and channel, with its standard error's scale (the bins'
+    counts), over the codes the data hold."""
+    prof = left["by_code"]
+    off = np.asarray(prof["offsets"], float)
+    cnt = np.asarray(prof["counts"], float)
+    width = prof["bin_codes"]
+    mid = (np.arange(off.shape[1]) + 0.5) * width
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    ax.axhline(0.0, color="k", lw=0.8)
+    for c in range(off.shape[0]):
+        held = cnt[c] >= 2 * MIN_COUNT  # fewer in a fold: no offset of its own (leftover)
+        ax.plot(mid[held], off[c, held], "o-", color=colours[c], ms=3, lw=1,
+                label=names[c] if off.shape[0] > 1 else None)
+    ax.set_xlabel("code (the model's estimate of the noise-free value)")
+    ax.set_ylabel("observed - model (codes)")
+    verdict = "structure left" if left["structure"] else "no structure left"
+    ax.set_title(f"what the model leaves: {verdict} (t = {prof['statistic']:.1f} pooled)")
+    if off.shape[0] > 1:
+        ax.legend()
+    fig.tight_layout()
+    return fig
 
