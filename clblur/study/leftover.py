@@ -73,15 +73,15 @@ def _keys(level: np.ndarray, rows_group: np.ndarray | None, width: float,
     return key
 
 
-def _offsets(folds: Folds, params: list[dict], f: int, block_group: np.ndarray | None, width: float,
-             size: int) -> tuple[np.ndarray, np.ndarray]:
-    """Fold ``f``'s mean residual per bin under its own fit (precision-weighted), and the
-    count of valid values behind each; bins with fewer than ``MIN_COUNT`` get 0."""
+def _offsets(folds: Folds, own: list[list[tuple]], f: int, block_group: np.ndarray | None,
+             width: float, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Fold ``f``'s mean residual per bin under its own fit (precision-weighted; ``own``:
+    ``_level`` of each fold's groups under that fold's fit), and the count of valid values
+    behind each; bins with fewer than ``MIN_COUNT`` get 0."""
     num = np.zeros(size)
     den = np.zeros(size)
     cnt = np.zeros(size)
-    for g in folds.part[f]:
-        pred, var, level = _level(g, params[f])
+    for g, (pred, var, level) in zip(folds.part[f], own[f], strict=True):
         rg = None if block_group is None else block_group[g.block]
         key = _keys(level, rg, width, g.channels)[g.valid]
         w = 1.0 / var[g.valid]
@@ -92,17 +92,19 @@ def _offsets(folds: Folds, params: list[dict], f: int, block_group: np.ndarray |
     return out, cnt
 
 
-def _alternative(folds: Folds, params: list[dict], used: np.ndarray, block_group: np.ndarray | None,
-                 width: float, ngroups: int) -> dict:
+def _alternative(folds: Folds, own: list[list[tuple]], held: list[list[tuple]],
+                 used: np.ndarray, block_group: np.ndarray | None, width: float,
+                 ngroups: int) -> dict:
+    """One alternative's offsets and held-out test (``own``/``held``: ``_level`` of each
+    fold's groups under its own fit and under the other fold's)."""
     channels = folds.part[0][0].channels
     nbins = int(np.ceil(256.0 / width))
     size = nbins * channels * (ngroups if block_group is not None else 1)
-    fitted = [_offsets(folds, params, f, block_group, width, size) for f in (0, 1)]
+    fitted = [_offsets(folds, own, f, block_group, width, size) for f in (0, 1)]
     terms = np.zeros((3, folds.nblocks))
     for f in (0, 1):
         offsets = fitted[1 - f][0]  # learnt on the other fold's own rows
-        for g in folds.part[f]:
-            pb, var, level = _level(g, params[1 - f])
+        for g, (pb, var, level) in zip(folds.part[f], held[f], strict=True):
             rg = None if block_group is None else block_group[g.block]
             pe = pb + offsets[_keys(level, rg, width, channels)]
             terms += block_terms(g, pb, pe, var, folds.nblocks)
@@ -141,9 +143,12 @@ def leftover(folds: Folds, params: list[dict], used: np.ndarray, groups: list[Gr
     for gi, g in enumerate(groups):
         block_group[g.block] = gi
     names = [g.name for g in groups]
+    # each fold's values under its own fit (the offsets) and the other's (the test), once
+    own = [[_level(g, params[f]) for g in folds.part[f]] for f in (0, 1)]
+    held = [[_level(g, params[1 - f]) for g in folds.part[f]] for f in (0, 1)]
     out: dict = {}
     for label, bg, width in (("by_code", None, CODE_BIN), ("by_group", block_group, GROUP_BIN)):
-        r = _alternative(folds, params, used, bg, width, len(groups))
+        r = _alternative(folds, own, held, used, bg, width, len(groups))
         gain = r["d"] / nvalid
         significant = bool(r["p_value"] < alpha / 2 and gain >= min_gain)
         out[label] = {"statistic": r["statistic"], "p_value": r["p_value"], "gain": gain,
