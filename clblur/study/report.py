@@ -208,8 +208,8 @@ def figures(sel: Selection, groups: list[Group], out: Path, max_groups: int = 2)
 
 def _leftover_figure(plt, left: dict, names: tuple, colours: tuple):
     """What the extended model leaves, per code (``study.leftover``'s pooled offsets): the
-    mean residual of each bin and channel, with its standard error's scale (the bins'
-    counts), over the codes the data hold."""
+    mean residual of each bin and channel that holds enough values in both folds to have an
+    offset of its own."""
     prof = left["by_code"]
     off = np.asarray(prof["offsets"], float)
     cnt = np.asarray(prof["counts"], float)
