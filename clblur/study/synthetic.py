@@ -106,16 +106,19 @@ def scenario(effects: dict[str, float | None], rng: np.random.Generator,
         # five stops told; each inner image exposed a factor exp(+-m) off its time, or with
         # its R and B gains turned apart by exp(+-m) (the longest and the shortest are the
         # reference: effects, lt:I and lw:I:c)
+        # (both hidden together: each its own signs, the exposures' drawn first)
         times = [8.0, 4.0, 2.0, 1.0, 0.5]
-        m = mag.get("exposure_times", mag.get("white_balance"))
-        off = [0.0, *(m * rng.choice([-1.0, 1.0], 3)), 0.0]
-        if "exposure_times" in mag:
-            imgs = [camera.capture(scene * 0.125, t * math.exp(d), rng=rng)
-                    for t, d in zip(times, off, strict=True)]
-        else:
-            imgs = [camera.capture(scene * 0.125, t, rng=rng,
-                                   channel_gains=(math.exp(d), 1.0, math.exp(-d)))
-                    for t, d in zip(times, off, strict=True)]
+
+        def offsets(effect: str) -> list[float]:
+            if effect not in mag:
+                return [0.0] * len(times)
+            return [0.0, *(mag[effect] * rng.choice([-1.0, 1.0], 3)), 0.0]
+
+        off, bal = offsets("exposure_times"), offsets("white_balance")
+        imgs = [camera.capture(scene * 0.125, t * math.exp(d), rng=rng,
+                               channel_gains=((math.exp(b), 1.0, math.exp(-b))
+                                              if "white_balance" in mag else None))
+                for t, d, b in zip(times, off, bal, strict=True)]
         return Scenario("exposure-series", series_groups(imgs, times), mag)
     length = float(rng.uniform(12, 16) if "vignetting" in mag else rng.uniform(6, 12))
     angle = float(rng.uniform(-0.4, 0.4)) + (math.pi if rng.random() < 0.5 else 0.0)
