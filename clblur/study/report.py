@@ -37,15 +37,8 @@ def build_report(kind: str, sel: Selection) -> dict:
                      "params": {k: float(v) for k, v in sel.params.items()},
                      "heldout_rmse": sel.extended_rmse, "heldout_nll": sel.extended_nll},
         "gain": sel.baseline_rmse - sel.extended_rmse,
-        **({} if sel.leftover is None else {"leftover": _plain_leftover(sel.leftover)}),
+        **({} if sel.leftover is None else {"leftover": _plain(sel.leftover)}),
     }
-
-
-def _plain_leftover(left: dict) -> dict:
-    """``leftover``'s result with numpy scalars as plain floats (JSON)."""
-    return {k: (v if not isinstance(v, dict) else
-                {kk: (vv if isinstance(vv, (list, bool)) else float(vv)) for kk, vv in v.items()})
-            for k, v in left.items()}
 
 
 def _finding(f) -> dict:
@@ -56,9 +49,11 @@ def _finding(f) -> dict:
 
 
 def _plain(v):
-    if v is None:
-        return None
-    if isinstance(v, int) and not isinstance(v, bool):
+    """``v`` for JSON: numbers as plain ints and floats (numpy's too), containers walked;
+    None, flags and names as they are."""
+    if v is None or isinstance(v, (bool, str)):
+        return v
+    if isinstance(v, int):
         return v
     if isinstance(v, dict):
         return {k: _plain(x) for k, x in v.items()}
