@@ -78,7 +78,10 @@ def main() -> None:
     best: dict[tuple[str, str], list[float]] = {}
     for _ in range(args.rounds):
         for tag, root in trees.items():
-            env = dict(os.environ, PYTHONPATH=str(root))
+            # the tree first; what the path held already after it (a machine whose
+            # packages are found through PYTHONPATH keeps them)
+            env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+                [str(root)] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
             argv = [sys.executable, "-c", CHILD, bench] + (["gopro"] if args.gopro else [])
             out = subprocess.run(argv, env=env, cwd=root,
                                  capture_output=True, text=True, check=True)

@@ -52,9 +52,10 @@ class Layers:
     layer ``k``'s vectors set the sample count (``clblur.layered_exposure.counts``) where
     ``present`` is tighter than that (``clblur.render_layers``); None: ``present``.
     ``present`` holds values at the
-    region's pixels only (False elsewhere: nothing reads it), and so do the ``vectors`` of a
-    rigid layer; a warped layer's ``vectors`` cover the whole crop, because the composite
-    reads them where its samples land (``clblur.layered_exposure``, inverse motion).
+    region's pixels only (False elsewhere: nothing reads it); a rigid layer's ``vectors`` are
+    its one vector at every pixel (read at the region's pixels only), and a warped layer's
+    cover the whole crop, because the composite reads them where its samples land
+    (``clblur.layered_exposure``, inverse motion).
     """
 
     origin: tuple[int, int]
@@ -267,7 +268,7 @@ def _inpaint(lin: np.ndarray, known: np.ndarray, depth: float,
     # nearest known pixel's light rounded to float32 (deep); known pixels keep lin exactly
     fresh = ~known[box][in_box]
     filled = (fill or HOST.fill)(base, ~hole[box])
-    out[in_win][fresh] = filled[in_box][fresh]
+    np.copyto(out[in_win], filled[in_box], where=fresh[..., None])  # a mask's fancy write is slower
     return out
 
 
@@ -550,7 +551,7 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
                 colour_w = np.where((lab_w >= k)[..., None], lin_w, background[crop][win])
             else:
                 colour_w = lin_w if k == 0 else fill(k)
-            cover_w = np.ones(hw)
+            cover_w = np.ones(hw, dtype)
             if mine_w.any():
                 behind_w = (background[crop][win] if background is not None and k == last - 1
                             else fill(k + 1))
@@ -569,7 +570,7 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
             if rigid[i] is not None:
                 dist_at = found
                 d_at = np.broadcast_to(rigid[i].astype(np.float32), (at[0].size, 2))
-                vectors[i].reshape(-1, 2)[reg_flat] = rigid[i]
+                vectors[i] = rigid[i]  # read at the region's pixels only: the whole plane is cheaper
             else:
                 dist, nearest = found
                 dist_at = _at(dist, reg_flat)

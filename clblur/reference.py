@@ -111,22 +111,24 @@ def integrate(lin: np.ndarray, plan: BlurPlan) -> np.ndarray:
     raise TypeError(f"unknown motion {m!r}")
 
 
-def linearise(plan: BlurPlan) -> np.ndarray:
-    """Pixel values -> linear exposures (float64, H x W x C); alpha as in the Conventions.
+def linearise(plan: BlurPlan, dtype: type = np.float64) -> np.ndarray:
+    """Pixel values -> linear exposures (H x W x C, ``dtype``); alpha as in the Conventions.
 
     Integer images go through the per-code table (``clblur.pixels.linearisation_table``):
     the same function at the same inputs, evaluated once per code value instead of once per
-    pixel."""
+    pixel.  ``dtype``: float64 (the reference), or float32 for a caller whose every later
+    step is float32 (the device's layers): the float64 values rounded, without the float64
+    array."""
     colour = plan.colour_channels
     if plan.dtype.kind == "u":
-        lin = np.empty(plan.image.shape, np.float64)
+        lin = np.empty(plan.image.shape, dtype)
         for c in range(colour):
             table = linearisation_table(plan.responses[c], plan.dtype, plan.saturation)
-            lin[..., c] = table[plan.image[..., c]]
+            np.take(table.astype(dtype, copy=False), plan.image[..., c], out=lin[..., c])
         values = None
     else:
         values = normalise(plan.image)
-        lin = np.empty_like(values)
+        lin = np.empty(values.shape, dtype)
         for c in range(colour):
             lin[..., c] = linearise_channel(values[..., c], plan.responses[c], plan.dtype,
                                             plan.saturation)

@@ -229,8 +229,12 @@ def check_depth(depth, shape: tuple[int, int], speed: bool = False) -> np.ndarra
                          "image")
     if np.issubdtype(d.dtype, np.integer):
         return d.astype(np.int64)
-    d = d.astype(np.float64)
+    d = d.astype(np.float64, copy=False)
     if speed:
+        return d
+    # one pass when the depth is valid (every value > 0 and not NaN; +inf passes), which is
+    # every call but a refused one: the checks below name the problem
+    if (d > 0).all():
         return d
     # +inf is the sky (farther than anything, a layer of its own); NaN has no order and a
     # distance is positive: both are refused in one line rather than guessed at

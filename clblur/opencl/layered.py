@@ -245,8 +245,9 @@ def integrator(device: str | None = None, build: str | None = None):
             region = layered.region_mask(v, plan.anchor)
         if not region.any():
             return None
-        def crop_linear(crop):  # linearise only the crop the layers need
-            return reference.linearise(replace(plan, image=plan.image[crop], background=None))
+        def crop_linear(crop):  # linearise only the crop the layers need, in float32 (the planes')
+            return reference.linearise(replace(plan, image=plan.image[crop], background=None),
+                                       np.float32)
         layers = layered.prepare(crop_linear, v, order, plan.anchor, region,
                                  layered.background_linear(plan), rule=rule,
                                  dtype=np.float32, transforms=ops, r=r)
