@@ -570,7 +570,7 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
             if rigid[i] is not None:
                 dist_at = found
                 d_at = np.broadcast_to(rigid[i].astype(np.float32), (at[0].size, 2))
-                vectors[i] = rigid[i]  # read at the region's pixels only: the whole plane is cheaper
+                vectors[i] = rigid[i]  # read at the region's pixels only; all is cheaper
             else:
                 dist, nearest = found
                 dist_at = _at(dist, reg_flat)
