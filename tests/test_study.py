@@ -19,7 +19,7 @@ from clblur.study.model import forward, inverse_table, null_params, predict
 from clblur.study.report import markdown
 from clblur.study.synthetic import RANGES, null_stack, scenario
 
-REPORT_KEYS = {"kind", "baseline", "findings", "extended", "gain", "leftover"}
+REPORT_KEYS = {"kind", "baseline", "findings", "extended", "gain", "leftover", "domain"}
 FINDING_KEYS = {"effect", "significant", "statistic", "p_value", "estimate", "interval",
                 "explanation"}
 # the extended model must cut the held-out RMSE at least this much (noise: the held-out NLL)
@@ -148,10 +148,53 @@ def test_frame_stack_null_and_response():
     null = study_groups("frame-stack", null_stack(np.random.default_rng(3)).groups).report
     assert not any(f["significant"] for f in null["findings"])
     assert not null["leftover"]["structure"]
+    assert null["domain"]["named"] and null["domain"]["closest"] == "the paper's Eq. 3"
     sc = null_stack(np.random.default_rng(4), gamma=2.2)
     r = study_groups("frame-stack", sc.groups).report
     assert r["findings"][0]["effect"] == "response_shape"
     assert r["findings"][0]["estimate"]["gamma"] == pytest.approx(2.2, abs=0.2)
+    assert r["domain"]["named"] and r["domain"]["closest"] == "gamma 2.2"
+    assert "Averaging domain: gamma 2.2." in markdown(r)
+
+
+def test_a_stack_averaged_in_code_values_is_read_as_such():
+    # a linear camera: the long frame is the mean of the short frames' codes (rounded), the
+    # conventional blur; the study names a linear response, and the domain says what it means
+    r = study_groups("frame-stack", null_stack(np.random.default_rng(5), gamma=1.0).groups).report
+    assert {"response_imax", "response_shape"} & set(r["extended"]["effects"])
+    dom = r["domain"]
+    assert dom["named"] and dom["closest"] == "code values", dom
+    assert dom["domains"]["code values"]["mean_codes"] < 0.1
+    # the display curves are far; Eq. 3 is near-linear in these dark scenes (codes 8 - 89)
+    assert min(dom["domains"][n]["mean_codes"] for n in ("gamma 2.2", "sRGB")) > 1.0
+    assert "means of pixel values, not of light" in markdown(r)
+
+
+@pytest.mark.parametrize(("params", "expected"), [
+    ({}, "the paper's Eq. 3"),
+    ({"rho": 1e-3}, "code values"),
+    # a black level is an affine change of codes: a mean of codes stays one
+    ({"rho": 1e-3, "black": 0.05, "black1": 0.05, "black2": 0.05}, "code values"),
+    ({"rho": 1e-3, "gamma": 2.2}, "gamma 2.2"),
+    ({"rho": 1e-3, "gamma": 2.2, "ce1": 0.1, "ce2": -0.1}, None),  # channels apart: none
+    # Memorial's fitted curve (validation.md): a warped shape above a black level
+    ({"black": 0.053, "black1": 0.07, "black2": 0.065, "gamma": 0.526, "w1": 1.03,
+      "w2": -0.325, "w3": 0.083, "w4": 0.009}, None),
+])
+def test_the_averaging_domain_is_read_from_the_fitted_curve(params, expected):
+    from clblur.study.domain import SAME_MEAN_CODES, mixing_domain
+    from clblur.study.model import null_params
+
+    shares = np.zeros((3, 255))
+    shares[:, 10:250] = 1.0 / 240
+    dom = mixing_domain({**null_params(), **params}, 3, shares)
+    assert dom["named"] == (expected is not None), dom
+    if expected is not None:
+        assert dom["closest"] == expected
+        assert dom["domains"][expected]["mean_codes"] < 0.05
+    else:
+        assert min(d["mean_codes"] for d in dom["domains"].values()) >= SAME_MEAN_CODES
+    assert dom["codes"] == [10, 249]
 
 
 def test_report_keys_and_untestable_effects_are_listed():

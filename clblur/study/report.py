@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from clblur.study.domain import describe as describe_domain
 from clblur.study.effects import EFFECT_NAMES, black_levels, channel_exponents, format_value
 from clblur.study.leftover import MIN_COUNT, describe
 from clblur.study.model import Group, inverse_table, null_params, shape
@@ -38,6 +39,7 @@ def build_report(kind: str, sel: Selection) -> dict:
                      "heldout_rmse": sel.extended_rmse, "heldout_nll": sel.extended_nll},
         "gain": sel.baseline_rmse - sel.extended_rmse,
         **({} if sel.leftover is None else {"leftover": _plain(sel.leftover)}),
+        **({} if sel.domain is None else {"domain": _plain(sel.domain)}),
     }
 
 
@@ -93,6 +95,8 @@ def markdown(report: dict, title: str = "Study", figures: list[str] | None = Non
     lines += ["", "Findings:", ""] + [f"- {f['explanation']}" for f in report["findings"]]
     if "leftover" in report:
         lines += ["", describe(report["leftover"])]
+    if "domain" in report:
+        lines += ["", describe_domain(report["domain"], report["kind"] == "exposure-series")]
     if "splits" in report:
         sp = report["splits"]
         lines += ["", f"Repeated over {sp['count']} splits of the blocks into two folds "

@@ -69,6 +69,7 @@ from clblur.study.crossfit import (
     heldout_scores,
     physical_bounds,
 )
+from clblur.study.domain import code_shares, mixing_domain
 from clblur.study.effects import (
     EFFECTS,
     FAMILY_LIMITS,
@@ -129,6 +130,7 @@ class Selection:
     extended_pred: list[np.ndarray] = field(default_factory=list)
     not_testable: dict[str, str] = field(default_factory=dict)
     leftover: dict | None = None  # what the extended model leaves (``study.leftover``)
+    domain: dict | None = None  # the domain the final curve averages in (``study.domain``)
 
 
 
@@ -310,8 +312,9 @@ def _select(groups: list[Group], folds: Folds, nblocks: int, alpha: float, min_g
     b_rmse, b_nll, b_pred = heldout_scores(groups, base_p)
     x_rmse, x_nll, x_pred = heldout_scores(groups, cur_params)
     left = leftover(folds, cur_params, used, groups, alpha, min_gain)
+    domain = mixing_domain(full, channels, code_shares(groups, channels))
     return Selection(order, ranked, full, b_rmse, x_rmse, b_nll, x_nll, b_pred, x_pred, skip,
-                     left)
+                     left, domain)
 
 
 # codes: a black level can hide below the darkest codes the data show when they lie this far
