@@ -17,6 +17,7 @@ from clblur.manifest import write_manifest
 from clblur.study import EFFECT_NAMES, pair_group, study, study_groups
 from clblur.study.model import forward, inverse_table, null_params, predict
 from clblur.study.report import markdown
+from clblur.study.series import series_groups
 from clblur.study.synthetic import RANGES, null_stack, scenario
 
 REPORT_KEYS = {"kind", "baseline", "findings", "extended", "gain", "leftover", "domain"}
@@ -840,3 +841,28 @@ def test_a_black_level_left_out_beside_the_shape_is_noted_where_the_data_start_h
         _note_toe(findings, current, bounds)
         text = findings["black_level"].explanation
         assert ("no code below about 28" in text) is noted, text
+
+
+def test_highlights_far_above_the_clip_leave_an_exposure_series_alone():
+    # The reason to shoot a series: highlights many stops above the clip. The longer image
+    # clips them and the shorter reveals them at any multiple of the clip level; one
+    # saturation factor cannot fit that, and the misfit read as a false saturation finding
+    # and structure left on the paper's own camera (a new user's 960 x 540 bracket with a
+    # 1 - 20x illumination ramp: saturation 1.18 and +13 - 19 codes at 224 - 256 left).
+    # Clipped sources are left out now, so the camera's one true effect, noise, is all.
+    from clblur.study.synthetic import CLIP
+
+    rng = np.random.default_rng(31)
+    camera = Camera(noise_a=2e-4, noise_b=2e-6)
+    scene = random_scene(rng, (48, 64), 3, low=0.03, high=0.35)
+    scene[10:38, 16:48] *= CLIP / 0.2 * np.exp(np.linspace(0.0, np.log(30.0), 32))[:, None]
+    times = [4.0, 2.0, 1.0, 0.5]
+    images = [camera.capture(scene * 0.25, t, rng=rng) for t in times]
+    assert (images[0] == 255).mean() > 0.1  # the longest frame clips a tenth of its values
+    notes: dict = {}
+    r = study_groups("exposure-series", series_groups(images, times, notes=notes)).report
+    assert 0.1 < notes["clipped_sources"] < 0.5
+    assert r["extended"]["effects"] == ["noise"], r["extended"]["effects"]
+    assert not r["leftover"]["structure"]
+    sat = next(f for f in r["findings"] if f["effect"] == "saturation")
+    assert sat["statistic"] is None and "left out" in sat["explanation"]

@@ -150,7 +150,7 @@ def _assemble(g: Group, blocks: list, nc: int, variants: dict) -> Group:
     # path weight sums are the same in every channel: read them from the full rows (the
     # pooled ones are empty outside their channel)
     out.__dict__["_norms"] = {i: g.time_norm(i)[take] for i, k in g.hist if k == 0}
-    for k in ("darkest", "gid", "inner_images"):
+    for k in ("darkest", "gid", "inner_images", "clipped_left_out"):
         if k in g.__dict__:
             out.__dict__[k] = g.__dict__[k]
     return out

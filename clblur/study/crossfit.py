@@ -90,7 +90,10 @@ def applicable(groups: list[Group]) -> dict[str, str]:
     """Effects the data cannot show, with the reason."""
     out = {}
     if not any(g.source_clipped for g in groups):
-        out["saturation"] = "no source pixel is clipped (code 255)"
+        out["saturation"] = (
+            "an exposure series' clipped source pixels bound their light from below only and "
+            "are left out" if any(g.__dict__.get("clipped_left_out") for g in groups)
+            else "no source pixel is clipped (code 255)")
     if not any((1, 0) in g.hist for g in groups):
         out["nonuniform_motion"] = "no time order along the motion (PSF, or exposure series)"
     if not any((0, 1) in g.hist for g in groups):

@@ -92,9 +92,14 @@ def groups_from_manifest(manifest: Manifest, max_pixels: int = DEFAULT_PIXELS,
         groups = series_groups(imgs, [e.exposure for e in manifest.images],
                                [e.f_number for e in manifest.images], max_pixels=max_pixels,
                                notes=left_out, names=[e.path.name for e in manifest.images])
-        if notes is not None and left_out["clip_code"] < 255:
-            notes["clipping"] = (f"the series clips at code {left_out['clip_code']} of 255 "
-                                 "(below full scale): pixels at or above it are censored")
+        if notes is not None and (left_out["clip_code"] < 255 or left_out["clipped_sources"]):
+            top = left_out["clip_code"]
+            notes["clipping"] = (
+                (f"the series clips at code {top} of 255 (below full scale): targets at or "
+                 "above it are censored; " if top < 255 else "")
+                + f"{100 * left_out['clipped_sources']:.1f} % of the sampled values have a "
+                  f"source at code {top} or beside one, which bounds its light from below "
+                  "only, and are left out")
         if notes is not None and left_out["padding"]:
             frames = ", ".join(f"{manifest.images[i].path.name} {100 * f:.1f} %"
                                for i, f in sorted(left_out["padding"].items()))

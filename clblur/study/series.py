@@ -2,10 +2,13 @@
 
 With the paper's response the prediction is ``I(r I^-1(v))`` with ``r`` the nominal exposure
 ratio (``exposure / f_number^2``); the longer image is the source, so its clipped highlights
-are what the shorter image reveals (the ``saturation`` effect).  A camera that clips below
-full scale (:func:`clip_code`) has its pixels at or above the clip point censored, in the
-target and at the source pixel; a constant border a registration padded a frame with
-(``clblur.pixels.series_padding``) is left out.  Each channel's black level is bounded by the
+are what the shorter image reveals.  A source code at the clip point (255, or lower for a
+camera that clips below full scale, :func:`clip_code`) bounds its light from below only, so
+such source pixels (and their 4-neighbours) are left out, as ``clblur calibrate`` leaves them
+out, and a target at the clip point is censored like 255 (``saturation`` is then not
+testable: it belongs to blur, where a clipped highlight's streak is what it measures); a
+constant border a registration padded a frame with (``clblur.pixels.series_padding``) is
+left out.  Each channel's black level is bounded by the
 step's darker frame: its darkest patch allowing for noise, grain and shading, not its
 darkest pixel, which read noise puts below the black level (:func:`_black_bound`).
 
@@ -122,6 +125,7 @@ def series_groups(images: list[np.ndarray], exposures: list[float],
     steps = [(k, k + gap) for gap in (1, 2) for k in range(len(imgs) - gap)]
     per = max(1000, max_pixels // len(steps))
     groups = []
+    dropped = sampled = 0  # sampled values whose source is clipped, of all
     for k, j in steps:
         src, tgt = imgs[k], imgs[j]
         rows, cols = sample_grid(tgt.shape[:2], per)
@@ -139,9 +143,34 @@ def series_groups(images: list[np.ndarray], exposures: list[float],
         # the longest and the shortest are held at their nominal times, the rest are free
         g.images = np.tile(np.array([order[k], order[j]], np.intp), (g.rows.size, 1))
         g.__dict__["inner_images"] = tuple(sorted(int(i) for i in order[1:-1]))
-        if top < 255:
-            # a camera that clips below full scale: a code at its clip point is no measure
-            # of light, in the target (censored like 255) nor in the source
-            g.valid &= (g.target < top) & (src[g.rows, g.cols] < top)
+        # A source code at the clip point (255, or a camera's lower clip) only bounds its
+        # light from below: the shorter image reveals highlights at any multiple of it.
+        # One saturation factor for all of them could not fit a scene whose highlights lie
+        # 5 - 30 times above the clip (the reason to shoot a series), and their misfit
+        # read as false noise, exposure, white-balance and curve findings and as structure
+        # left, the paper's own camera included. So such pixels are left out, as
+        # calibration leaves them out, with the 4-neighbours the misregistration effect's
+        # shifted taps read; a target at the clip point is censored like 255.
+        clipped = _clipped_near(src, top)[g.rows, g.cols]
+        g.valid &= (g.target < top) & ~clipped
+        dropped += int(clipped.sum())
+        sampled += clipped.size
+        g.source_clipped = False
+        g.__dict__["clipped_left_out"] = True
         groups.append(g)
+    if notes is not None:
+        notes["clipped_sources"] = dropped / max(sampled, 1)
     return groups
+
+
+_CROSS = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], np.uint8)
+
+
+def _clipped_near(image: np.ndarray, top: int) -> np.ndarray:
+    """Per pixel and channel (H x W x C bool): the pixel or one of its 4-neighbours is at or
+    above the clip code ``top``."""
+    import cv2
+
+    at = (image >= top).astype(np.uint8)
+    near = np.stack([cv2.dilate(at[..., c], _CROSS) for c in range(at.shape[2])], axis=-1)
+    return near.astype(bool)
