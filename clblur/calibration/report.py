@@ -242,7 +242,8 @@ def write_report(folder: str | Path, series: ExposureSeries, fits: dict[str, Res
         f"Series: {len(series.images)} images, {series.shape[1]} x {series.shape[0]} "
         f"(W x H) x {series.channels} {series.dtype}, exposures {t.min():g} s ... "
         f"{t.max():g} s.", *registered,
-        f"Best model (lowest mean held-out RMSE over the gaps): **{best}**.", "",
+        f"Best model (lowest mean held-out RMSE over the gaps, darker target): **{best}**.",
+        "",
     ]
     if command:
         lines += ["Command:", "", "```", command, "```", ""]

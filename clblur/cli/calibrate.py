@@ -4,7 +4,8 @@
                      [--report DIR] [--shared] [--refine-times] [--samples N] ...
 
 Every model is fitted, evaluated by leave-one-exposure-out prediction, and the one with the
-lowest mean held-out RMSE is written (one curve per channel unless ``--shared``).
+lowest mean held-out RMSE of the darker target is written (one curve per channel unless
+``--shared``; ``clblur.calibration.compare.selection_score``).
 """
 
 from __future__ import annotations
