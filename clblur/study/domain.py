@@ -96,16 +96,19 @@ def mixing_domain(p: dict, channels: int, shares: np.ndarray) -> dict | None:
     if not seen.any():
         return None
     a, b = np.meshgrid(np.arange(_TOP), np.arange(_TOP), indexing="ij")
+    present = [c for c in range(channels) if seen[c].any()]
+    # the fitted curve's mixes once per channel, each pair's weight and whether it counts
+    # for the largest difference: the same for every domain
+    fitted = {c: _fitted_mixes(p, c, channels, a, b) for c in present}
+    weight = {c: shares[c][:, None] * shares[c][None, :] for c in present}
+    counted = {c: seen[c][:, None] & seen[c][None, :] for c in present}
     out: dict = {}
     for name, spec in DOMAINS:
         standard = _standard_mixes(spec, a, b)
         mean_sum, weight_sum, largest = 0.0, 0.0, 0.0
-        for c in range(channels):
-            if not seen[c].any():
-                continue
-            w = shares[c][:, None] * shares[c][None, :]
-            both = seen[c][:, None] & seen[c][None, :]
-            for fit, std in zip(_fitted_mixes(p, c, channels, a, b), standard, strict=True):
+        for c in present:
+            w, both = weight[c], counted[c]
+            for fit, std in zip(fitted[c], standard, strict=True):
                 d = np.abs(fit - std)
                 mean_sum += float((w * d).sum())
                 weight_sum += float(w.sum())
