@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from tqdm import tqdm
 
+from clblur.calibration.inverse_families import with_toe
 from clblur.calibration.models import FAMILIES, MODELS, FamilyFit
 from clblur.calibration.sampling import VALID_HIGH, VALID_LOW, SampleSet, Sampling, sample_series
 from clblur.calibration.series import ExposureSeries
@@ -143,6 +144,9 @@ def fit(series: ExposureSeries, model: str, *, shared: bool = False, n_samples: 
     for samples in tqdm(groups, desc=f"fit {model}", disable=not progress, leave=False):
         fits.append(family.fit(samples, tau, full_scale=series.full_scale,
                                refine_times=refine_times, **opts))
+    if getattr(family, "fits_toe", False) and low > chosen.low:  # below ``low``: the toe
+        whole = [SampleSet.concat(chosen.per_channel)] if shared else chosen.per_channel
+        fits = [with_toe(f, samples, low) for f, samples in zip(fits, whole, strict=True)]
     if model == "exp":
         fits = [_on_paper_axis(series, f, list(range(series.channels)) if shared else [c])
                 for c, f in enumerate(fits)]

@@ -11,9 +11,11 @@ Conventions
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import scipy.sparse as sp
-from scipy.optimize import isotonic_regression
+from scipy.optimize import isotonic_regression, least_squares
 from scipy.sparse.linalg import spsolve
 
 from clblur.calibration.forward_families import (
@@ -27,10 +29,16 @@ from clblur.calibration.forward_families import (
     time_deviation_basis,
 )
 from clblur.responses import (
+    Gamma,
     Polynomial,
+    Table,
 )
 
-__all__ = ["PolynomialFamily", "NonparametricFamily"]
+__all__ = ["PolynomialFamily", "NonparametricFamily", "TOE_MIN_POINTS", "fit_toe",
+           "with_toe"]
+
+# darker observations a toe needs; with fewer, the family's own extrapolation is kept
+TOE_MIN_POINTS = 20
 
 
 def _consecutive_pairs(samples, tau):
@@ -57,6 +65,7 @@ class PolynomialFamily:
 
     name = "polynomial"
     default_low = CURVE_LOW
+    fits_toe = True  # fitting.fit fits the curve below default_low on the darker samples
 
     def fit(self, samples, tau, *, full_scale, refine_times=False, order: int = 6,
             iterations: int = 30, **opts) -> FamilyFit:
@@ -120,6 +129,84 @@ def _ratio(coef, va, vb, fallback):
     return float(np.mean(ga[ok] / gb[ok])) if ok.sum() >= 3 else float(fallback)
 
 
+def _toe_points(curve: Table, samples, tau: np.ndarray, start: float):
+    """(value, exposure) of every observation below ``start`` of a sample the curve reads.
+
+    A sample's radiance is taken from its observations at ``start`` or above (where the
+    fitted curve holds; geometric mean of ``g(v) / tau``); its darker observations then
+    each give one point of the curve below its fitted range."""
+    trusted = samples.valid & (samples.values >= start)
+    dark = samples.valid & (samples.values < start)
+    rows = trusted.any(axis=1) & dark.any(axis=1)
+    log_e = np.log(np.maximum(curve.inverse(samples.values[rows]), 1e-300)) - np.log(tau)
+    t = trusted[rows]
+    radiance = np.exp(np.sum(np.where(t, log_e, 0.0), axis=1) / t.sum(axis=1))
+    d = dark[rows]
+    return samples.values[rows][d], (radiance[:, None] * tau[None, :])[d]
+
+
+def fit_toe(curve: Table, samples, tau: np.ndarray, start: float) -> tuple[Table, dict | None]:
+    """A free inverse curve below its fitted range, fitted on the darker observations.
+
+    Neither free family models the black level, so they are fitted from ``start`` up, and
+    below it their own formulas extrapolate freely: Debevec & Malik's ``ln g`` goes on as a
+    straight line and never reaches zero, a polynomial bends wherever nothing holds it
+    (measured on a linear 16-bit bracket with a black level of 1.6 % of full scale: the
+    nonparametric curve put 7 % of the fitted exposure at the black level, and predicted a
+    4-stop brighter image with an RMSE of 32 570 codes).  The toe is a black level and a power:
+    ``v = b + (s - b) (x / x_s)**(1 / p)`` below ``s = start`` (continuous there), ``b`` and
+    ``p`` fitted by least squares on code values to every observation below ``start`` of a
+    sample that also has observations above it (their radiance read through the curve); the
+    power is ``clblur.responses.Gamma``'s.  A linear sensor is ``p = 1`` at its black level;
+    a gamma curve without one is ``b = 0``.
+
+    Args:
+        curve: the fitted curve, a ``Table`` on a value grid that starts at 0.
+        samples: the sample set over the whole valid range (not only the fitted one).
+        tau: the exposures the curve was fitted with.
+        start: the lowest fitted value.
+
+    Returns:
+        The curve with the toe below ``start``, and the toe's ``{"black_level", "exponent",
+        "points"}``; the curve unchanged and None when fewer than ``TOE_MIN_POINTS``
+        observations lie below ``start``.
+    """
+    v_dark, x_dark = _toe_points(curve, samples, tau, start)
+    x_start = float(curve.inverse(start))
+    keep = (x_dark > 0) & (x_dark < x_start)
+    v_dark, x_dark = v_dark[keep], x_dark[keep]
+    if v_dark.size < TOE_MIN_POINTS or not x_start > 0:
+        return curve, None
+    u = x_dark / x_start
+
+    def residuals(theta):  # the power law of the toe, from b up to the curve at ``start``
+        b, p = theta
+        return b + (start - b) * Gamma(p).forward(u) - v_dark
+
+    # start from the power through the origin with the curve's own slope at ``start``
+    above = float(curve.inverse(min(start + 0.01, 1.0)))
+    p0 = float(np.clip((above - x_start) / 0.01 * start / x_start, 0.5, 4.0))
+    sol = least_squares(residuals, x0=[0.0, p0], bounds=([0.0, 0.25], [0.98 * start, 8.0]))
+    b, p = (float(t) for t in sol.x)
+    value = curve.value
+    below = value < start
+    exposure = curve.exposure.copy()
+    exposure[below] = x_start * Gamma(p).inverse((value[below] - b) / (start - b))
+    toe = {"black_level": b, "exponent": p, "points": int(v_dark.size)}
+    meta = dict(curve.meta)
+    meta["params"] = dict(meta.get("params", {}), toe=toe)
+    return _table(exposure, value, meta.get("family", "table"), meta["params"]), toe
+
+
+def with_toe(fitted: FamilyFit, samples, start: float) -> FamilyFit:
+    """``fitted`` with ``fit_toe`` applied; the toe's two numbers join its parameters."""
+    curve, toe = fit_toe(fitted.response, samples, fitted.tau, start)
+    if toe is None:
+        return fitted
+    return dataclasses.replace(fitted, response=curve, params=dict(fitted.params, toe=toe),
+                               n_shape_params=fitted.n_shape_params + 2)
+
+
 def _hat(v: np.ndarray) -> np.ndarray:
     """Debevec & Malik's hat weight on normalised values, floored so no row vanishes."""
     return np.maximum(np.minimum(v, 1.0 - v) * 2.0, 0.02)
@@ -138,6 +225,7 @@ class NonparametricFamily:
 
     name = "nonparametric"
     default_low = CURVE_LOW
+    fits_toe = True  # fitting.fit fits the curve below default_low on the darker samples
 
     def fit(self, samples, tau, *, full_scale, refine_times=False, smoothness: float = 30.0,
             levels: int | None = None, time_sigma: float = TIME_SIGMA, **opts) -> FamilyFit:
