@@ -432,3 +432,26 @@ def test_the_shared_series_brighten_with_their_exposures(shared_data):
     for folder, times in (("memorial", "memorial/shutter_times.txt"), ("canon400d_road", None)):
         s = load_series(shared_data / folder, None if times is None else shared_data / times)
         check_brightening(s.images, s.relative_exposures(), s.names, s.white_level)
+
+
+@pytest.mark.parametrize("keep, expected", [
+    (range(10), (1.0, 4.0)),  # one stop apart: the gaps asked for
+    ([0, 2, 4], (2.0, 4.0)),  # two stops apart: no 1-stop pair, the nearest is 2
+    ([0, 3], (3.0,)),  # one pair: both wanted gaps become its 3 stops
+])
+def test_the_default_gaps_are_the_ones_the_series_has(keep, expected, rng):
+    from clblur.calibration.evaluate import series_gaps
+
+    series, _ = make_stack(gamma_offset_curve(0.02, 2.2), rng)
+    assert series_gaps(series.subset(list(keep))) == expected
+    third = ExposureSeries.create(series.images[:7], 2.0 ** (-np.arange(7) / 3))
+    assert series_gaps(third) == (1.0, 2.0)  # 1/3-stop steps over 2 stops: 4 -> 2
+
+
+def test_a_bracket_two_stops_apart_is_scored_at_every_default_gap(rng):
+    from clblur.calibration import calibrate
+
+    series, _ = make_stack(gamma_offset_curve(0.02, 2.2), rng)
+    result = calibrate(series.subset([0, 2, 4, 6]), ["gamma-offset"], n_samples=300)
+    rmse = result.evaluations["gamma-offset"]["rmse_darker"]
+    assert list(rmse) == [2, 4] and all(np.isfinite(v) and v < 3.0 for v in rmse.values())

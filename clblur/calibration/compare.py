@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from tqdm import tqdm
 
-from clblur.calibration.evaluate import EVAL_LOW, FLAT_TOLERANCE, evaluate
+from clblur.calibration.evaluate import EVAL_LOW, FLAT_TOLERANCE, evaluate, series_gaps
 from clblur.calibration.fitting import ResponseFit, fit
 from clblur.calibration.models import MODELS, EmorBasis
 from clblur.calibration.sampling import VALID_LOW, sample_series
@@ -56,12 +56,14 @@ def available_models(emor_dir=None, warn: bool = True) -> list[str]:
 def calibrate(source: ExposureSeries | str | os.PathLike, models=None, *, times=None,
               shared: bool = False, refine_times: bool = False, n_samples: int = 1000,
               patch: int = 3, seed: int = 0, fit_low: float | None = None,
-              emor_dir=None, gaps=(1, 4), refit: bool = True, eval_low: float = EVAL_LOW,
+              emor_dir=None, gaps=None, refit: bool = True, eval_low: float = EVAL_LOW,
               flat_tolerance: float | None = FLAT_TOLERANCE, max_pixels: int | None = None,
               progress: bool = False, align: bool = True) -> Calibration:
     """Fit ``models`` (default: all available) on the same patches, evaluate each by held-out
     prediction (``clblur.calibration.evaluate``) and pick the lowest mean RMSE over ``gaps``
-    of the darker target (:func:`selection_score`).  A model the series cannot support is
+    of the darker target (:func:`selection_score`).  ``gaps`` (stops): None scores 1 and 4
+    stops, or the nearest gaps the series has (``series_gaps``: a bracket two stops apart is
+    scored at 2 and 4).  A model the series cannot support is
     skipped, its reason in ``Calibration.skipped``, unless it is the only one asked for.
     ``align``: register a series read from ``source`` (``load_series``); a given
     ``ExposureSeries`` is taken as it is (``ExposureSeries.aligned`` registers one)."""
@@ -73,6 +75,8 @@ def calibrate(source: ExposureSeries | str | os.PathLike, models=None, *, times=
     unknown = [m for m in names if m not in MODELS]
     if unknown:
         raise ValueError(f"unknown response model(s) {unknown}; choose from {', '.join(MODELS)}")
+    if gaps is None:
+        gaps = series_gaps(series)
     low = VALID_LOW if fit_low is None else min(fit_low, VALID_LOW)
     sampling = sample_series(series, n_samples, patch=patch, low=low, seed=seed)
     fits, evaluations, skipped = {}, {}, {}

@@ -29,7 +29,11 @@ from tqdm import tqdm
 from clblur.calibration.fitting import ResponseFit, fit, transfer
 from clblur.calibration.series import ExposureSeries
 
-__all__ = ["DIRECTIONS", "EVAL_HIGH", "EVAL_LOW", "FLAT_TOLERANCE", "evaluate"]
+__all__ = ["DEFAULT_GAPS", "DIRECTIONS", "EVAL_HIGH", "EVAL_LOW", "FLAT_TOLERANCE",
+           "GAP_TOLERANCE", "evaluate", "series_gaps"]
+
+DEFAULT_GAPS = (1.0, 4.0)
+GAP_TOLERANCE = 0.25  # stops: a pair of exposures counts for a gap this close to it
 
 FLAT_TOLERANCE = 0.03
 # Codes 3..252 of 255 are valid: code 0..2 may be a clipped black, 253..255 a clipped white.
@@ -54,8 +58,39 @@ def _refit_without(series: ExposureSeries, f: ResponseFit, j: int) -> ResponseFi
                **f.options)
 
 
-def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=(1, 4), *,
-             refit: bool = True, tolerance: float = 0.25, max_pixels: int | None = None,
+def series_gaps(series: ExposureSeries, wanted=DEFAULT_GAPS,
+                tolerance: float = GAP_TOLERANCE) -> tuple[float, ...]:
+    """The gaps to score a series at: each wanted gap, or the nearest one the series has.
+
+    A bracket two stops apart has no 1-stop pair, and a default of 1 and 4 stops would leave
+    half of its table empty (and rank models on one gap).  Each wanted gap the series has
+    (within ``tolerance``) is kept; one it lacks becomes the nearest gap between two of its
+    exposures (the smaller on a tie), rounded to 0.01 stop; duplicates are dropped, the
+    order kept.
+
+    Args:
+        series: the exposure series.
+        wanted: the gaps asked for, in stops.
+        tolerance: how far (stops) a pair's gap may be from a wanted gap to count for it.
+
+    Returns:
+        The gaps to score, in stops.
+    """
+    stops = np.log2(series.relative_exposures())
+    present = np.unique(np.round(np.abs(stops[:, None] - stops[None, :])[
+        np.triu_indices(stops.size, 1)], 2))
+    present = present[present > 0]
+    out: list[float] = []
+    for g in (float(x) for x in wanted):
+        if present.size and not np.any(np.abs(present - g) <= tolerance):
+            g = float(present[np.argmin(np.abs(present - g))])
+        if g not in out:
+            out.append(g)
+    return tuple(out)
+
+
+def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=DEFAULT_GAPS, *,
+             refit: bool = True, tolerance: float = GAP_TOLERANCE, max_pixels: int | None = None,
              low: float = EVAL_LOW, high: float | None = None,
              flat_tolerance: float | None = FLAT_TOLERANCE, seed: int = 0,
              progress: bool = False) -> dict:

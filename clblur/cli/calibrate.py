@@ -49,8 +49,9 @@ def register(subparsers) -> None:
                         "the exp families, 0.1 for the free curves)")
     p.add_argument("--emor-dir", metavar="DIR",
                    help="folder with invemor.txt (default: $CLBLUR_DATA/crf)")
-    p.add_argument("--gaps", type=float, nargs="+", default=[1, 4], metavar="STOPS",
-                   help="prediction gaps in stops (default 1 4)")
+    p.add_argument("--gaps", type=float, nargs="+", default=None, metavar="STOPS",
+                   help="prediction gaps in stops (default: 1 and 4, or the nearest gaps "
+                        "the series has)")
     p.add_argument("--no-refit", action="store_true",
                    help="evaluate the full fit instead of refitting without each target "
                         "exposure (faster, slightly optimistic)")
