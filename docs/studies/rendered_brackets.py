@@ -65,9 +65,35 @@ def curve_a(x: np.ndarray, c: int) -> np.ndarray:
     return y - S_AMP[c] * np.sin(2 * np.pi * y) / (2 * np.pi)  # slope >= 1 - S_AMP > 0
 
 
-def write_manifest(out: Path, name: str, entries: list[dict]) -> None:
+def write_bracket(out: Path, name: str, light: np.ndarray, read_noise: float, encode,
+                  save, exposures, rng) -> None:
+    """Five images of ``light`` one stop apart: shot noise ``a = 2e-4``, ``read_noise``,
+    ``encode`` (linear light to codes), ``save(codes, path)``; a manifest beside them."""
+    (out / name).mkdir(parents=True, exist_ok=True)
+    entries = []
+    for i, rel in enumerate(RELATIVE):
+        x = light * rel
+        x = x + rng.normal(size=x.shape) * np.sqrt(2e-4 * x + read_noise**2)
+        path = out / name / f"{name[-1]}_{i}.{'jpg' if save is _jpeg else 'png'}"
+        save(encode(x), path)
+        entries.append({"path": str(path), "exposure": float(exposures[i])})
     text = json.dumps({"kind": "exposure-series", "images": entries}, indent=1)
     (out / f"{name}.json").write_text(text)
+
+
+def _jpeg(codes: np.ndarray, path: Path) -> None:
+    Image.fromarray(codes).save(path, quality=92)
+
+
+def _png(codes: np.ndarray, path: Path) -> None:
+    if codes.dtype == np.uint16:  # OpenCV writes 16-bit PNG; it takes BGR
+        cv2.imwrite(str(path), codes[..., ::-1].copy())
+    else:
+        Image.fromarray(codes).save(path)
+
+
+def _codes(v: np.ndarray, top: float, dtype) -> np.ndarray:
+    return np.clip(np.round(v * top), 0, top).astype(dtype)
 
 
 def render(frames: Path, out: Path) -> None:
@@ -77,42 +103,22 @@ def render(frames: Path, out: Path) -> None:
     edge = np.minimum.reduce([xx - 600, 880 - xx, yy - 80, 300 - yy]) / 8.0
     window = (1.0 + 29.0 / (1 + np.exp(-edge)))[..., None]
 
-    light = radiance(frames, "000166.png", ramp, 0.35)
-    (out / "cam_a").mkdir(parents=True, exist_ok=True)
-    entries = []
-    for i, rel in enumerate(RELATIVE):
-        x = light * rel
-        x = x + rng.normal(size=x.shape) * np.sqrt(2e-4 * x + 0.002**2)
-        v = np.stack([curve_a(x[..., c], c) for c in range(3)], -1)
-        path = out / "cam_a" / f"a_{i}.jpg"
-        Image.fromarray(np.clip(np.round(v * 255), 0, 255).astype(np.uint8)).save(path,
-                                                                                   quality=92)
-        entries.append({"path": str(path), "exposure": CAM_A_TIMES[i]})
-    write_manifest(out, "cam_a", entries)
+    def jpeg_engine(x):
+        return _codes(np.stack([curve_a(x[..., c], c) for c in range(3)], -1), 255, np.uint8)
 
-    light = radiance(frames, "000176.png", window, 0.25)
-    (out / "cam_b").mkdir(parents=True, exist_ok=True)
-    entries = []
-    for i, rel in enumerate(RELATIVE):
-        x = light * rel
-        x = x + rng.normal(size=x.shape) * np.sqrt(2e-4 * np.clip(x, 0, None) + 0.0005**2)
-        code = np.round(CAM_B_BLACK + np.clip(x, 0, None) * (65535 - CAM_B_BLACK))
-        path = out / "cam_b" / f"b_{i}.png"
-        cv2.imwrite(str(path), np.clip(code, 0, 65535).astype(np.uint16)[..., ::-1].copy())
-        entries.append({"path": str(path), "exposure": float(rel)})
-    write_manifest(out, "cam_b", entries)
+    def linear_16bit(x):
+        black = CAM_B_BLACK / 65535
+        return _codes(black + np.clip(x, 0, None) * (1 - black), 65535, np.uint16)
 
-    light = radiance(frames, "000184.png", ramp, 1.2)
-    (out / "cam_c").mkdir(parents=True, exist_ok=True)
-    entries = []
-    for i, rel in enumerate(RELATIVE):
-        x = light * rel
-        x = x + rng.normal(size=x.shape) * np.sqrt(2e-4 * x)
-        v = 1 - np.exp(-np.clip(x, 0, None))
-        path = out / "cam_c" / f"c_{i}.png"
-        Image.fromarray(np.clip(np.round(v * 255), 0, 255).astype(np.uint8)).save(path)
-        entries.append({"path": str(path), "exposure": float(rel)})
-    write_manifest(out, "cam_c", entries)
+    def paper_camera(x):
+        return _codes(1 - np.exp(-np.clip(x, 0, None)), 255, np.uint8)
+
+    write_bracket(out, "cam_a", radiance(frames, "000166.png", ramp, 0.35), 0.002,
+                  jpeg_engine, _jpeg, CAM_A_TIMES, rng)
+    write_bracket(out, "cam_b", radiance(frames, "000176.png", window, 0.25), 0.0005,
+                  linear_16bit, _png, RELATIVE, rng)
+    write_bracket(out, "cam_c", radiance(frames, "000184.png", ramp, 1.2), 0.0,
+                  paper_camera, _png, RELATIVE, rng)
 
 
 def main() -> None:
