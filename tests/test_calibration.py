@@ -455,3 +455,15 @@ def test_a_bracket_two_stops_apart_is_scored_at_every_default_gap(rng):
     result = calibrate(series.subset([0, 2, 4, 6]), ["gamma-offset"], n_samples=300)
     rmse = result.evaluations["gamma-offset"]["rmse_darker"]
     assert list(rmse) == [2, 4] and all(np.isfinite(v) and v < 3.0 for v in rmse.values())
+
+
+def test_the_report_gives_each_curve_s_black_level(rng):
+    from clblur.calibration.report import curve_table
+
+    series, _ = make_stack(gamma_offset_curve(0.05, 2.2), rng)  # black at 12.75 DN
+    fits = {m: fit(series, m, n_samples=300) for m in ("gamma-offset", "nonparametric", "exp")}
+    rows = {line.split(" | ")[0].strip("| "): float(line.split(" | ")[-1].strip(" |"))
+            for line in curve_table(series, fits).splitlines()[2:]}
+    assert rows["gamma-offset"] == pytest.approx(12.75, abs=0.5)
+    assert rows["nonparametric"] == pytest.approx(12.75, abs=2.0)  # the toe's own level
+    assert rows["exp"] == 0.0  # Eq. 3 has none

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from clblur.calibration.cross_exposure import curve_black_level
 from clblur.calibration.evaluate import EVAL_HIGH, EVAL_LOW, FLAT_TOLERANCE
 from clblur.calibration.fitting import LIKELIHOOD_LOW, ResponseFit, fit_radiances
 from clblur.calibration.series import ExposureSeries, photometric_exposure
@@ -193,14 +194,22 @@ def series_table(series: ExposureSeries, tolerance: float = 0.03) -> str:
     return "\n".join(lines)
 
 
+# a curve's black level in the report: where its exposure is this far below mid-scale's, so
+# close to zero that a power-law toe above the level adds a fraction of a code (gamma 2.2:
+# 0.2 DN); the spline's own toe (``curve_black_level``'s default) is a looser 1/1000
+BLACK_FRACTION = 1e-6
+
+
 def curve_table(series: ExposureSeries, fits: dict[str, ResponseFit]) -> str:
-    """Contrast of each fitted curve: stops from 30 to 230 DN (uint8 scale) and the DN gained
-    per stop at 30 and at 150 DN."""
+    """Contrast of each fitted curve: stops from 30 to 230 DN (uint8 scale), the DN gained
+    per stop at 30 and at 150 DN, and its black level (``curve_black_level``: the highest code
+    whose exposure is below ``BLACK_FRACTION`` of mid-scale's, in the series' codes), one
+    definition for every family."""
     scale = series.full_scale / 255.0
     lo, hi, mid = 30 * scale, 230 * scale, 150 * scale
     names = _channel_names(series.channels)
-    lines = ["| model | channel | stops 30 -> 230 DN | DN per stop at 30 | DN per stop at 150 |",
-             "|---|---|---|---|---|"]
+    lines = ["| model | channel | stops 30 -> 230 DN | DN per stop at 30 | DN per stop at 150 | "
+             "black level (DN) |", "|---|---|---|---|---|---|"]
     for name, f in fits.items():
         for c, resp in enumerate(f.responses):
             def inv(code, r=resp):
@@ -211,7 +220,9 @@ def curve_table(series: ExposureSeries, fits: dict[str, ResponseFit]) -> str:
                 span = np.log2(inv(hi) / inv(lo))
                 at_lo = scale / np.log2(inv(lo + scale) / inv(lo))
                 at_mid = scale / np.log2(inv(mid + scale) / inv(mid))
-            lines.append(f"| {name} | {names[c]} | {span:.2f} | {at_lo:.1f} | {at_mid:.1f} |")
+            black = curve_black_level(resp, BLACK_FRACTION) * series.full_scale
+            lines.append(f"| {name} | {names[c]} | {span:.2f} | {at_lo:.1f} | {at_mid:.1f} | "
+                         f"{black:.1f} |")
     return "\n".join(lines)
 
 
