@@ -9,6 +9,7 @@ import pytest
 from bracket_scenes import exposure, scene
 
 from clblur.calibration import calibrate
+from clblur.calibration.fitting import transfer
 from clblur.calibration.series import ExposureSeries
 from clblur.pixels import clip_level
 
@@ -54,6 +55,26 @@ def test_calibration_leaves_the_clip_point_out():
     assert plain.white_level == 1.0
     assert calibrate(plain, ["exp"], refit=False).evaluations["exp"]["valid"][1] == \
         pytest.approx(252.5 / 255)
+
+
+def test_the_spline_leaves_the_clip_point_out():
+    # its random single pixels had only 0 and full scale left out: a camera clipping at 230
+    # had its pile of 230s fitted as light (a video-range bracket: held-out 20.9 DN against
+    # 2.7 for gamma-offset; now 2.8)
+    clipped = ExposureSeries.create(series_frames(230), TIMES)
+    plain = ExposureSeries.create(series_frames(None), TIMES)
+    cal = calibrate(clipped, ["spline", "gamma-offset"], refit=False)
+    for s in cal.fits["spline"].sampling.pixels:
+        assert s.values[s.valid].max() == pytest.approx(230 / 255)  # the sampling keeps all ...
+    curve = cal.fits["spline"].responses[0]
+    truth = calibrate(plain, ["spline"], refit=False).fits["spline"].responses[0]
+    v = np.linspace(0.1, 0.85, 50)  # ... the fit does not: it is the unclipped series' curve
+    for ratio in (0.5, 2.0):
+        got, want = (transfer(c, v, ratio) for c in (curve, truth))
+        keep = want < 0.85
+        assert np.abs(got[keep] - want[keep]).max() * 255 < 1.5
+    rmse = {m: cal.evaluations[m]["rmse_darker"][1] for m in ("spline", "gamma-offset")}
+    assert rmse["spline"] < 1.5 * rmse["gamma-offset"], rmse
 
 
 def test_the_study_censors_the_clip_point():

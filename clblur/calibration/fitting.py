@@ -135,7 +135,11 @@ def fit(series: ExposureSeries, model: str, *, shared: bool = False, n_samples: 
         if not sampling.pixels:
             raise ValueError(f"the {model} model needs random pixel samples (sample_series "
                              "with n_pixels > 0)")
-        groups = [SampleSet.concat(sampling.pixels)] if shared else sampling.pixels
+        # the pixels' own valid range ends below the white level, as the evaluation's does:
+        # a clip pile below full scale is not light
+        top = family.default_high * series.white_level
+        pixels = [p.with_range(family.default_low, top) for p in sampling.pixels]
+        groups = [SampleSet.concat(pixels)] if shared else pixels
     else:
         if (low, high) != (sampling.low, sampling.high):
             sampling = sampling.with_range(low, high)
@@ -145,7 +149,12 @@ def fit(series: ExposureSeries, model: str, *, shared: bool = False, n_samples: 
         fits.append(family.fit(samples, tau, full_scale=series.full_scale,
                                refine_times=refine_times, **opts))
     if getattr(family, "fits_toe", False) and low > chosen.low:  # below ``low``: the toe
-        whole = [SampleSet.concat(chosen.per_channel)] if shared else chosen.per_channel
+        # the patches and the random pixels over the whole valid range: flat patches are
+        # few near the black level (video range: 28 below 10 % of 2000), pixels are not
+        whole = [SampleSet.concat([c, *([] if chosen.pixels is None else
+                                        [chosen.pixels[i].with_range(chosen.low, chosen.high)])])
+                 for i, c in enumerate(chosen.per_channel)]
+        whole = [SampleSet.concat(whole)] if shared else whole
         fits = [with_toe(f, samples, low) for f, samples in zip(fits, whole, strict=True)]
     if model == "exp":
         fits = [_on_paper_axis(series, f, list(range(series.channels)) if shared else [c])
