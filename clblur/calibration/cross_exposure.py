@@ -55,9 +55,6 @@ class SplineFamily:
 
     name = "spline"
     default_low = PAIR_LOW_CODE / 255.0
-    # times the series' white level (``fitting.fit``): a camera that clips below full scale
-    # (video range, a JPEG engine stopping at 230) piles its highlights up there
-    default_high = PAIR_HIGH_CODE / 255.0
     uses_pixels = True
 
     def fit(self, samples, tau, *, full_scale, refine_times=False, knots: int = 64,

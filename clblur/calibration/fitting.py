@@ -135,10 +135,17 @@ def fit(series: ExposureSeries, model: str, *, shared: bool = False, n_samples: 
         if not sampling.pixels:
             raise ValueError(f"the {model} model needs random pixel samples (sample_series "
                              "with n_pixels > 0)")
-        # the pixels' own valid range ends below the white level, as the evaluation's does:
-        # a clip pile below full scale is not light
-        top = family.default_high * series.white_level
-        pixels = [p.with_range(family.default_low, top) for p in sampling.pixels]
+        pixels = sampling.pixels
+        if series.white_level < 1.0:
+            # a camera that clips below full scale (video range, a JPEG engine stopping at
+            # 230) piles its highlights up at one code, and the pile is not light: taken for
+            # light it bent the spline of a video-range bracket to 23.4 DN held-out, 1 stop
+            # darker (2.2 without it; docs/studies/rendered_brackets.py, cam_d).  Only the
+            # pile: the codes just below it hold the shoulder (the Canon bracket clipped at
+            # 230: 4-stop darker 2.12 DN; cutting 2.5 codes below the pile, as
+            # PAIR_HIGH_CODE does at full scale, 3.38)
+            top = series.white_level - 0.5 / series.full_scale
+            pixels = [p.with_range(family.default_low, top) for p in pixels]
         groups = [SampleSet.concat(pixels)] if shared else pixels
     else:
         if (low, high) != (sampling.low, sampling.high):

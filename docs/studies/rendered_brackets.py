@@ -1,10 +1,10 @@
-"""Three exposure brackets of cameras nobody here calibrated, rendered from real radiance.
+"""Four exposure brackets of cameras nobody here calibrated, rendered from real radiance.
 
     python docs/studies/rendered_brackets.py /tmp/brackets
     clblur calibrate /tmp/brackets/cam_b.json -o cam_b.json
     clblur study /tmp/brackets/cam_b.json --report cam_b-study.json
 
-Three GoPro frames of ``$CLBLUR_DATA/gopro240/frames`` (real scenes, their sRGB codes
+Four GoPro frames of ``$CLBLUR_DATA/gopro240/frames`` (real scenes, their sRGB codes
 linearised) are the radiance, shaped so that part of every bracket clips: an illumination
 ramp of 1 - 20x across the frame, or a window 30x brighter.  Each camera then takes five
 images one stop apart (960 x 540) with shot and read noise:
@@ -17,6 +17,9 @@ images one stop apart (960 x 540) with shot and read noise:
     A linear raw-like sensor: 16-bit PNG, black level 1024 of 65 535.
 ``cam_c``
     The paper's camera: ``v = 1 - exp(-x)`` (Eq. 3), 8-bit PNG, shot noise only.
+``cam_d``
+    A video-range camera: gamma 2.2 into codes 16 .. 235 (studio range, as a video frame
+    grab stores it), 8-bit PNG; it clips at 235, below full scale.
 
 ``validation.md`` (the clipped-sources section and the free curves' toe) reads these: the
 truth is known, the radiance is not generated.  The seeds are fixed, so the files are the
@@ -110,6 +113,9 @@ def render(frames: Path, out: Path) -> None:
         black = CAM_B_BLACK / 65535
         return _codes(black + np.clip(x, 0, None) * (1 - black), 65535, np.uint16)
 
+    def video_range(x):
+        return _codes((16 + 219 * np.clip(x, 0, 1) ** (1 / 2.2)) / 255, 255, np.uint8)
+
     def paper_camera(x):
         return _codes(1 - np.exp(-np.clip(x, 0, None)), 255, np.uint8)
 
@@ -119,11 +125,14 @@ def render(frames: Path, out: Path) -> None:
                   linear_16bit, _png, RELATIVE, rng)
     write_bracket(out, "cam_c", radiance(frames, "000184.png", ramp, 1.2), 0.0,
                   paper_camera, _png, RELATIVE, rng)
+    write_bracket(out, "cam_d", radiance(frames, "000180.png", ramp, 0.4), 0.001,
+                  video_range, _png, RELATIVE, rng)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("out", type=Path, help="folder to write cam_a/b/c and their manifests")
+    parser.add_argument("out", type=Path, help="folder to write cam_a .. cam_d and their "
+                        "manifests")
     args = parser.parse_args()
     data = Path(os.environ.get("CLBLUR_DATA", Path(__file__).resolve().parents[3]
                                / "shared" / "data"))
@@ -131,7 +140,7 @@ def main() -> None:
     if not frames.is_dir():
         raise SystemExit(f"no GoPro frames at {frames}: set CLBLUR_DATA")
     render(frames, args.out)
-    print(f"wrote {args.out}/cam_a.json, cam_b.json, cam_c.json")
+    print(f"wrote {args.out}/cam_a.json, cam_b.json, cam_c.json, cam_d.json")
 
 
 if __name__ == "__main__":
