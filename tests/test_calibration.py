@@ -166,7 +166,7 @@ def test_free_curves_fit_their_toe_below_the_fitted_range(model, black, gamma, d
     assert below_range_error_dn(result.responses[0], table_of(truth),
                                 black + 0.004) < TOE_TOL_DN
     toe = result.params["per_channel"][0]["toe"]
-    assert toe["black_level"] == pytest.approx(black, abs=0.01)
+    assert toe["black_level"] == pytest.approx(black, abs=0.01) and toe["held"]
     assert result.responses[0].meta["params"]["toe"] == toe
 
 
@@ -462,8 +462,43 @@ def test_the_report_gives_each_curve_s_black_level(rng):
 
     series, _ = make_stack(gamma_offset_curve(0.05, 2.2), rng)  # black at 12.75 DN
     fits = {m: fit(series, m, n_samples=300) for m in ("gamma-offset", "nonparametric", "exp")}
-    rows = {line.split(" | ")[0].strip("| "): float(line.split(" | ")[-1].strip(" |"))
-            for line in curve_table(series, fits).splitlines()[2:]}
-    assert rows["gamma-offset"] == pytest.approx(12.75, abs=0.5)
-    assert rows["nonparametric"] == pytest.approx(12.75, abs=2.0)  # the toe's own level
-    assert rows["exp"] == 0.0  # Eq. 3 has none
+    rows = black_levels(curve_table(series, fits))
+    assert rows["gamma-offset"] == (pytest.approx(12.75, abs=0.5), False)
+    assert rows["nonparametric"] == (pytest.approx(12.75, abs=2.0), False)  # the toe's own
+    assert rows["exp"] == (0.0, True)  # Eq. 3 has none, 14 DN below anything seen
+
+
+def black_levels(table: str) -> dict[str, tuple[float, bool]]:
+    """Per model (first channel): the black level column of ``curve_table`` and its mark."""
+    rows = {}
+    for line in table.splitlines()[2:]:
+        if not line.startswith("| "):
+            break  # the footnote under the table
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        rows.setdefault(cells[0], (float(cells[-2].rstrip(" *")), cells[-2].endswith("*")))
+    return rows
+
+
+def test_a_16_bit_black_level_is_read_to_the_code_and_an_unseen_one_is_marked(rng):
+    from clblur.calibration.report import curve_table
+
+    # a linear camera, black at 622.6 codes of 16 bits: the table gives the fitted curve's
+    # level to the resolution of the curve's own knots (a grid of 1021 values, 64 codes
+    # apart, put it up to 64 codes lower)
+    series, _ = make_stack(gamma_offset_curve(0.0095, 1.0), rng, dtype=np.uint16)
+    fits = {"gamma-offset": fit(series, "gamma-offset", n_samples=300)}
+    fitted = fits["gamma-offset"].params["per_channel"][0]["black_level"] * 65535.0
+    level, marked = black_levels(curve_table(series, fits))["gamma-offset"]
+    assert abs(fitted - 622.6) < 65.0  # the fit itself: within half a uint8 code
+    assert level == pytest.approx(fitted, abs=16.0) and not marked
+    # a toe whose power sits at the end of its range does not hold its level either
+    nonparametric = fit(series, "nonparametric", n_samples=300)
+    assert not black_levels(curve_table(series, {"np": nonparametric}))["np"][1]
+    nonparametric.responses[0].meta["params"]["toe"]["held"] = False
+    assert black_levels(curve_table(series, {"np": nonparametric}))["np"][1]
+    # a gamma camera's three longest exposures: nothing below about 30 DN is seen, so its
+    # level of 12.75 DN is extrapolated, and the table says so
+    series, _ = make_stack(gamma_offset_curve(0.05, 2.2), rng)
+    bright = series.subset([0, 1, 2])
+    table = curve_table(bright, {"gamma-offset": fit(bright, "gamma-offset", n_samples=300)})
+    assert black_levels(table)["gamma-offset"][1] and "extrapolation" in table

@@ -81,11 +81,28 @@ class SplineFamily:
 
 
 def curve_black_level(curve: Response, fraction: float = 1e-3) -> float:
-    """The toe: the highest value whose exposure is below ``fraction`` of mid-scale's."""
+    """The toe: the highest value whose exposure is below ``fraction`` of mid-scale's.
+
+    Found on a grid of 1021 values, then by bisection to 1e-7 of full scale: the grid alone
+    is 64 codes of a 16-bit camera.
+    """
     v = np.linspace(0.0, 1.0, 1021)
     x = np.asarray(curve.inverse(v))
-    below = v[x <= fraction * float(curve.inverse(np.array([0.5]))[0])]
-    return float(below[-1]) if below.size else 0.0
+    limit = fraction * float(curve.inverse(np.array([0.5]))[0])
+    below = np.flatnonzero(x <= limit)
+    if not below.size:
+        return 0.0
+    lo = float(v[below[-1]])
+    if below[-1] + 1 == v.size:
+        return lo
+    hi = float(v[below[-1] + 1])  # the inverse is monotone: the level lies in [lo, hi)
+    while hi - lo > 1e-7:
+        mid = 0.5 * (lo + hi)
+        if float(np.asarray(curve.inverse(np.array([mid])))[0]) <= limit:
+            lo = mid
+        else:
+            hi = mid
+    return lo
 
 
 def pooled_pairs(values: np.ndarray, valid: np.ndarray, tau: np.ndarray, max_gap: float,

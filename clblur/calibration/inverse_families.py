@@ -39,6 +39,9 @@ __all__ = ["PolynomialFamily", "NonparametricFamily", "TOE_MIN_POINTS", "fit_toe
 
 # darker observations a toe needs; with fewer, the family's own extrapolation is kept
 TOE_MIN_POINTS = 20
+# the toe's power: from a quarter (a toe that lingers near the floor, film) to 8; a fitted
+# power at either end means the darker observations do not hold it, nor its black level
+TOE_EXPONENTS = (0.25, 8.0)
 
 
 def _consecutive_pairs(samples, tau):
@@ -168,8 +171,9 @@ def fit_toe(curve: Table, samples, tau: np.ndarray, start: float) -> tuple[Table
 
     Returns:
         The curve with the toe below ``start``, and the toe's ``{"black_level", "exponent",
-        "points"}``; the curve unchanged and None when fewer than ``TOE_MIN_POINTS``
-        observations lie below ``start``.
+        "points", "held"}`` (``held``: the power lies inside ``TOE_EXPONENTS``, not at an
+        end, where the data would not hold it); the curve unchanged and None when fewer
+        than ``TOE_MIN_POINTS`` observations lie below ``start``.
     """
     v_dark, x_dark = _toe_points(curve, samples, tau, start)
     x_start = float(curve.inverse(start))
@@ -186,13 +190,15 @@ def fit_toe(curve: Table, samples, tau: np.ndarray, start: float) -> tuple[Table
     # start from the power through the origin with the curve's own slope at ``start``
     above = float(curve.inverse(min(start + 0.01, 1.0)))
     p0 = float(np.clip((above - x_start) / 0.01 * start / x_start, 0.5, 4.0))
-    sol = least_squares(residuals, x0=[0.0, p0], bounds=([0.0, 0.25], [0.98 * start, 8.0]))
+    low, high = TOE_EXPONENTS
+    sol = least_squares(residuals, x0=[0.0, p0], bounds=([0.0, low], [0.98 * start, high]))
     b, p = (float(t) for t in sol.x)
     value = curve.value
     below = value < start
     exposure = curve.exposure.copy()
     exposure[below] = x_start * Gamma(p).inverse((value[below] - b) / (start - b))
-    toe = {"black_level": b, "exponent": p, "points": int(v_dark.size)}
+    toe = {"black_level": b, "exponent": p, "points": int(v_dark.size),
+           "held": bool(low * 1.001 < p < high * 0.999)}
     meta = dict(curve.meta)
     meta["params"] = dict(meta.get("params", {}), toe=toe)
     return _table(exposure, value, meta.get("family", "table"), meta["params"]), toe

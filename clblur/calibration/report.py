@@ -22,7 +22,7 @@ from clblur.calibration.series import ExposureSeries, photometric_exposure
 from clblur.io import atomic_write, atomic_write_text
 from clblur.registration import summary
 
-__all__ = ["CHANNEL_NAMES", "COLOURS", "comparison_table", "curve_table",
+__all__ = ["CHANNEL_NAMES", "COLOURS", "comparison_table", "curve_table", "darkest_codes",
            "figure_normalised_curves", "figure_residuals", "figure_values_vs_time", "series_table",
            "write_report"]
 
@@ -198,18 +198,44 @@ def series_table(series: ExposureSeries, tolerance: float = 0.03) -> str:
 # close to zero that a power-law toe above the level adds a fraction of a code (gamma 2.2:
 # 0.2 DN); the spline's own toe (``curve_black_level``'s default) is a looser 1/1000
 BLACK_FRACTION = 1e-6
+# the darkest code of a series: this quantile of its darkest image, per channel
+DARKEST_QUANTILE = 1e-3
+# a black level more than this many uint8 codes below the darkest code is marked as
+# extrapolated: a power-law toe nears its level slowly (gamma 2.2 over a level of 13 DN is
+# still a code above it 5e-6 of full scale's exposure in), so the darkest codes a series
+# holds lie a little above the level even where they measure it
+DARK_MARGIN = 3.0
+
+
+def darkest_codes(series: ExposureSeries, quantile: float = DARKEST_QUANTILE) -> np.ndarray:
+    """Per channel, the darkest code the series holds: the ``quantile`` of its darkest
+    image's codes above 0 (a quantile, not the minimum, so one dead pixel does not set it;
+    code 0 is left out as the calibration leaves it out, a floor that clips, or a masked
+    border: Memorial's darkest image is 4 % zeros in red and green, 13 DN and up around
+    them)."""
+    darkest = series.images[int(np.argmin(series.relative_exposures()))]
+    flat = darkest.reshape(-1, series.channels)
+    return np.array([np.quantile(c[c > 0], quantile) if (c > 0).any() else 0.0
+                     for c in flat.T])
 
 
 def curve_table(series: ExposureSeries, fits: dict[str, ResponseFit]) -> str:
-    """Contrast of each fitted curve: stops from 30 to 230 DN (uint8 scale), the DN gained
-    per stop at 30 and at 150 DN, and its black level (``curve_black_level``: the highest code
-    whose exposure is below ``BLACK_FRACTION`` of mid-scale's, in the series' codes), one
-    definition for every family."""
+    """Contrast of each fitted curve: stops from 30 to 230 DN on the uint8 scale (the same
+    fractions of full scale in the series' codes), the DN gained per stop at 30 and at 150,
+    and its black level (``curve_black_level``: the highest code whose exposure is below
+    ``BLACK_FRACTION`` of mid-scale's, in the series' codes), one definition for every
+    family.  Beside it the darkest code of the series (:func:`darkest_codes`): a black level
+    more than ``DARK_MARGIN`` uint8 codes below that is the curve's extrapolation, not a
+    measurement, and is marked so; so is a fitted toe's whose power sits at an end of its
+    range (``clblur.calibration.inverse_families.fit_toe``)."""
     scale = series.full_scale / 255.0
     lo, hi, mid = 30 * scale, 230 * scale, 150 * scale
     names = _channel_names(series.channels)
-    lines = ["| model | channel | stops 30 -> 230 DN | DN per stop at 30 | DN per stop at 150 | "
-             "black level (DN) |", "|---|---|---|---|---|---|"]
+    darkest = darkest_codes(series)
+    lines = [f"| model | channel | stops {lo:.0f} -> {hi:.0f} DN | DN per stop at {lo:.0f} | "
+             f"DN per stop at {mid:.0f} | black level (DN) | darkest code (DN) |",
+             "|---|---|---|---|---|---|---|"]
+    extrapolated = False
     for name, f in fits.items():
         for c, resp in enumerate(f.responses):
             def inv(code, r=resp):
@@ -221,8 +247,18 @@ def curve_table(series: ExposureSeries, fits: dict[str, ResponseFit]) -> str:
                 at_lo = scale / np.log2(inv(lo + scale) / inv(lo))
                 at_mid = scale / np.log2(inv(mid + scale) / inv(mid))
             black = curve_black_level(resp, BLACK_FRACTION) * series.full_scale
+            # the channel's darkest code, of every channel for a curve shared by all
+            dark = float(darkest[c] if len(f.responses) > 1 else darkest.min())
+            toe = getattr(resp, "meta", {}).get("params", {}).get("toe")
+            mark = ""
+            if black + DARK_MARGIN * scale < dark or (toe is not None and not toe["held"]):
+                mark, extrapolated = " *", True
             lines.append(f"| {name} | {names[c]} | {span:.2f} | {at_lo:.1f} | {at_mid:.1f} | "
-                         f"{black:.1f} |")
+                         f"{black:.1f}{mark} | {dark:.0f} |")
+    if extrapolated:
+        lines += ["", "\\* not measured: well below the darkest code of the series, or a toe "
+                  "whose power sits at the end of its range (the darker data do not hold it). "
+                  "It is the curve's extrapolation; a darker exposure would measure it."]
     return "\n".join(lines)
 
 
