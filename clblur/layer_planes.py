@@ -2,7 +2,8 @@
 
 Builds :class:`Layers` for a crop of the image (``clblur.layered_exposure`` states the model):
 each layer a premultiplied image ``(M L, M)`` with a vector field, hidden pixels reconstructed
-from the nearest visible pixel at or behind them (the stated assumption), mixed pixels split by
+from the nearest visible pixel at or behind them (the stated assumption; an intermediate layer
+also inside the convex hull of its visible pieces, :func:`hidden_hull`), mixed pixels split by
 a coverage fitted to their light (:func:`split_coverage`).
 """
 
@@ -21,7 +22,8 @@ from clblur.halo import halo_for_reach, reach
 from clblur.layering import layer_labels
 
 __all__ = ["HOST", "INPAINT_RADIUS", "Layers", "MID_EXTEND_PX", "SPLIT_PRIOR", "bounding_box",
-           "Transforms", "distance_to", "harmonic_fill", "prepare", "split_coverage"]
+           "Transforms", "distance_to", "harmonic_fill", "hidden_hull", "prepare",
+           "split_coverage"]
 
 # px the reconstruction of hidden light extends beyond the pixels a sample reads, so that
 # what is read is filled from a filled neighbourhood (the radius the Navier-Stokes
@@ -272,6 +274,21 @@ def _inpaint(lin: np.ndarray, known: np.ndarray, depth: float,
     return out
 
 
+def hidden_hull(labels: np.ndarray, k: int) -> np.ndarray:
+    """The pixels of layer ``k``'s amodal completion: the convex hull of each of its connected
+    pieces (8-connected), where a nearer layer covers it (the stated assumption: a surface
+    hidden by a nearer one continues under it as far as its visible part's convex hull)."""
+    import cv2
+
+    mine = (labels == k).astype(np.uint8)
+    contours, _ = cv2.findContours(mine, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    hull = np.zeros_like(mine)
+    hulls = [cv2.convexHull(c) for c in contours if len(c) >= 3]
+    if hulls:
+        cv2.fillPoly(hull, hulls, 1)
+    return hull.view(bool) & (labels < k)
+
+
 _BRUTE_PAIRS = 1 << 21  # pairs of pixels _nearest_pixel measures directly (16 MB of int64)
 _CROSS = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], np.uint8)  # 4-neighbours and the pixel
 
@@ -501,6 +518,7 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     # its region pixels are from it (a transform of the window per layer) side by side with
     # the fills and the planes' assembly, where the transforms may run on threads.
     shapes = []  # (k, extent, vectors, own mixed pixels) of the layers a sample can read
+    completed: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # k: (hull pixels, core), crop
     for k in range(last + 1):
         if k == last and background is not None:
             # the clean plate is what lies behind everything, and it does not move
@@ -520,6 +538,19 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
                 ext_w = (_at(labels, nearest_w) == k) & (dist[win] <= (band if k == last
                                                                        else MID_EXTEND_PX))
                 vec_w = _at(v_c, nearest_w)
+                if k < last:
+                    # beyond its 2 px, an intermediate layer continues under what hides it
+                    # as far as its pieces' convex hulls, with the vectors of its nearest
+                    # pixel and light filled from its own pixels only
+                    more_w = hidden_hull(labels, k)[win] & ~ext_w
+                    core = (labels == k) & ~split
+                    if more_w.any() and core.any():
+                        more = np.zeros(labels.shape, bool)  # the same pixels in the crop
+                        more[win] = more_w
+                        ys, xs = _nearest_pixel(core, more)  # row-major, as more_w's
+                        vec_w[more_w] = v_c[ys, xs]
+                        ext_w = ext_w | more_w
+                        completed[k] = (more, core)
             mine_w = split_w & (lab_w == k)
         if ext_w.any():  # else no sample of the region reads this layer
             shapes.append((k, ext_w, vec_w, mine_w))
@@ -551,6 +582,14 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
                 colour_w = np.where((lab_w >= k)[..., None], lin_w, background[crop][win])
             else:
                 colour_w = lin_w if k == 0 else fill(k)
+                more, core = completed.get(k, (None, None))
+                box = None if more is None else bounding_box(more, INPAINT_RADIUS + 2)
+                if box is not None and core[box].any():
+                    # the membrane fill on the hull's box with the layer's own pixels as the
+                    # only boundary: nothing of what lies behind or in front leaks in
+                    filled = transforms.fill(lin_c[box].astype(np.float32), core[box])
+                    colour_w = colour_w.copy()  # fill(k) is shared with the layer before
+                    colour_w[more[win]] = filled[more[box]]  # both row-major: the same order
             cover_w = np.ones(hw, dtype)
             if mine_w.any():
                 behind_w = (background[crop][win] if background is not None and k == last - 1
