@@ -463,9 +463,16 @@ def _best_swap(folds: Folds, current: frozenset, order: list[str],
     * when ``c`` predicts significantly better (an *improvement*), or
     * when ``c`` has fewer parameters and ``e`` does not predict significantly better
       (a *simplification*: of two interchangeable explanations the simpler one, as
-      ``_sufficient`` prefers ``response_imax`` to ``response_shape``).
+      ``_sufficient`` prefers ``response_imax`` to ``response_shape``), or
+    * when ``c`` has as many parameters and predicts better, though not significantly or
+      by less than the least gain (a *tie*: of two interchangeable explanations of one size
+      the better predictor, not the one that happened to join first; which one joins first
+      can turn on rounding: a truncated frame stack names a gain of 0.995 or the -0.5 code
+      offset depending on the CPU's BLAS kernels, and the offset predicts better by 0.004
+      nats per value once the response shape has joined).
 
-    Improvements go first (the largest gain), then simplifications (the fewest parameters).
+    Improvements go first (the largest gain), then simplifications (the fewest parameters),
+    then ties (the largest gain).
     Returns ``(out, into, params, gain)``: ``gain`` is the held-out gain of ``c``'s model
     over ``e``'s.  A model once left is never entered again,
     so the search ends.
@@ -479,7 +486,7 @@ def _best_swap(folds: Folds, current: frozenset, order: list[str],
     level = alpha / len(pairs)
     nuisance, base = _current_fit(folds, current, candidates, cur_params)
     nvalid = max(sum(folds.nvalid), 1)
-    improve, simplify = [], []
+    improve, simplify, tie = [], [], []
     for e, c in pairs:
         model = (current - {e}) | {c} | nuisance
         start = [{**q, **{n: earlier[c][f][n] for n in effect_keys(c, channels, earlier[c][f])}}
@@ -490,15 +497,19 @@ def _best_swap(folds: Folds, current: frozenset, order: list[str],
         if pv < level and gain >= min_gain:
             improve.append((e, c, p, gain))
             continue
-        size = len(EFFECTS[c].params(channels))
-        if size < len(EFFECTS[e].params(channels)):
+        size, size_e = len(EFFECTS[c].params(channels)), len(EFFECTS[e].params(channels))
+        if size < size_e:
             d_back, _, pv_back = _weighted_gain(folds, p, base, used)
             if not (pv_back < level and float(d_back.sum()) / nvalid >= min_gain):
                 simplify.append((size, (e, c, p, gain)))
+        elif size == size_e and gain > 0.0:
+            tie.append((e, c, p, gain))
     if improve:
         return max(improve, key=lambda r: r[3])
     if simplify:
         return min(simplify, key=lambda r: r[0])[1]
+    if tie:
+        return max(tie, key=lambda r: r[3])
     return None
 
 
