@@ -543,8 +543,8 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
                     # as far as its pieces' convex hulls, with the vectors of its nearest
                     # pixel and light filled from its own pixels only
                     more_w = hidden_hull(labels, k)[win] & ~ext_w
-                    core = (labels == k) & ~split
-                    if more_w.any() and core.any():
+                    core = (labels == k) & ~split if more_w.any() else None
+                    if core is not None and core.any():
                         more = np.zeros(labels.shape, bool)  # the same pixels in the crop
                         more[win] = more_w
                         ys, xs = _nearest_pixel(core, more)  # row-major, as more_w's

@@ -158,9 +158,9 @@ def fit(series: ExposureSeries, model: str, *, shared: bool = False, n_samples: 
     if getattr(family, "fits_toe", False) and low > chosen.low:  # below ``low``: the toe
         # the patches and the random pixels over the whole valid range: flat patches are
         # few near the black level (video range: 28 below 10 % of 2000), pixels are not
-        whole = [SampleSet.concat([c, *([] if chosen.pixels is None else
-                                        [chosen.pixels[i].with_range(chosen.low, chosen.high)])])
-                 for i, c in enumerate(chosen.per_channel)]
+        whole = chosen.per_channel if chosen.pixels is None else [
+            SampleSet.concat([c, p.with_range(chosen.low, chosen.high)])
+            for c, p in zip(chosen.per_channel, chosen.pixels, strict=True)]
         whole = [SampleSet.concat(whole)] if shared else whole
         fits = [with_toe(f, samples, low) for f, samples in zip(fits, whole, strict=True)]
     if model == "exp":
