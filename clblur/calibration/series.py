@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from fractions import Fraction
 from functools import cached_property
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -39,9 +40,9 @@ from clblur.registration import Registration, align_series
 
 __all__ = ["IMAGE_SUFFIXES", "ExposureSeries", "check_brightening", "exif_exposure", "exif_iso",
            "folder_series", "load_series", "parse_time", "photometric_exposure",
-           "read_times_file", "series_files"]
+           "read_times_file", "series_files", "TimeRow"]
 
-IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".ppm", ".pgm", ".pnm")
 # check_brightening: a pixel at least this bright (fraction of full scale) in the shorter of
 # two exposures lies above any black level's noise (dark frames of a pedestal brighten and
 # darken at random: Memorial's darkest steps, 1 stop apart, brighten only 22 - 53 % of their
@@ -241,26 +242,103 @@ def parse_time(value) -> float:
         raise ValueError(f"cannot read exposure time {value!r}; use e.g. 0.5 or 1/1024") from None
 
 
-def read_times_file(path: str | os.PathLike) -> list[tuple[str | None, float]]:
-    """Lines ``TIME`` or ``NAME TIME`` (``#`` comments, blank lines ignored)."""
+class TimeRow(NamedTuple):
+    """One line of a times file: the image it names (None when lines name none), its
+    exposure time (seconds, or relative to ``2**0`` for stop offsets) and its F-number (None
+    unless the file gives one)."""
+
+    name: str | None
+    time: float
+    f_number: float | None = None
+
+
+_STOPS = "EV"  # a time written as a stop offset: "+2EV" gathers 4x the light of "0EV"
+
+
+def _time_or_stops(token: str) -> tuple[float, bool]:
+    """A times file's exposure: ``(seconds, False)`` or, for ``[+-]N EV`` (a bracket's
+    exposure compensation, brighter for +), ``(2**N, True)``."""
+    if token.upper().endswith(_STOPS):
+        try:
+            stops = float(token[:-len(_STOPS)])
+        except ValueError:
+            raise ValueError(f"cannot read stop offset {token!r}; use e.g. -2EV, 0EV, +1.5EV") \
+                from None
+        if not math.isfinite(stops) or abs(stops) > 60:
+            raise ValueError(f"stop offset {token!r} is out of range")
+        return 2.0 ** stops, True
+    t = parse_time(token)
+    if not t > 0:  # a bracket listed as 0, -2, +2 is a list of stops, not of times
+        raise ValueError(f"exposure time {token!r} is not positive; if the file lists stop "
+                         "offsets, write them with their unit (e.g. -2EV, 0EV, +2EV)")
+    return t, False
+
+
+def _hdrshop_row(parts: list[str]) -> TimeRow:
+    """A line of an HDRShop image list (Debevec's stacks ship one: ``memorial0061.ppm
+    0.03125 8 0 0``): name, 1/shutter time, f-stop, gain in dB, ND filters.  The gain scales
+    the time as an amplitude (``10**(dB / 20)``); ND filters, whose unit the format leaves
+    open, must be 0."""
+    name, inverse, f_stop, gain, nd = parts
+    try:
+        inv, f, db, filters = parse_time(inverse), float(f_stop), float(gain), float(nd)
+    except ValueError:
+        raise ValueError(f"expected numbers after the name, got {' '.join(parts[1:])!r}") \
+            from None
+    if not (inv > 0 and math.isfinite(1.0 / inv)):
+        raise ValueError(f"1/shutter_speed {inverse!r} is not a positive number")
+    if not (f > 0 and math.isfinite(f)):
+        raise ValueError(f"f/stop {f_stop!r} is not a positive number")
+    if not math.isfinite(db):
+        raise ValueError(f"gain {gain!r} dB is not a number")
+    if filters != 0:
+        raise ValueError(f"ND_filters is {nd!r}: their attenuation is not stated by the "
+                         "format; give the filtered images' effective times instead")
+    return TimeRow(name, 10.0 ** (db / 20.0) / inv, f)
+
+
+def read_times_file(path: str | os.PathLike) -> list[TimeRow]:
+    """The exposures of a times file, one :class:`TimeRow` per image.
+
+    Lines are ``TIME`` or ``NAME TIME`` (``#`` comments and blank lines ignored); a time is
+    seconds (``0.5``, ``1/1024``, ``1/60s``) or a stop offset (``-2EV``, ``0EV``, ``+2EV``:
+    ``2**N``, brighter for +), one kind in a file.  An HDRShop image list (lines ``NAME
+    1/SHUTTER FSTOP GAIN_DB ND``, optionally after a line with their count: the format of
+    Debevec & Malik's published stacks) gives times and F-numbers (``_hdrshop_row``).
+    """
     path = Path(path)
     require_file(path, "times")
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError:
         raise ValueError(f"times file {path} is not a text file") from None
-    rows = []
-    for lineno, line in enumerate(text.splitlines(), 1):
-        line = line.split("#", 1)[0].strip()
-        if not line:
-            continue
-        parts = line.split()
-        if len(parts) > 2:
-            raise ValueError(f"{path}:{lineno}: expected 'TIME' or 'NAME TIME', got {line!r}")
+    lines = [(n, line.split("#", 1)[0].split()) for n, line in enumerate(text.splitlines(), 1)]
+    lines = [(n, parts) for n, parts in lines if parts]
+    hdrshop = any(len(parts) == 5 for _, parts in lines)
+    if hdrshop and lines and len(lines[0][1]) == 1 and lines[0][1][0].isdigit():
+        count = int(lines[0][1][0])  # HDRShop's first line: how many images follow
+        lines = lines[1:]
+        if count != len(lines):
+            raise ValueError(f"{path}: the image list announces {count} images and lists "
+                             f"{len(lines)}")
+    rows, stops = [], set()
+    for lineno, parts in lines:
         try:
-            rows.append((parts[0] if len(parts) == 2 else None, parse_time(parts[-1])))
+            if hdrshop:
+                if len(parts) != 5:
+                    raise ValueError("expected an HDRShop image list line 'NAME 1/SHUTTER "
+                                     f"FSTOP GAIN_DB ND' like the others, got {' '.join(parts)!r}")
+                rows.append(_hdrshop_row(parts))
+                continue
+            if len(parts) > 2:
+                raise ValueError(f"expected 'TIME' or 'NAME TIME', got {' '.join(parts)!r}")
+            t, is_stops = _time_or_stops(parts[-1])
+            stops.add(is_stops)
+            rows.append(TimeRow(parts[0] if len(parts) == 2 else None, t))
         except ValueError as e:
             raise ValueError(f"{path}:{lineno}: {e}") from None
+    if len(stops) > 1:
+        raise ValueError(f"times file {path} mixes times and stop offsets (EV); use one kind")
     return rows
 
 
@@ -329,6 +407,21 @@ def load_series(source: str | os.PathLike, times=None, align: bool = True) -> Ex
     return series.aligned() if align else series
 
 
+def _match_converted(by_name: dict, files: list[Path]) -> dict:
+    """``by_name`` keyed by the folder's file names where a times file names converted
+    copies: an image list written for ``memorial0061.ppm`` names ``memorial0061.png`` once
+    the stack is re-saved.  Only when no listed name is in the folder and every listed stem
+    is the stem of exactly one image there; otherwise ``by_name`` as it is."""
+    names = {p.name for p in files}
+    stems = Counter(p.stem for p in files)
+    if any(n in names for n in by_name) or \
+            not all(stems.get(Path(n).stem) == 1 for n in by_name) or \
+            len({Path(n).stem for n in by_name}) != len(by_name):
+        return by_name
+    by_stem = {p.stem: p.name for p in files}
+    return {by_stem[Path(n).stem]: row for n, row in by_name.items()}
+
+
 def folder_series(source: str | os.PathLike, times=None) -> Manifest:
     """The exposure-series manifest of a folder of images (nothing decoded yet).
 
@@ -371,12 +464,13 @@ def folder_series(source: str | os.PathLike, times=None) -> Manifest:
     elif isinstance(times, (str, os.PathLike)):
         times_path = Path(times)
         rows = read_times_file(times_path)
-        if all(name is not None for name, _ in rows) and rows:
-            by_name = dict(rows)
+        if all(row.name is not None for row in rows) and rows:
+            by_name = {row.name: row for row in rows}
             if len(by_name) != len(rows):
-                twice = sorted(n for n, k in Counter(n for n, _ in rows).items() if k > 1)
+                twice = sorted(n for n, k in Counter(row.name for row in rows).items() if k > 1)
                 raise ValueError(f"times file {times_path} names {', '.join(twice[:3])} "
                                  "more than once")
+            by_name = _match_converted(by_name, files)
             missing = sorted(set(by_name) - {p.name for p in files})
             if missing:
                 raise ValueError(f"times file names images not in {source}: {missing[:3]}")
@@ -388,14 +482,15 @@ def folder_series(source: str | os.PathLike, times=None) -> Manifest:
                                  f"{', '.join(untimed[:3])}" + (" ..." if len(untimed) > 3
                                                                  else "")
                                  + f" in {source}; name every image of the folder")
-            times = [by_name[p.name] for p in files]
-        elif any(name is not None for name, _ in rows):
+            rows = [by_name[p.name] for p in files]
+        elif any(row.name is not None for row in rows):
             raise ValueError(f"times file {times_path}: name every image or none")
-        else:
-            times = [t for _, t in rows]
-            if len(times) != len(files):
-                raise ValueError(f"times file {times_path} lists {len(times)} times for "
-                                 f"{len(files)} images in {source}")
+        elif len(rows) != len(files):
+            raise ValueError(f"times file {times_path} lists {len(rows)} times for "
+                             f"{len(files)} images in {source}")
+        times = [row.time for row in rows]
+        if any(row.f_number is not None for row in rows):
+            f_numbers = [row.f_number for row in rows]
     times = list(times)
     if len(times) != len(files):
         raise ValueError(f"{len(times)} exposure times for {len(files)} images in {source}")

@@ -76,8 +76,9 @@ def add_series_options(p: argparse.ArgumentParser, only: str = "") -> None:
     names the inputs they apply to, where the command takes other kinds too."""
     p.add_argument("--times", metavar="FILE",
                    help="exposure times for a folder: one per line in file-name order, or "
-                        "'NAME TIME' lines; fractions like 1/1024 allowed (default: EXIF "
-                        "ExposureTime, FNumber, and ISO where it varies)")
+                        "'NAME TIME' lines; fractions like 1/1024 allowed, or stop offsets "
+                        "like +2EV; an HDRShop image list (Debevec's stacks) also works "
+                        "(default: EXIF ExposureTime, FNumber, and ISO where it varies)")
     p.add_argument("--no-align", action="store_true",
                    help=f"{only}take the images as they are; by default the whole-pixel "
                         "shift and the turn between exposures (a hand-held bracket) are "

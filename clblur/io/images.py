@@ -37,7 +37,8 @@ __all__ = ["IMAGE_FORMATS", "MAX_DECODE_PIXELS", "ImageHeader", "image_format",
 
 # extension -> format name; read_image/write_image dispatch on the name
 IMAGE_FORMATS = {".png": "png", ".tif": "tiff", ".tiff": "tiff", ".jpg": "jpeg",
-                 ".jpeg": "jpeg", ".bmp": "bmp", ".webp": "webp", ".exr": "exr"}
+                 ".jpeg": "jpeg", ".bmp": "bmp", ".webp": "webp", ".exr": "exr",
+                 ".ppm": "netpbm", ".pgm": "netpbm", ".pnm": "netpbm"}
 # OpenCV's own decode limit (CV_IO_MAX_IMAGE_PIXELS); larger images belong in tiled TIFFs
 MAX_DECODE_PIXELS = 2**30
 TILED_TIFF_HINT = ("convert it to a tiled TIFF, which is read window by window (e.g. "
@@ -182,6 +183,10 @@ def probe_image(path: str | os.PathLike) -> ImageHeader:
             from clblur.io.exr import probe
 
             header = ImageHeader(*probe(path))
+        elif fmt == "netpbm":
+            from clblur.io import netpbm
+
+            header = ImageHeader(*netpbm.probe(path))
         else:
             from PIL import Image
 
@@ -226,7 +231,7 @@ def read_image(path: str | os.PathLike, max_bytes: int | None = None) -> np.ndar
     Parameters
     ----------
     path : path
-        PNG, TIFF, JPEG, BMP or WebP (``IMAGE_FORMATS``).
+        PNG, TIFF, JPEG, BMP, WebP, OpenEXR or Netpbm PGM / PPM (``IMAGE_FORMATS``).
     max_bytes : int, optional
         Refuse (before decoding) images whose decoded pixels take more bytes.
 
@@ -244,6 +249,10 @@ def read_image(path: str | os.PathLike, max_bytes: int | None = None) -> np.ndar
         from clblur.io import exr
 
         return exr.read_image(path)
+    if image_format(path) == "netpbm":  # no orientation tag: stored as displayed
+        from clblur.io import netpbm
+
+        return netpbm.read_image(path)
     if image_format(path) == "tiff":
         import tifffile
 
@@ -496,6 +505,11 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
         from clblur.io import exr
 
         exr.write_image(path, image)
+        return
+    if fmt == "netpbm":
+        from clblur.io import netpbm
+
+        netpbm.write_image(path, image)
         return
     if fmt == "tiff":
         import tifffile
