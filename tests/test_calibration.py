@@ -182,6 +182,33 @@ def test_a_curve_without_darker_observations_keeps_its_own_toe(rng):
     assert toe is None and same is curve
 
 
+def test_a_toe_starts_where_a_fitted_curve_holds_light(rng):
+    # a polynomial through the origin, fitted from 10 % up on a camera with a black level,
+    # can reach 0 inside its own range (Memorial's blue: -0.0003 at 10 %); the toe used to
+    # need light at 10 % and was dropped, so every darker code read as no light
+    from clblur.calibration.forward_families import _table
+    from clblur.calibration.inverse_families import fit_toe
+    from clblur.calibration.sampling import SampleSet
+
+    black, power = 0.06, 2.2
+    v = np.linspace(0.0, 1.0, 1024)
+    truth = np.clip((v - black) / (1 - black), 0.0, None) ** power
+    curve = _table(np.where(v < 0.15, 0.0, truth), v, "polynomial", {})  # no light < 0.15
+    tau = 2.0 ** -np.arange(6.0)
+    radiance = np.exp(rng.uniform(np.log(1e-3), 0.0, 600))
+    x = np.clip(radiance[:, None] * tau[None, :], 0.0, 1.0)
+    values = black + (1 - black) * x ** (1 / power)
+    samples = SampleSet(values, (values > 0.02) & (values < 0.98), np.zeros(600, int),
+                        np.zeros(600, int), np.zeros(600, int), values, values)
+    fitted, toe = fit_toe(curve, samples, tau, 0.1)
+    assert toe is not None and 0.15 <= toe["start"] < 0.16
+    assert toe["black_level"] == pytest.approx(black, abs=0.003)
+    assert toe["exponent"] == pytest.approx(power, rel=0.02) and toe["held"]
+    dark = np.linspace(0.07, 0.15, 9)
+    np.testing.assert_allclose(fitted.inverse(dark) / fitted.inverse(0.5),
+                               ((dark - black) / (0.5 - black)) ** power, rtol=0.03)
+
+
 def test_emor_recovers_a_curve_of_its_span(rng, shared_data):
     from clblur.calibration.models import EmorBasis
 

@@ -118,7 +118,8 @@ def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=DEFAULT_GAPS,
     # Leaving an exposure out of a 2-image series leaves nothing to fit: score the full fit
     # (slightly optimistic) and say so in the result rather than fail.
     refit = refit and n > 2
-    coords = np.flatnonzero(~fit_result.sampling.footprint.ravel())
+    # held out: what no fit has seen, and what showed one static scene (series.moving)
+    coords = np.flatnonzero(~(fit_result.sampling.footprint | series.moving).ravel())
     if max_pixels is not None and coords.size > max_pixels:
         coords = np.sort(np.random.default_rng(seed).choice(coords, max_pixels, replace=False))
     # the held-out pixels as codes (a byte each for 8-bit series), made values per pair and

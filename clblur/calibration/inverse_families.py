@@ -171,10 +171,14 @@ def fit_toe(curve: Table, samples, tau: np.ndarray, start: float) -> tuple[Table
 
     Returns:
         The curve with the toe below ``start``, and the toe's ``{"black_level", "exponent",
-        "points", "held"}`` (``held``: the power lies inside ``TOE_EXPONENTS``, not at an
-        end, where the data would not hold it); the curve unchanged and None when fewer
-        than ``TOE_MIN_POINTS`` observations lie below ``start``.
+        "points", "held", "start"}`` (``held``: the power lies inside ``TOE_EXPONENTS``, not at
+        an end, where the data would not hold it; ``start``: where the toe takes over, above
+        ``start`` where the curve holds no light there, ``_response_from``); the curve
+        unchanged and None when fewer than ``TOE_MIN_POINTS`` observations lie below it.
     """
+    start = _response_from(curve, start)
+    if start is None:
+        return curve, None
     v_dark, x_dark = _toe_points(curve, samples, tau, start)
     x_start = float(curve.inverse(start))
     keep = (x_dark > 0) & (x_dark < x_start)
@@ -198,10 +202,36 @@ def fit_toe(curve: Table, samples, tau: np.ndarray, start: float) -> tuple[Table
     exposure = curve.exposure.copy()
     exposure[below] = x_start * Gamma(p).inverse((value[below] - b) / (start - b))
     toe = {"black_level": b, "exponent": p, "points": int(v_dark.size),
-           "held": bool(low * 1.001 < p < high * 0.999)}
+           "held": bool(low * 1.001 < p < high * 0.999), "start": start}
     meta = dict(curve.meta)
     meta["params"] = dict(meta.get("params", {}), toe=toe)
     return _table(exposure, value, meta.get("family", "table"), meta["params"]), toe
+
+
+# exposure (of full scale's) below which a fitted table holds no light: where the family's
+# formula fell to 0 or below and the table was clamped (its ramp is 1e-7)
+_NO_LIGHT = 1e-6
+# the highest value a toe may take over from a curve that holds no light below it
+_TOE_HIGHEST = 0.5
+
+
+def _response_from(curve: Table, start: float) -> float | None:
+    """The lowest value at or above ``start`` where ``curve`` holds light, or None above
+    ``_TOE_HIGHEST``.
+
+    A polynomial through the origin fitted from 10 % of full scale up may reach 0 at the
+    bottom of its range on a camera with a black level: Memorial's blue channel with the
+    frames' moving pixels left out (``clblur.calibration.ghosts``) fell to -0.0003 at 10 %,
+    the video-range camera ``cam_d`` to -0.001.  A toe starting there had no exposure to
+    rise to, so none was fitted and every darker code read as no light (Memorial, 4 stops
+    darker: 6.3 -> 9.0 DN); the toe now starts where the curve holds light."""
+    if float(curve.inverse(start)) > _NO_LIGHT:
+        return start
+    v, x = curve.value, curve.exposure
+    lit = np.flatnonzero((v >= start) & (x > _NO_LIGHT))
+    if lit.size == 0 or v[lit[0]] > _TOE_HIGHEST:
+        return None
+    return float(max(start, v[lit[0]]))
 
 
 def with_toe(fitted: FamilyFit, samples, start: float) -> FamilyFit:

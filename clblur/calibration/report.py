@@ -284,6 +284,8 @@ def write_report(folder: str | Path, series: ExposureSeries, fits: dict[str, Res
                    + " (`clblur.registration`)."])
     if (note := series.clipping_note()) is not None:
         registered.append(f"The series {note}.")
+    if (note := series.moving_note()) is not None:
+        registered.append(f"{note[0].upper()}{note[1:]} (`clblur.calibration.ghosts`).")
     lines = [
         "# Calibration report", "",
         f"Series: {len(series.images)} images, {series.shape[1]} x {series.shape[0]} "

@@ -185,6 +185,10 @@ def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float =
     if h <= 2 * r or w <= 2 * r:
         raise ValueError(f"images of {h} x {w} are too small for {patch} x {patch} patches")
     footprint = np.zeros((h, w), dtype=bool)
+    # pixels that do not show one static scene (clblur.calibration.ghosts) are no samples
+    moving = series.moving
+    still_spoiled = _box_max(moving.astype(np.uint8), patch).astype(bool) if moving.any() \
+        else moving
     sets = []
     seen = falling = 0  # patches valid in two exposures, and those that darken on the way
     for c in range(channels):
@@ -207,6 +211,7 @@ def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float =
         usable = ok.sum(axis=0) >= 2
         usable[:r, :] = usable[h - r:, :] = False
         usable[:, :r] = usable[:, w - r:] = False
+        usable &= ~still_spoiled  # a patch touching a pixel that moved
         valid = int(usable.sum())
         usable &= _monotone(means, ok, tau_order, monotone_tolerance)
         seen += valid
@@ -241,20 +246,21 @@ def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float =
         raise ValueError(f"channel(s) {missing} have no usable samples (saturated or "
                          "under-exposed everywhere)")
     pixels = _random_pixels(images, fs, footprint, n_pixels, rng, tau_order,
-                            monotone_tolerance)
+                            monotone_tolerance, moving)
     return Sampling(sets, footprint, patch, low, high, pixels)
 
 
 def _random_pixels(images: list[np.ndarray], full_scale: float, footprint: np.ndarray,
                    n_pixels: int, rng: np.random.Generator, tau_order: np.ndarray,
-                   monotone_tolerance: float) -> list[SampleSet]:
-    """``n_pixels`` random pixels outside ``footprint`` (then added to it), every channel;
-    a pixel whose value falls by more than ``monotone_tolerance`` while the exposure grows is
-    invalid in that channel, as a patch would be rejected (corrupt or moving: no response
-    curve predicts it, and in a least-squares fit a few such values bend the curve)."""
+                   monotone_tolerance: float, moving: np.ndarray) -> list[SampleSet]:
+    """``n_pixels`` random pixels outside ``footprint`` (then added to it) and ``moving``,
+    every channel; a pixel whose value falls by more than ``monotone_tolerance`` while the
+    exposure grows is invalid in that channel, as a patch would be rejected (corrupt or
+    moving: no response curve predicts it, and in a least-squares fit a few such values
+    bend the curve)."""
     if not isinstance(n_pixels, (int, np.integer)) or n_pixels < 0:
         raise ValueError(f"n_pixels must be a non-negative integer, got {n_pixels!r}")
-    free = np.flatnonzero(~footprint.ravel())
+    free = np.flatnonzero(~(footprint | moving).ravel())
     # at most half the free pixels: the other half is left for held-out scoring
     idx = np.sort(rng.choice(free, min(int(n_pixels), free.size // 2), replace=False))
     rows, cols = np.unravel_index(idx, footprint.shape)

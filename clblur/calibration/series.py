@@ -162,6 +162,23 @@ class ExposureSeries:
         (``clblur.pixels.series_clip_level``); 1.0 for clipping at full scale."""
         return series_clip_level(self.images, self.relative_exposures())
 
+    @cached_property
+    def moving(self) -> np.ndarray:
+        """H x W bool: pixels that do not show one static scene across the series (a moving
+        object, a border one frame lacks; ``clblur.calibration.ghosts``), left out of the
+        calibration's samples and of its held-out scores."""
+        from clblur.calibration.ghosts import moving_pixels
+
+        return moving_pixels(self.images, self.relative_exposures(), self.full_scale)
+
+    def moving_note(self) -> str | None:
+        """A line saying how much of the frame is left out as moving, or None."""
+        share = float(self.moving.mean())
+        if share == 0.0:
+            return None
+        return (f"left out as not static: {100 * share:.1f} % of the pixels (inconsistent "
+                "between neighbouring exposures: something moved, or a border differs)")
+
     def clipping_note(self) -> str | None:
         """A line saying that the series clips below full scale, or None."""
         if self.white_level >= 1.0:
@@ -199,6 +216,8 @@ class ExposureSeries:
         out = ExposureSeries([self.images[i] for i in keep], self.exposures[keep], fn,
                              [self.names[i] for i in keep])
         out.__dict__["white_level"] = self.white_level  # the cached_property's slot
+        if "moving" in self.__dict__:  # what moved in the series moved in its subsets too
+            out.__dict__["moving"] = self.moving
         return out
 
 

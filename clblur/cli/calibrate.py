@@ -135,6 +135,8 @@ def run(args: argparse.Namespace) -> int:
         print(summary(result.series.registration, result.series.names))
     if (note := result.series.clipping_note()) is not None:
         print(f"the series {note}")
+    if (note := result.series.moving_note()) is not None:
+        print(note)
     gaps = list(evaluations[best]["rmse"])
     flat = "flat" in evaluations[best]
     print("held-out RMSE (code values) on all valid pixels, target darker / brighter / both"
