@@ -287,6 +287,13 @@ def test_the_paper_s_own_camera_is_calibrated_as_eq3_not_as_a_free_spline():
     assert selection_score(ev["exp"]) < selection_score(ev["spline"])
 
 
+def refused(tmp_path, times: str, match: str) -> None:
+    """A times file with ``times`` is refused for the series in ``tmp_path / "s"``."""
+    (tmp_path / "times.txt").write_text(times)
+    with pytest.raises(ValueError, match=match):
+        load_series(tmp_path / "s", tmp_path / "times.txt")
+
+
 def test_an_hdrshop_image_list_gives_times_and_f_numbers(tmp_path):
     # Debevec & Malik's stacks ship an HDRShop list: a count, then NAME 1/SHUTTER FSTOP
     # GAIN_DB ND; written for the .ppm originals, it also times their .png copies
@@ -298,27 +305,21 @@ def test_an_hdrshop_image_list_gives_times_and_f_numbers(tmp_path):
     series = load_series(tmp_path / "s", tmp_path / "list.txt", align=False)
     assert series.exposures.tolist() == pytest.approx([1.0, 0.5, 1.0])  # +6.02 dB: 2x
     assert series.f_numbers.tolist() == [8.0, 8.0, 5.6]
-    (tmp_path / "nd.txt").write_text("e00.png 1 8 0 0\ne01.png 2 8 0 1\ne02.png 4 8 0 0\n")
-    with pytest.raises(ValueError, match=r"nd.txt:2: ND_filters is '1'"):
-        load_series(tmp_path / "s", tmp_path / "nd.txt")
-    (tmp_path / "count.txt").write_text("4\ne00.png 1 8 0 0\ne01.png 2 8 0 0\ne02.png 4 8 0 0\n")
-    with pytest.raises(ValueError, match="announces 4 images and lists 3"):
-        load_series(tmp_path / "s", tmp_path / "count.txt")
+    refused(tmp_path, "e00.png 1 8 0 0\ne01.png 2 8 0 1\ne02.png 4 8 0 0\n",
+            r"times.txt:2: ND_filters is '1'")
+    refused(tmp_path, "4\ne00.png 1 8 0 0\ne01.png 2 8 0 0\ne02.png 4 8 0 0\n",
+            "announces 4 images and lists 3")
 
 
 def test_a_times_file_of_stop_offsets(tmp_path):
     images, _ = ramp_stack(3)
     write_folder(tmp_path / "s", images)
-    (tmp_path / "ev.txt").write_text("+2EV\n1ev\n0 EV\n".replace(" EV", "EV"))
+    (tmp_path / "ev.txt").write_text("+2EV\n1ev\n0EV\n")
     series = load_series(tmp_path / "s", tmp_path / "ev.txt", align=False)
     assert series.exposures.tolist() == [4.0, 2.0, 1.0]
     # offsets written as bare numbers are not times: the error says how to write them
-    (tmp_path / "bare.txt").write_text("2\n1\n0\n")
-    with pytest.raises(ValueError, match=r"bare.txt:3: .*not positive.*\+2EV"):
-        load_series(tmp_path / "s", tmp_path / "bare.txt")
-    (tmp_path / "mixed.txt").write_text("1\n1/2\n-2EV\n")
-    with pytest.raises(ValueError, match="mixes times and stop offsets"):
-        load_series(tmp_path / "s", tmp_path / "mixed.txt")
+    refused(tmp_path, "2\n1\n0\n", r"times.txt:3: .*not positive.*\+2EV")
+    refused(tmp_path, "1\n1/2\n-2EV\n", "mixes times and stop offsets")
 
 
 def test_a_ppm_stack_calibrates_as_its_png_copy(tmp_path):
