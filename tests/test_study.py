@@ -866,3 +866,28 @@ def test_highlights_far_above_the_clip_leave_an_exposure_series_alone():
     assert not r["leftover"]["structure"]
     sat = next(f for f in r["findings"] if f["effect"] == "saturation")
     assert sat["statistic"] is None and "left out" in sat["explanation"]
+
+
+def test_objects_that_move_between_exposures_are_left_out_of_a_series():
+    # a walker crosses a bracket: three objects stand in two of its four frames (15 % of
+    # the pixels).  Their pixels predict nothing about the camera; kept, the extended
+    # model's held-out RMSE was 21.9 codes against 2.4 on the same bracket without them
+    from bracket_scenes import scene as bracket_scene
+
+    rng = np.random.default_rng(5)
+    cam = Camera(black_level=(0.03, 0.03, 0.03), noise_a=2e-4, noise_b=2e-6)
+    radiance = bracket_scene(120, 160, seed=3) * 0.05
+    times = [4.0, 2.0, 1.0, 0.5]
+    images = [cam.capture(radiance, t, rng=rng) for t in times]
+    objects = np.zeros((120, 160), bool)
+    for frame, (y, x), gain in ((1, (10, 20), 4.0), (2, (60, 90), 0.25), (2, (20, 110), 1.0)):
+        lit = radiance.copy()
+        lit[y:y + 36, x:x + 28] = radiance[::-1, ::-1][y:y + 36, x:x + 28] * gain
+        images[frame][y:y + 36, x:x + 28] = cam.capture(lit, times[frame],
+                                                        rng=rng)[y:y + 36, x:x + 28]
+        objects[y:y + 36, x:x + 28] = True
+    notes: dict = {}
+    r = study_groups("exposure-series", series_groups(images, times, notes=notes)).report
+    assert objects.mean() < notes["moving"] < objects.mean() + 0.04  # the objects, a rim
+    assert r["extended"]["effects"] == ["black_level", "noise"], r["extended"]["effects"]
+    assert r["extended"]["heldout_rmse"] < 3.2

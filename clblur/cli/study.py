@@ -64,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     r = result.report
     if "registration" in r:
         print(r["registration"]["summary"])
-    for line in ("clipping", "padding", "psf_estimated"):
+    for line in ("clipping", "padding", "moving", "psf_estimated"):
         if line in r:
             print(r[line])
     found = ", ".join(r["extended"]["effects"]) or "none"

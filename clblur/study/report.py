@@ -75,7 +75,8 @@ def markdown(report: dict, title: str = "Study", figures: list[str] | None = Non
              + (f" Codes: {report['codes']}." if "codes" in report else "")
              + (" " + _sentence(report["registration"]["summary"]) if "registration" in report
                 else "")
-             + "".join(" " + _sentence(report[k]) for k in ("clipping", "padding", "psf_estimated")
+             + "".join(" " + _sentence(report[k])
+                       for k in ("clipping", "padding", "moving", "psf_estimated")
                        if k in report), "",
              "| model | held-out RMSE (codes) | held-out NLL (nats/value) |", "|---|---|---|",
              f"| paper (baseline) | {b['heldout_rmse']:.3f} | {b['heldout_nll']:.3f} |",

@@ -66,7 +66,8 @@ def groups_from_manifest(manifest: Manifest, max_pixels: int = DEFAULT_PIXELS,
     given, receives the registration (``notes["registration"]``,
     ``clblur.registration.describe``) and lines on what was left out as no light:
     ``notes["clipping"]`` (a camera that clips below full scale), ``notes["padding"]``
-    (constant borders, ``clblur.study.series.series_groups``) and ``notes["psf_estimated"]``
+    (constant borders, ``clblur.study.series.series_groups``), ``notes["moving"]`` (what
+    does not show one static scene) and ``notes["psf_estimated"]``
     (blur pairs whose kernel was measured from the pair, ``"psf": "estimate"``)."""
     from tqdm import tqdm
 
@@ -105,6 +106,10 @@ def groups_from_manifest(manifest: Manifest, max_pixels: int = DEFAULT_PIXELS,
                                for i, f in sorted(left_out["padding"].items()))
             notes["padding"] = (f"constant borders padded into the frames hold no light and "
                                 f"are left out: {frames}")
+        if notes is not None and left_out["moving"]:
+            notes["moving"] = (f"{100 * left_out['moving']:.1f} % of the pixels do not show one "
+                               "static scene (something moved between exposures, or a border "
+                               "differs; clblur.calibration.ghosts) and are left out")
         return groups
     if manifest.kind == "blur-pair":
         per = max(1000, max_pixels // len(manifest.pairs))

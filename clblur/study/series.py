@@ -8,9 +8,11 @@ such source pixels (and their 4-neighbours) are left out, as ``clblur calibrate`
 out, and a target at the clip point is censored like 255 (``saturation`` is then not
 testable: it belongs to blur, where a clipped highlight's streak is what it measures); a
 constant border a registration padded a frame with (``clblur.pixels.series_padding``) is
-left out.  Each channel's black level is bounded by the
-step's darker frame: its darkest patch allowing for noise, grain and shading, not its
-darkest pixel, which read noise puts below the black level (:func:`_black_bound`).
+left out, and so is what does not show one static scene (``clblur.calibration.ghosts``: a
+moving object, a border one frame lacks), as calibration leaves it out.  Each channel's
+black level is bounded by the step's darker frame: its darkest patch allowing for noise,
+grain and shading, not its darkest pixel, which read noise puts below the black level
+(:func:`_black_bound`).
 
 Why two gaps: a bracket in whole stops has one ratio ``r`` between neighbours, and with one
 ratio a response is known only up to a power (``I^-1`` and ``(I^-1)^a`` predict alike once
@@ -25,6 +27,7 @@ import math
 
 import numpy as np
 
+from clblur.calibration.ghosts import moving_pixels
 from clblur.calibration.series import check_brightening, photometric_exposure
 from clblur.pixels import series_clip_level, series_padding
 from clblur.study.histograms import Taps, as_hwc, build_group, sample_grid, shifted
@@ -94,8 +97,10 @@ def series_groups(images: list[np.ndarray], exposures: list[float],
                   names: list[str] | None = None) -> list[Group]:
     """The study groups of an exposure series: each image predicts the next shorter one and
     the one after (module doc).  ``notes``, when given, receives what was left out as no
-    light: ``clip_code`` (below 255 for a camera that clips below full scale) and
-    ``padding`` (``{image index: fraction of its pixels}``, ``clblur.pixels.series_padding``).
+    light: ``clip_code`` (below 255 for a camera that clips below full scale),
+    ``padding`` (``{image index: fraction of its pixels}``, ``clblur.pixels.series_padding``)
+    and ``moving`` (the fraction of pixels that do not show one static scene,
+    ``clblur.calibration.ghosts``).
     A series whose images do not brighten with their exposures is refused, the two images
     named by ``names`` (``clblur.calibration.series.check_brightening``)."""
     if len(images) != len(exposures) or len(images) < 2:
@@ -118,10 +123,14 @@ def series_groups(images: list[np.ndarray], exposures: list[float],
     # neither targets nor sources, and its zeros do not bound a black level
     pads = series_padding(imgs, h)
     floors = [_black_bound(im, p) for im, p in zip(imgs, pads, strict=True)]
+    # what does not show one static scene (a walker, branches in the wind, a border one
+    # frame lacks) is no measurement of the camera: left out, as calibration leaves it out
+    moving = moving_pixels(imgs, h, 255.0)
     if notes is not None:
         notes["clip_code"] = top
         notes["padding"] = {int(order[i]): float(p.mean()) for i, p in enumerate(pads)
                             if p.any()}
+        notes["moving"] = float(moving.mean())
     steps = [(k, k + gap) for gap in (1, 2) for k in range(len(imgs) - gap)]
     per = max(1000, max_pixels // len(steps))
     groups = []
@@ -129,7 +138,7 @@ def series_groups(images: list[np.ndarray], exposures: list[float],
     for k, j in steps:
         src, tgt = imgs[k], imgs[j]
         rows, cols = sample_grid(tgt.shape[:2], per)
-        lit = ~(pads[k][rows, cols] | pads[j][rows, cols])
+        lit = ~(pads[k][rows, cols] | pads[j][rows, cols] | moving[rows, cols])
         rows, cols = rows[lit], cols[lit]
 
         def taps(yy, xx):
