@@ -22,8 +22,8 @@ absorbs moving objects on a textured scene too: at 5 x 5, a quarter of three obj
 passed on a test scene, differing from the static frame by a median 32 - 54 codes.  Specks
 thinner than 3 x 3 are dropped (noise, a single hot pixel), gaps are closed by a 9-pixel
 disc, and what is left is widened by 2 pixels, as a moving object's silhouette is blurred.
-A pixel is left out when it fails in any pair
-and any channel: an object in one frame spoils the pixel's row of the whole series.
+A pixel is left out when it fails in any pair and any channel: an object in one frame
+spoils the pixel's row of the whole series.
 
 Levels are the codes of an 8-bit series and 1024 bins of full scale otherwise (a 16-bit
 series' noise spans many codes; ``FLOOR`` is far above a bin), coarser for an image too
@@ -43,6 +43,8 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+
+from clblur.pixels import imax
 
 __all__ = ["FLOOR", "K_SPREAD", "MIN_COUNT", "PER_LEVEL", "moving_pixels"]
 
@@ -95,14 +97,14 @@ def moving_pixels(images: list[np.ndarray], exposures,
     Args:
         images: the series' images, H x W x C, one dtype.
         exposures: their photometric exposures (any scale; only the order is used).
-        full_scale: the images' full scale (default: 255 / 65535 for integers, 1 for floats).
+        full_scale: the images' full scale (default: ``clblur.pixels.imax`` of their dtype).
 
     Returns:
         H x W bool, True where some pair of neighbouring exposures disagrees.
     """
     first = images[0]
     if full_scale is None:
-        full_scale = float(np.iinfo(first.dtype).max) if first.dtype.kind in "ui" else 1.0
+        full_scale = imax(first.dtype)
     bins = _bins(first)
     order = np.argsort(np.asarray(exposures, dtype=np.float64), kind="stable")
     out = np.zeros(first.shape[:2], bool)

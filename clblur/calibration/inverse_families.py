@@ -231,7 +231,7 @@ def _response_from(curve: Table, start: float) -> float | None:
     lit = np.flatnonzero((v >= start) & (x > _NO_LIGHT))
     if lit.size == 0 or v[lit[0]] > _TOE_HIGHEST:
         return None
-    return float(max(start, v[lit[0]]))
+    return float(v[lit[0]])
 
 
 def with_toe(fitted: FamilyFit, samples, start: float) -> FamilyFit:
