@@ -84,14 +84,17 @@ class Camera:
                 weights=None, anchor: str = "center", gain: float = 1.0,
                 channel_gains: tuple[float, ...] | None = None,
                 rng: np.random.Generator | None = None, dtype=np.uint8,
-                backend: str = "numpy", shift: tuple[float, float] | None = None
-                ) -> np.ndarray:
+                backend: str = "numpy", shift: tuple[float, float] | None = None,
+                optical_variance: float = 0.0) -> np.ndarray:
         """Render one capture of ``radiance``.
 
         ``motion``/``weights``/``anchor`` as in ``clblur.blur`` (None: a static capture).
         ``gain`` and ``channel_gains`` multiply the exposure of this capture only (they model
         a gain or white-balance mismatch between two captures); ``channel_gains`` here
         overrides the camera's.  ``rng`` is required when the camera has noise.
+        ``shift``: the image moved by (sx, sy) px (bilinear); ``optical_variance``: a
+        Gaussian blur of that variance (px^2 per axis) of the light after the motion (a
+        defocused or softer lens, for this capture only).
         """
         rad = _check_radiance(radiance)
         if not (math.isfinite(exposure) and exposure > 0 and math.isfinite(gain) and gain > 0):
@@ -104,6 +107,13 @@ class Camera:
             y = y * np.asarray(gains, dtype=np.float64)
         if motion is not None:
             y = blur(y, motion, "linear", anchor=anchor, weights=weights, backend=backend)
+        if optical_variance < 0 or not math.isfinite(optical_variance):
+            raise ValueError(f"optical_variance must be >= 0, got {optical_variance}")
+        if optical_variance > 0:
+            from scipy.ndimage import gaussian_filter
+
+            sd = math.sqrt(optical_variance)
+            y = gaussian_filter(y, sigma=(sd, sd, 0.0), mode="nearest")
         if shift is not None:
             y = shift_image(y, float(shift[0]), float(shift[1]))
         y = y * vignette(y.shape[:2], self.vignetting)[..., None]

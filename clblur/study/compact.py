@@ -75,7 +75,7 @@ def _compact(g: Group, position_matters: bool, geometric: bool,
     for c in range(nc):
         mats = [g.hist[k][c] for k in keys] + [g.hist_sq[c]] + [
             hs[c] for e in sorted(variants) for v in sorted(variants[e])
-            for _, hs in sorted(variants[e][v].items())]
+            for _, hs in sorted(variants[e][v].items(), key=lambda kv: str(kv[0]))]
         cols, vals, single = [], [], np.ones(n, bool)
         for m in mats:
             m = m.tocsr()

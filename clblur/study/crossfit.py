@@ -105,6 +105,9 @@ def applicable(groups: list[Group]) -> dict[str, str]:
         out["psf_orientation"] = "the motion path is its own 180-degree turn (centred path)"
     if not has_variant(groups, "psf_scale"):
         out["psf_scale"] = "no motion between source and target (stack or series)"
+    if not has_variant(groups, "optical_blur"):
+        out["optical_blur"] = ("source and target are not separate captures of a blur pair "
+                               "(stack or series: the same optics and pipeline)")
     if not has_variant(groups, "misregistration"):
         out["misregistration"] = "groups built without shifted histograms"
     if not series_images(groups):
@@ -154,7 +157,7 @@ WARP_RIDGE = 10.0
 # change the histogram rows, so their fits cannot run on pooled rows (``clblur.study.compact``)
 # and cost 10-50x more per evaluation; with fewer free parameters the test stays nested and
 # cross-fitted (the extension can only fit worse than a full refit: conservative).
-CONDITIONAL = frozenset({"misregistration", "psf_scale"})
+CONDITIONAL = frozenset({"misregistration", "psf_scale", "optical_blur"})
 
 # Black levels tried, as fractions of their bound, for a start with a pedestal beside a free
 # response shape (``_pedestal_start``).
@@ -284,6 +287,26 @@ class Folds:
                 pe, _ = predict(g, ext[1 - f])
                 out += block_terms(g, pb, pe, var, self.nblocks)
         return out[0], out[1], out[2]
+
+    def block_source_gain(self, base: list[dict], ext: list[dict]) -> np.ndarray:
+        """Per block: the part of ``block_score``'s gain ``D_b`` that ``ext`` is expected to
+        win from the source's noise alone, ``sum_p (s_S - s_E) / (2 var)`` (``s``: the
+        variance each model's prediction carries from its source pixels' noise and
+        rounding, ``model.predict``'s source share).
+
+        Why: where ``ext`` reads more source pixels per target pixel (a blur of the
+        prediction), its prediction carries less of the source's noise, and it predicts a
+        noisy pair better even where the target holds no such blur; that much of its gain
+        names no cause.  Under the base model the expected ``D_b`` of a needless blur is
+        this term less the blur's bias, and with a real blur this term plus the bias."""
+        out = np.zeros(self.nblocks)
+        for f in (0, 1):
+            for g in self.part[f]:
+                _, var, share_b = predict(g, base[1 - f], source_share=True)
+                _, var_e, share_e = predict(g, ext[1 - f], source_share=True)
+                less = np.where(g.valid, (share_b * var - share_e * var_e) / (2.0 * var), 0.0)
+                out += np.bincount(g.block, less.sum(axis=1), minlength=self.nblocks)
+        return out
 
     def block_nll(self, params: list[dict]) -> np.ndarray:
         """Held-out NLL per block: fold f scored with the parameters fitted on the other."""

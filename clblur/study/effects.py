@@ -42,6 +42,9 @@ nested model and can be tested against the simpler one.  Parameters (``PARAMS``)
 * ``qoff``: constant offset of the stored target codes (code values; -0.5 = truncation).
 * ``sx``, ``sy``: shift of the source relative to the target (pixels).
 * ``pscale``: factor on every motion displacement (PSF resampled).
+* ``ovar``: variance (px^2, per axis) of an isotropic Gaussian blur of the target in the
+  linear domain beyond the motion: defocus, another lens or anti-aliasing filter, a
+  resampling step the source did not go through (``clblur.study.variants``).
 * ``flip:G``: 1 if group ``G``'s motion is turned by 180 degrees (discrete, per group).
   (``clblur.study.variants`` for the last four.)
 * ``lt:I``: log factor on the exposure of image ``I`` of an exposure series (its index in
@@ -88,6 +91,7 @@ PARAMS: dict[str, tuple[float, float, float]] = {
     "sx": (0.0, -1.0, 1.0),
     "sy": (0.0, -1.0, 1.0),
     "pscale": (1.0, 0.8, 1.25),
+    "ovar": (0.0, 0.0, 2.0),
     # each inner image's log exposure factor (``lt:I``): shutters and rounded EXIF times are
     # off by a few percent, a worn or mistimed shutter by tens of percent
     "lt": (0.0, -0.4, 0.4),
@@ -134,6 +138,7 @@ _EFFECT_PARAMS = {
     "misregistration": ("sx", "sy"),
     "psf_orientation": ("flip",),  # discrete, one per group (select.fit)
     "psf_scale": ("pscale",),
+    "optical_blur": ("ovar",),
     "response_imax": ("rho",),
     "exposure_times": ("lt",),  # one per inner image of the series (``lt:I``, crossfit.fit)
     "white_balance": ("lw",),  # per inner image and channel but the first (``lw:I:c``)
@@ -172,6 +177,9 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
            "not stop down exactly, a time stored rounded (1/60 s for 1/64 s)"),
     Effect("white_balance", "each image of the exposure series got its own white balance (a "
            "camera's auto white balance sets its channel gains shot by shot)"),
+    Effect("optical_blur", "the target is softer than the motion makes it: defocus, another "
+           "lens or anti-aliasing filter, or a resampling step the source did not go through "
+           "(an isotropic blur of the light)"),
 )}
 EFFECT_NAMES = tuple(EFFECTS)
 
@@ -215,6 +223,8 @@ def readable_estimate(effect: str, p: dict[str, float], channels: int) -> dict:
         return {"shift_x": p["sx"], "shift_y": p["sy"]}
     if effect == "psf_scale":
         return {"scale": p["pscale"]}
+    if effect == "optical_blur":
+        return {"variance_px2": p["ovar"], "sigma_px": math.sqrt(max(p["ovar"], 0.0))}
     if effect == "exposure_times":
         dev = exposure_deviations(p)
         return {"exposure_factors": {str(i): math.exp(d) for i, d in dev.items()},

@@ -22,7 +22,7 @@ from clblur.camera import normalised_radius2
 from clblur.sampling import bilinear_corners
 from clblur.study.model import CODES, Group
 
-__all__ = ["Taps", "as_hwc", "build_group", "sample_grid", "shifted"]
+__all__ = ["Spread", "Taps", "as_hwc", "build_group", "sample_grid", "shifted"]
 
 
 @dataclass(frozen=True)
@@ -34,6 +34,28 @@ class Taps:
     dy: np.ndarray | float
     w: np.ndarray | float
     s: float | np.ndarray | None
+
+
+@dataclass(frozen=True)
+class Spread:
+    """A variant of the group's own taps whose every read is spread over whole-pixel
+    ``offsets`` ((dy, dx, weight) triples, weights summing to 1; a blur of the light the
+    target sums): a tap reading ``q`` reads ``q - o`` with weight ``b_o`` as well.
+
+    Why not as taps: spreading each of a path's taps by a 9 x 9 kernel multiplies the
+    entries a histogram is built from by 81 (gigabytes for a long path on a large image);
+    spreading the histogram's source pixels instead costs one sparse product, done in row
+    chunks of bounded size."""
+
+    offsets: tuple[tuple[int, int, float], ...]
+
+    @property
+    def radius(self) -> int:
+        return max(max(abs(dy), abs(dx)) for dy, dx, _ in self.offsets)
+
+
+# entries of one chunk's spread code table (rows x offsets) in _spread_hists
+_SPREAD_ENTRIES = 1 << 22
 
 
 def sample_grid(shape: tuple[int, int], max_pixels: int) -> tuple[np.ndarray, np.ndarray]:
@@ -52,11 +74,13 @@ def build_group(name: str, sources: list[np.ndarray], target: np.ndarray,
     """Collapse the taps of pixels (rows, cols) into code histograms (see ``model``).
 
     ``variants`` (``{effect: {key: taps}}``) are alternative tap sets for the geometric
-    effects (``clblur.study.variants``): their histograms are built on the same pixels (a
-    pixel is kept only if every variant's taps stay inside the image) and attached to the
-    group.  ``darkest``: the bound a black level may not exceed (codes; one, or one per
-    channel), for sources and target both; default the darkest code of each channel in the
-    sources and the target pixels.
+    effects (``clblur.study.variants``), or a :class:`Spread` of the group's own taps: their
+    histograms are built on the same pixels (a pixel is kept only if every variant's taps
+    stay inside the image; a spread's reads beyond the border take the edge pixel, so that
+    it keeps the pixels the other histograms have) and attached to the group.
+    ``darkest``: the bound a black level may not exceed (codes; one, or one per channel),
+    for sources and target both; default the darkest code of each channel in the sources
+    and the target pixels.
     """
     h, w, nc = target.shape
     hw = h * w
@@ -82,7 +106,8 @@ def build_group(name: str, sources: list[np.ndarray], target: np.ndarray,
         return {i: _csr(e, n, total) for i, e in entries.items() if e}
 
     base = collect(taps)
-    alt = {eff: {key: collect(fn) for key, fn in d.items()} for eff, d in (variants or {}).items()}
+    alt = {eff: {key: collect(fn) for key, fn in d.items() if not isinstance(fn, Spread)}
+           for eff, d in (variants or {}).items()}
     keep = np.flatnonzero(inside)
     # only the source pixels some tap reads: a one-hot code matrix of every source pixel of
     # an 8-frame 720p stack is 7 million rows, most never read when pixels are sampled
@@ -102,18 +127,22 @@ def build_group(name: str, sources: list[np.ndarray], target: np.ndarray,
     def squeeze(m: sp.csr_matrix) -> sp.csr_matrix:
         return sp.csr_matrix((m.data, remap[m.indices], m.indptr), shape=(m.shape[0], nu))
 
-    def hists(mats):
+    def hists(mats, squares: bool = False):
+        """The code histograms of each time term and vignetting power; with ``squares``
+        also under ``"sq"`` those of the squared weights (``Group.hist_sq``): a variant's
+        prediction carries its own reads' share of the source's noise."""
         out = {}
         for i, m in mats.items():
             m = squeeze(m)[keep]
             for k in (0, 1, 2) if vignetting else (0,):
                 mk = m if k == 0 else m @ sp.diags(r2_src ** k)
                 out[(i, k)] = [(mk @ oh).tocsr() for oh in onehot]
+            if squares and i == 0:  # uniform time, no vignetting
+                out["sq"] = [(m.multiply(m)).tocsr() @ oh for oh in onehot]
         return out
 
-    hist = hists(base)
-    m0 = squeeze(base[0])[keep]
-    hist_sq = [(m0.multiply(m0)).tocsr() @ oh for oh in onehot]
+    hist = hists(base, squares=True)
+    hist_sq = hist.pop("sq")
     rows, cols = rows[keep], cols[keep]
     tgt = target[rows, cols].astype(np.float64)
     full = 255.0
@@ -124,7 +153,14 @@ def build_group(name: str, sources: list[np.ndarray], target: np.ndarray,
               [hq.tocsr() for hq in hist_sq], r2, source_clipped=clipped)
     from clblur.study.variants import attach
 
-    attach(g, {eff: {key: hists(m) for key, m in d.items()} for eff, d in alt.items()},
+    every = np.stack([s.reshape(hw, nc) for s in sources]).reshape(total, nc)
+    r2_all = np.tile(normalised_radius2((h, w)).ravel(), len(sources))
+    built = {eff: {key: (_spread_hists({i: m[keep] for i, m in base.items()}, fn, every,
+                                       r2_all, (h, w), vignetting)
+                         if isinstance(fn, Spread) else hists(alt[eff][key], squares=True))
+                   for key, fn in d.items()}
+             for eff, d in (variants or {}).items()}
+    attach(g, built,
            np.min([s.reshape(-1, nc).min(axis=0) for s in sources], axis=0)
            if darkest is None else darkest,
            with_target=darkest is None)
@@ -137,6 +173,63 @@ def shifted(taps: Callable[[np.ndarray, np.ndarray], Iterable[Taps]], sx: float,
         for t in taps(yy, xx):
             yield Taps(t.src, t.dx + sx, t.dy + sy, t.w, t.s)
     return fn
+
+
+def _spread_hists(mats: dict[int, sp.csr_matrix], spread: Spread, codes: np.ndarray,
+                  r2: np.ndarray, shape: tuple[int, int], vignetting: bool) -> dict:
+    """The histograms ``build_group`` makes (``{(i, k): [per channel]}``) of ``mats`` (the
+    kept pixels' weights on every source pixel) with every read spread by ``spread``:
+    ``M @ S`` with ``S[q, code] = sum_o b_o r2(q - o)^k [code(q - o) = code]``, ``S`` built
+    for the source pixels a chunk of rows reads; and under ``"sq"`` the squared weights'
+    histograms (``Group.hist_sq`` of the spread reads).  A read beyond the border takes the edge
+    pixel (clamp to edge, as the taps' bilinear reads): only pixels within the kernel's
+    radius of the border see it, and dropping them would change every other histogram's
+    pixels."""
+    h, w = shape
+    hw = h * w
+    nc = codes.shape[1]
+    dy = np.array([o[0] for o in spread.offsets])
+    dx = np.array([o[1] for o in spread.offsets])
+    b = np.array([o[2] for o in spread.offsets])
+    n = next(iter(mats.values())).shape[0]
+    per_row = max(max(int(np.diff(m.indptr).max(initial=1)), 1) for m in mats.values())
+    step = max(1, _SPREAD_ENTRIES // (per_row * b.size))
+    powers = (0, 1, 2) if vignetting else (0,)
+    chunks: dict = {(i, k): [[] for _ in range(nc)] for i in mats for k in powers}
+    chunks["sq"] = [[] for _ in range(nc)]
+    for start in range(0, n, step):
+        sub = {i: m[start:start + step] for i, m in mats.items()}
+        cols = np.unique(np.concatenate([m.indices for m in sub.values()]))
+        src, pix = np.divmod(cols, hw)
+        y, x = np.divmod(pix, w)
+        read = (src[:, None] * hw + np.clip(y[:, None] - dy, 0, h - 1) * w
+                + np.clip(x[:, None] - dx, 0, w - 1))  # cols x offsets
+        rows = np.repeat(np.arange(cols.size), b.size)
+        # the squared weights of the spread reads (the source noise a blurred prediction
+        # carries, as Group.hist_sq for the plain one): uniform time, no vignetting
+        pixels, at = np.unique(read.ravel(), return_inverse=True)
+        spread_m = sp.csr_matrix((np.broadcast_to(b, read.shape).ravel(), (rows, at)),
+                                 shape=(cols.size, pixels.size))
+        plain = sub[0]
+        flat = sp.csr_matrix((plain.data, np.searchsorted(cols, plain.indices), plain.indptr),
+                             shape=(plain.shape[0], cols.size)) @ spread_m
+        squared = flat.multiply(flat).tocsr()
+        for c in range(nc):
+            code_of = sp.csr_matrix((np.ones(pixels.size), (np.arange(pixels.size),
+                                                             codes[pixels, c].astype(np.intp))),
+                                    shape=(pixels.size, CODES))
+            chunks["sq"][c].append(squared @ code_of)
+        for k in powers:
+            wt = (b * r2[read] ** k if k else np.broadcast_to(b, read.shape)).ravel()
+            tables = [sp.csr_matrix((wt, (rows, codes[read.ravel(), c].astype(np.intp))),
+                                    shape=(cols.size, CODES)) for c in range(nc)]
+            for i, m in sub.items():
+                local = sp.csr_matrix((m.data, np.searchsorted(cols, m.indices), m.indptr),
+                                      shape=(m.shape[0], cols.size))
+                for c in range(nc):
+                    chunks[(i, k)][c].append(local @ tables[c])
+    return {key: [sp.vstack(parts).tocsr() for parts in per_c]
+            for key, per_c in chunks.items()}
 
 
 def _csr(entries, n, total) -> sp.csr_matrix:

@@ -6,9 +6,9 @@ import numpy as np
 
 from clblur.blur import blur
 from clblur.motion import PSF, Field, Uniform, anchor_value, parse_motion, sample_counts
-from clblur.study.histograms import Taps, as_hwc, build_group, sample_grid, shifted
+from clblur.study.histograms import Spread, Taps, as_hwc, build_group, sample_grid, shifted
 from clblur.study.model import Group
-from clblur.study.variants import SCALES, SHIFTS
+from clblur.study.variants import OPTICAL_VARIANCES, SCALES, SHIFTS, binomial_offsets
 
 __all__ = ["best_shift", "pair_group", "shift_kernel"]
 
@@ -44,7 +44,9 @@ def pair_group(static: np.ndarray, blurred: np.ndarray, motion, *, anchor: str =
         return _taps(m, a, y, x)
 
     variants = {"misregistration": {sh: shifted(taps, *sh) for sh in SHIFTS},
-                "psf_scale": {s: _scaled(taps, s) for s in SCALES}}
+                "psf_scale": {s: _scaled(taps, s) for s in SCALES},
+                "optical_blur": {var: Spread(tuple(binomial_offsets(var)))
+                                 for var in OPTICAL_VARIANCES}}
     if flip is not None:
         f_m = flip
         variants["psf_orientation"] = {

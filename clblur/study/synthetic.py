@@ -50,6 +50,7 @@ RANGES = {
     "channel_shape": (0.1, 0.25),  # |log| of the R and B factor on Eq. 3's exponent (G fixed)
     "exposure_times": (0.04, 0.12),  # |log| of each inner image's factor on its nominal time
     "white_balance": (0.04, 0.12),  # |log| of each inner image's R and B gain (G fixed)
+    "optical_blur": (0.4, 1.5),  # variance (px^2 per axis) of a Gaussian blur of the target
 }
 CLIP = 6.2 / 3.0  # exposure at which Exp(3) reaches code 255
 
@@ -70,7 +71,8 @@ def scenario(effects: dict[str, float | None], rng: np.random.Generator,
     ``quantisation`` stores the blurred image with an offset of ``-m`` codes (truncation of
     ``v + 0.5 - m``) or ``+m`` (rounding of ``v + m``); ``misregistration`` shifts the blurred
     image by ``m`` pixels in a random direction; ``psf_scale`` renders a motion ``m`` (or
-    ``1 / m``) times as long as the one the study is told."""
+    ``1 / m``) times as long as the one the study is told; ``optical_blur`` blurs the blurred
+    image's light by a Gaussian of variance ``m`` px^2 (a softer lens)."""
     unknown = set(effects) - set(RANGES)
     if unknown:
         raise ValueError(f"unknown effect(s) {sorted(unknown)}; use {', '.join(RANGES)}")
@@ -137,6 +139,8 @@ def scenario(effects: dict[str, float | None], rng: np.random.Generator,
         target_cam = dataclasses.replace(
             camera, storage="floor" if sign < 0 else "round",
             code_offset=0.5 - q if sign < 0 else q)
+    if "optical_blur" in mag:
+        kw["optical_variance"] = mag["optical_blur"]
     if "misregistration" in mag:
         a = float(rng.uniform(0, 2 * math.pi))
         kw["shift"] = (mag["misregistration"] * math.cos(a), mag["misregistration"] * math.sin(a))

@@ -3,7 +3,7 @@
 Conventions
 -----------
 The paper's model reads each target pixel's source codes through fixed taps (``Group.hist``).
-Three effects change the taps, one changes how the target was stored:
+Four effects change the taps, one changes how the target was stored:
 
 * ``misregistration`` (``sx``, ``sy``, pixels, each in [-1, 1]): target pixel ``p`` sees the
   source at ``p - s``.  Histograms are built for the four unit shifts; a sub-pixel shift
@@ -16,10 +16,18 @@ Three effects change the taps, one changes how the target was stored:
 * ``psf_scale`` (``pscale`` in [0.8, 1.25]): the motion resampled by that factor (a PSF
   zoomed about its centre, a vector or flow scaled).  Histograms are built at 0.8 and 1.25;
   between them the mixture is piecewise linear in the factor (exact at 0.8, 1, 1.25).
+* ``optical_blur`` (``ovar``, px^2 in [0, 2]): the target's light blurred further by an
+  isotropic kernel of that variance per axis (defocus, another lens, a resampling step).
+  Histograms are built with the taps spread by binomial kernels of variance 0.5, 1 and 2
+  (``OPTICAL_VARIANCES``: orders 2, 4 and 8 per axis, a Gaussian's discrete analogue);
+  between them, and between 0 and the first, the mixture is linear in ``ovar``.  A mixture
+  of centred kernels has the mixture of their variances, so the blur added has variance
+  ``ovar`` exactly, and its shape is a Gaussian's to within the mixing of two neighbours.
 * ``quantisation`` (``qoff``, code values in [-1, 1]): a constant offset of the stored target
   codes, e.g. -0.5 when values were truncated (floor) instead of rounded.
 
-All four are nested: at ``sx = sy = 0``, ``flip = 0``, ``pscale = 1``, ``qoff = 0`` the
+All five are nested: at ``sx = sy = 0``, ``flip = 0``, ``pscale = 1``, ``ovar = 0``,
+``qoff = 0`` the
 prediction is ``model.predict``'s.  Variant histograms combine additively (a flipped and
 shifted PSF uses the shift deltas of the unflipped one: a first-order approximation).
 """
@@ -27,6 +35,7 @@ shifted PSF uses the shift deltas of the unflipped one: a first-order approximat
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import scipy.sparse as sp
@@ -34,11 +43,25 @@ import scipy.sparse as sp
 from clblur.study.model import Group, gaussian_nll
 from clblur.study.model import predict as _model_predict
 
-__all__ = ["attach", "darkest_codes", "geometric", "has_variant", "pack",
-           "pixel_nll", "predict", "subset"]
+__all__ = ["OPTICAL_VARIANCES", "attach", "binomial_offsets", "darkest_codes", "geometric",
+           "has_variant", "pack", "pixel_nll", "predict", "subset"]
 
 SCALES = (0.8, 1.25)  # psf_scale histograms besides 1
 SHIFTS = ((1, 0), (-1, 0), (0, 1), (0, -1))  # misregistration histograms besides (0, 0)
+OPTICAL_VARIANCES = (0.5, 1.0, 2.0)  # optical_blur histograms besides 0 (px^2 per axis)
+
+
+def binomial_offsets(variance: float) -> list[tuple[int, int, float]]:
+    """(dy, dx, weight) of the 2-D binomial kernel of ``variance`` per axis (order
+    ``4 variance``, an even integer: 0.5, 1, 2, ...), centred, weights summing to 1."""
+    order = round(4 * variance)
+    if order < 2 or order % 2 or abs(order - 4 * variance) > 1e-9:
+        raise ValueError(f"a binomial kernel has variance order / 4 with an even order; "
+                         f"got {variance}")
+    w = np.array([math.comb(order, i) for i in range(order + 1)], np.float64) / 2.0 ** order
+    r = order // 2
+    return [(i - r, j - r, float(w[i] * w[j])) for i in range(order + 1)
+            for j in range(order + 1)]
 
 
 def attach(g: Group, variants: dict[str, dict], darkest,
@@ -98,7 +121,7 @@ def pack(groups: list[Group]) -> list[Group]:
         if "psf_orientation" in var:
             return None
         return (g.channels, tuple(sorted(g.hist)),
-                tuple((e, tuple((k, tuple(sorted(h))) for k, h in sorted(d.items())))
+                tuple((e, tuple((k, tuple(sorted(h, key=str))) for k, h in sorted(d.items())))
                       for e, d in sorted(var.items())))
 
     bins: dict = {}
@@ -144,8 +167,9 @@ def _concat(gs: list[Group]) -> Group:
 def geometric(names: list[str], p: dict) -> bool:
     """Whether a geometric variant is free (in ``names``) or active in ``p``: then the
     prediction reads the variant histograms, not only ``Group.hist``."""
-    return any(n in ("sx", "sy", "pscale") for n in names) or bool(
+    return any(n in ("sx", "sy", "pscale", "ovar") for n in names) or bool(
         p.get("sx", 0.0) or p.get("sy", 0.0) or p.get("pscale", 1.0) != 1.0
+        or p.get("ovar", 0.0)
         or any(k.startswith("flip:") and v for k, v in p.items()))
 
 
@@ -166,6 +190,17 @@ def _terms(g: Group, p: dict) -> list[tuple[float, tuple]]:
             out.append(((s - 1.0) / (hi - 1.0), ("psf_scale", hi)))
         else:
             out.append(((1.0 - s) / (1.0 - lo), ("psf_scale", lo)))
+    ov = p.get("ovar", 0.0)
+    if "optical_blur" in var and ov > 0.0:
+        # linear between neighbouring levels (0 the plain histogram); beyond the last, the
+        # last (the parameter's bound is the last level)
+        levels = (0.0, *OPTICAL_VARIANCES)
+        i = min(int(np.searchsorted(levels, ov)), len(levels) - 1)
+        lo, hi = levels[i - 1], levels[i]
+        u = min((ov - lo) / (hi - lo), 1.0)
+        out.append((u, ("optical_blur", hi)))
+        if lo > 0.0:
+            out.append((1.0 - u, ("optical_blur", lo)))
     flip = p.get(f"flip:{g.__dict__.get('gid', 0)}", 0.0)
     if "psf_orientation" in var and flip:
         out.append((flip, ("psf_orientation", "flip")))
@@ -210,7 +245,14 @@ def predict(g: Group, p: dict, source_share: bool = False) -> tuple[np.ndarray, 
                            g)
                       for c, h in enumerate(hs)]
                 for key, hs in g.hist.items()}
-        mixed = dataclasses.replace(g, hist=hist)
+        # each variant carries its own squared weights: a blurred, scaled or shifted path
+        # reads other source pixels, as many or more, and so carries its own share of the
+        # source's noise (groups built before variants held them: the plain ones)
+        hist_sq = [_Mix([(w0, h, ("sq", c))]
+                        + [(w, var[e][k]["sq"][c], (e, k, "sq", c)) if "sq" in var[e][k]
+                           else (w, h, ("sq", c)) for w, (e, k) in terms], g)
+                   for c, h in enumerate(g.hist_sq)]
+        mixed = dataclasses.replace(g, hist=hist, hist_sq=hist_sq)
         # one memory of products for both (Group.product): hist_sq is the group's own
         mixed.__dict__["_products"] = g.__dict__.setdefault("_products", {})
         g = mixed
