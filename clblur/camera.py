@@ -99,6 +99,8 @@ class Camera:
         rad = _check_radiance(radiance)
         if not (math.isfinite(exposure) and exposure > 0 and math.isfinite(gain) and gain > 0):
             raise ValueError(f"exposure and gain must be positive, got {exposure}, {gain}")
+        if not (math.isfinite(optical_variance) and optical_variance >= 0):
+            raise ValueError(f"optical_variance must be >= 0, got {optical_variance}")
         y = rad * (exposure * gain)
         gains = channel_gains if channel_gains is not None else self.channel_gains
         if gains is not None:
@@ -107,8 +109,6 @@ class Camera:
             y = y * np.asarray(gains, dtype=np.float64)
         if motion is not None:
             y = blur(y, motion, "linear", anchor=anchor, weights=weights, backend=backend)
-        if optical_variance < 0 or not math.isfinite(optical_variance):
-            raise ValueError(f"optical_variance must be >= 0, got {optical_variance}")
         if optical_variance > 0:
             from scipy.ndimage import gaussian_filter
 

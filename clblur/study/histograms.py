@@ -49,10 +49,6 @@ class Spread:
 
     offsets: tuple[tuple[int, int, float], ...]
 
-    @property
-    def radius(self) -> int:
-        return max(max(abs(dy), abs(dx)) for dy, dx, _ in self.offsets)
-
 
 # entries of one chunk's spread code table (rows x offsets) in _spread_hists
 _SPREAD_ENTRIES = 1 << 22
@@ -116,8 +112,11 @@ def build_group(name: str, sources: list[np.ndarray], target: np.ndarray,
                                 for m in ms.values())]:
         flag[m.indices] = True
     used = np.flatnonzero(flag)
-    r2_src = np.tile(normalised_radius2((h, w)).ravel(), len(sources))[used]
-    codes = np.stack([s.reshape(hw, nc) for s in sources]).reshape(total, nc)[used]
+    # every source pixel's codes and radius (a spread reads beyond the taps' own pixels)
+    every = np.stack([s.reshape(hw, nc) for s in sources]).reshape(total, nc)
+    r2_all = np.tile(normalised_radius2((h, w)).ravel(), len(sources))
+    r2_src = r2_all[used]
+    codes = every[used]
     nu = used.size
     onehot = [sp.csr_matrix((np.ones(nu), (np.arange(nu), codes[:, c].astype(np.intp))),
                             shape=(nu, CODES)) for c in range(nc)]
@@ -153,8 +152,6 @@ def build_group(name: str, sources: list[np.ndarray], target: np.ndarray,
               [hq.tocsr() for hq in hist_sq], r2, source_clipped=clipped)
     from clblur.study.variants import attach
 
-    every = np.stack([s.reshape(hw, nc) for s in sources]).reshape(total, nc)
-    r2_all = np.tile(normalised_radius2((h, w)).ravel(), len(sources))
     built = {eff: {key: (_spread_hists({i: m[keep] for i, m in base.items()}, fn, every,
                                        r2_all, (h, w), vignetting)
                          if isinstance(fn, Spread) else hists(alt[eff][key], squares=True))
@@ -181,10 +178,10 @@ def _spread_hists(mats: dict[int, sp.csr_matrix], spread: Spread, codes: np.ndar
     kept pixels' weights on every source pixel) with every read spread by ``spread``:
     ``M @ S`` with ``S[q, code] = sum_o b_o r2(q - o)^k [code(q - o) = code]``, ``S`` built
     for the source pixels a chunk of rows reads; and under ``"sq"`` the squared weights'
-    histograms (``Group.hist_sq`` of the spread reads).  A read beyond the border takes the edge
-    pixel (clamp to edge, as the taps' bilinear reads): only pixels within the kernel's
-    radius of the border see it, and dropping them would change every other histogram's
-    pixels."""
+    histograms (``Group.hist_sq`` of the spread reads).  A read beyond the border takes the
+    edge pixel (clamp to edge, as the taps' bilinear reads): only pixels within the
+    kernel's radius of the border see it, and dropping them would change every other
+    histogram's pixels."""
     h, w = shape
     hw = h * w
     nc = codes.shape[1]
@@ -197,6 +194,8 @@ def _spread_hists(mats: dict[int, sp.csr_matrix], spread: Spread, codes: np.ndar
     powers = (0, 1, 2) if vignetting else (0,)
     chunks: dict = {(i, k): [[] for _ in range(nc)] for i in mats for k in powers}
     chunks["sq"] = [[] for _ in range(nc)]
+    if n == 0:  # no pixel's path fits in the image: the caller reports it, not vstack
+        return {key: [sp.csr_matrix((0, CODES)) for _ in range(nc)] for key in chunks}
     for start in range(0, n, step):
         sub = {i: m[start:start + step] for i, m in mats.items()}
         cols = np.unique(np.concatenate([m.indices for m in sub.values()]))
@@ -205,14 +204,15 @@ def _spread_hists(mats: dict[int, sp.csr_matrix], spread: Spread, codes: np.ndar
         read = (src[:, None] * hw + np.clip(y[:, None] - dy, 0, h - 1) * w
                 + np.clip(x[:, None] - dx, 0, w - 1))  # cols x offsets
         rows = np.repeat(np.arange(cols.size), b.size)
+        # the chunk's weights on its own source pixels (columns renumbered to ``cols``)
+        local = {i: sp.csr_matrix((m.data, np.searchsorted(cols, m.indices), m.indptr),
+                                  shape=(m.shape[0], cols.size)) for i, m in sub.items()}
         # the squared weights of the spread reads (the source noise a blurred prediction
         # carries, as Group.hist_sq for the plain one): uniform time, no vignetting
         pixels, at = np.unique(read.ravel(), return_inverse=True)
         spread_m = sp.csr_matrix((np.broadcast_to(b, read.shape).ravel(), (rows, at)),
                                  shape=(cols.size, pixels.size))
-        plain = sub[0]
-        flat = sp.csr_matrix((plain.data, np.searchsorted(cols, plain.indices), plain.indptr),
-                             shape=(plain.shape[0], cols.size)) @ spread_m
+        flat = local[0] @ spread_m
         squared = flat.multiply(flat).tocsr()
         for c in range(nc):
             code_of = sp.csr_matrix((np.ones(pixels.size), (np.arange(pixels.size),
@@ -223,11 +223,9 @@ def _spread_hists(mats: dict[int, sp.csr_matrix], spread: Spread, codes: np.ndar
             wt = (b * r2[read] ** k if k else np.broadcast_to(b, read.shape)).ravel()
             tables = [sp.csr_matrix((wt, (rows, codes[read.ravel(), c].astype(np.intp))),
                                     shape=(cols.size, CODES)) for c in range(nc)]
-            for i, m in sub.items():
-                local = sp.csr_matrix((m.data, np.searchsorted(cols, m.indices), m.indptr),
-                                      shape=(m.shape[0], cols.size))
+            for i, m in local.items():
                 for c in range(nc):
-                    chunks[(i, k)][c].append(local @ tables[c])
+                    chunks[(i, k)][c].append(m @ tables[c])
     return {key: [sp.vstack(parts).tocsr() for parts in per_c]
             for key, per_c in chunks.items()}
 

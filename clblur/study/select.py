@@ -193,11 +193,11 @@ def _select(groups: list[Group], folds: Folds, nblocks: int, alpha: float, min_g
             d = d[np.abs(d) > 1e-9]  # blocks the effect cannot reach carry no evidence
             t, pv = t_test(d)
         else:
-            d, t, pv = _weighted_gain(folds, p_base, p_e, used)
+            # an effect that spreads the reads: its gain beyond the denoising it buys
+            less = (folds.block_source_gain(p_base, p_e) if effect in _SPREADING else None)
+            d, t, pv = _weighted_gain(folds, p_base, p_e, used, less)
             if effect == "misregistration":
                 d, t, pv = _against_mirror(folds, p_e, (d, t, pv), used)
-            elif effect in _SPREADING:
-                d, t, pv = _beyond_denoising(folds, p_base, p_e, used)
         gain = float(d.sum()) / max(nvalid, 1)
         est = readable_estimate(effect, average_params(p_e), channels)
         f = findings[effect] = Finding(effect, False, t, pv, est, "", gain, rnd,
@@ -557,11 +557,14 @@ def _redundant(folds: Folds, current: frozenset, order: list[str],
     return weakest
 
 
-def _weighted_gain(folds: Folds, base: list[dict], ext: list[dict],
-                   used: np.ndarray) -> tuple[np.ndarray, float, float]:
+def _weighted_gain(folds: Folds, base: list[dict], ext: list[dict], used: np.ndarray,
+                   less: np.ndarray | None = None) -> tuple[np.ndarray, float, float]:
     """Held-out gain per block from ``base`` to ``ext`` (blocks either reaches), with the
-    block-robust test's statistic and p-value (``significance.weighted_test``)."""
+    block-robust test's statistic and p-value (``significance.weighted_test``); ``less``:
+    per block, a part of the gain that names no cause, taken off (``_SPREADING``)."""
     d, u, a = folds.block_score(base, ext)
+    if less is not None:
+        d = d - less
     reach = used & (a > 1e-12)  # blocks the effect cannot reach carry no evidence
     return (d[reach], *weighted_test(d[reach], u[reach], a[reach]))
 
@@ -582,28 +585,17 @@ def _against_mirror(folds: Folds, p_e: list[dict], against_base: tuple,
     return (d, t, pv) if d.sum() < against_base[0].sum() else against_base
 
 
-# effects that change which source pixels a prediction reads, and how many: tested on their
-# gain beyond the source noise that reading more of them averages away (_beyond_denoising);
-# misregistration has its own control (_against_mirror: its mirror averages as much)
+# Effects that change which source pixels a prediction reads, and how many: tested on their
+# gain beyond the source noise that reading more of them averages away
+# (``Folds.block_source_gain``).  Why: blurring the prediction averages more of a noisy
+# source's pixels, which predicts a noisy pair better whether or not the target is blurred
+# (48 x 64 pairs, Poisson ``a = 2e-3``, nothing blurred: a variance of 0.3 - 0.4 px^2
+# "significant" on 2 of 4 seeds).  What is left is the blur's bias: negative where the
+# target holds no blur, positive where it does, so a real blur keeps its evidence.  A longer
+# path (``psf_scale``) spreads a PSF's weight over more pixels too, and without the same
+# control it took a real blur's place on a noisy pair (with ``misregistration``).
+# misregistration has its own control (_against_mirror: its mirror averages as much).
 _SPREADING = frozenset({"optical_blur", "psf_scale"})
-
-
-def _beyond_denoising(folds: Folds, p_base: list[dict], p_e: list[dict],
-                      used: np.ndarray) -> tuple[np.ndarray, float, float]:
-    """The test of an effect that spreads the reads (``_SPREADING``) with the gain a blur wins from the source's noise alone taken
-    off (``Folds.block_source_gain``).
-
-    Why: blurring the prediction averages more of a noisy source's pixels, which predicts a
-    noisy pair better whether or not the target is blurred (48 x 64 pairs, Poisson
-    ``a = 2e-3``, nothing blurred: a variance of 0.3 - 0.4 px^2 "significant" on 2 of 4
-    seeds).  What is left is the blur's bias: negative where the target holds no blur,
-    positive where it does, so a real blur keeps its evidence.  A longer path
-    (``psf_scale``) spreads a PSF's weight over more pixels too, and without the same
-    control it took a real blur's place on a noisy pair (with ``misregistration``)."""
-    d, u, a = folds.block_score(p_base, p_e)
-    d = d - folds.block_source_gain(p_base, p_e)
-    reach = used & (a > 1e-12)
-    return (d[reach], *weighted_test(d[reach], u[reach], a[reach]))
 
 
 def _sufficient(winners: list[tuple], folds: Folds, level: float,
