@@ -54,6 +54,7 @@ LIMIT_GRID = {
     "channel_shape": (0.002, 0.005, 0.01, 0.02, 0.05, 0.1),
     "exposure_times": (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.04),
     "white_balance": (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.04),
+    "optical_blur": (0.05, 0.1, 0.2, 0.3, 0.5),
 }
 
 
@@ -228,14 +229,16 @@ def limits(results: Path, seeds: int, noise: float, effects: list[str] | None = 
 def null(results: Path, seeds: int) -> None:
     """False findings on null data (the paper's model exactly true), every effect tested.
 
-    Seeds cycle through five data kinds so every effect of the vocabulary is tested:
+    Seeds cycle through seven data kinds so every effect of the vocabulary is tested:
     a blur pair with a vector motion, a blur pair with a random asymmetric PSF (where
-    ``psf_orientation`` is testable), a frame stack, and an exposure series without and
-    with sensor noise (``a = 5e-4``: there ``noise`` is true and not counted as false)."""
+    ``psf_orientation`` is testable), a frame stack, an exposure series, and a vector
+    pair, a PSF pair and an exposure series with sensor noise (``a = 5e-4``: there
+    ``noise`` is true and not counted as false; on a pair, noise is what an effect that
+    smooths the prediction, ``optical_blur`` or ``psf_scale``, could be mistaken for)."""
     from clblur.study.synthetic import null_series, null_stack
 
     kinds = ("vector pair", "PSF pair", "frame stack", "exposure series",
-             "noisy exposure series")
+             "noisy exposure series", "noisy vector pair", "noisy PSF pair")
     lines = [_header(f"null --seeds {seeds}"),
              "| seed | data | significant findings | structure left | seconds |",
              "|---:|---|---|---|---:|"]
@@ -249,7 +252,8 @@ def null(results: Path, seeds: int) -> None:
         elif kind.endswith("exposure series"):
             sc = null_series(rng, noise=5e-4 if kind.startswith("noisy") else 0.0)
         else:
-            sc = scenario({}, rng, psf=kind == "PSF pair")
+            sc = scenario({"noise": 5e-4} if kind.startswith("noisy") else {}, rng,
+                          psf=kind.endswith("PSF pair"))
         r = study_groups(sc.kind, sc.groups).report
         found = [f["effect"] for f in r["findings"] if f["significant"]]
         false += bool(set(found) - set(sc.truth))
