@@ -207,8 +207,8 @@ def _spread_hists(mats: dict[int, sp.csr_matrix], spread: Spread, codes: np.ndar
                                   np.arange(0, read.size + 1, b.size)),
                                  shape=(cols.size, pixels.size))
         spread_m.sum_duplicates()  # two offsets clamped onto one edge pixel
-        # the chunk's weights on the pixels its spread reads read (columns renumbered to
-        # ``cols`` first): one product per time term, then only one-hot tables
+        # the chunk's weights moved onto the pixels the spread reads (``M @ B``, columns
+        # renumbered to ``cols`` first): one product per time term, then one-hot tables
         spread_w = {i: sp.csr_matrix((m.data, np.searchsorted(cols, m.indices), m.indptr),
                                      shape=(m.shape[0], cols.size)) @ spread_m
                     for i, m in sub.items()}
