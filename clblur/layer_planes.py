@@ -381,18 +381,22 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
             region: np.ndarray, background: np.ndarray | None = None,
             split_edges: bool = True, rule: str = "depth",
             dtype: type = np.float64, transforms: Transforms | None = None,
-            r: float | None = None) -> Layers | None:
+            r: float | None = None, curvature: np.ndarray | None = None) -> Layers | None:
     """Build the layers around ``region`` (H x W bool) from the linear image, the vectors and
     the ordering signal; ``background``: the linear clean plate, if known.  Composed on the
     host and shared by both backends (a device supplies its ``transforms``).  ``lin``: the
     linear image, or a function that returns the linear image of a crop ``(row slice, col
-    slice)`` (so only the crop is linearised).  None when the
-    ordering gives one layer there: a single surface is what the gather integrates.
+    slice)`` (so only the crop is linearised).  None when the ordering gives one layer
+    there and the path is straight: a single surface is what the gather integrates.
     ``rule``: how a float ``order`` becomes layers (:func:`layer_labels`); ``dtype``: of
     the planes (a device backend takes float32: the same values as float64 planes rounded,
     built without the float64 copy); ``transforms``: the labels, the distance transforms and
     the fill (:class:`Transforms`; None: :data:`HOST`); ``r``: ``reach(v, anchor)`` where the caller
-    has it already (a pass over the whole field otherwise)."""
+    has it already (a pass over the whole field otherwise; with ``curvature``, give the reach
+    of the curved path, :func:`clblur.layered_exposure.curved_reach`).  ``curvature``: H x W
+    x 2, the quadratic term ``C`` of a curved path (``Layers.curvature``); it travels with
+    the vectors (a hidden pixel takes its nearest visible pixel's ``C`` as it takes its
+    ``D``)."""
     import cv2
     from scipy.ndimage import maximum_filter, minimum_filter
 
@@ -405,10 +409,14 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     (r0, r1), (c0, c1) = (crop[0].start, crop[0].stop), (crop[1].start, crop[1].stop)
     labels = transforms.labels(order[crop], rule=rule)
     last = int(labels.max())
-    if last == 0 and background is None:
-        return None
+    if last == 0 and background is None and curvature is None:
+        return None  # one surface on a straight path: what the gather integrates
     lin_c = lin(crop) if callable(lin) else lin[crop]
     v_c = v[crop].astype(np.float32)
+    own = v_c  # the image's own vectors, for light no layer covers
+    if curvature is not None:  # D and C side by side: every step below moves both alike
+        v_c = np.concatenate([v_c, curvature[crop].astype(np.float32)], axis=2)
+    span = max(anchor, 1.0 - anchor)
     # Mixed pixels: a pixel next to another layer holds light of both; it is split between the
     # nearer layer around it (coverage fitted to its light, split_coverage) and what lies
     # behind (reconstructed), so the composite at the anchor time is the image itself.
@@ -428,8 +436,7 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     # in front of it whole: behind the deepest layer left there is no pixel at all, so no
     # transform to the nearest one (a layer without pixels is no layer)
     deepest = int(labels.max())
-    own = v_c  # the image's own vectors, for light no layer covers
-    v_c = v_c.copy()
+    v_c = v_c.copy() if curvature is None else v_c
     pure = lin_c.copy()  # at a split pixel: the light of the nearest unmixed pixel of its layer
     for k in range(last + 1):  # a split pixel moves with the layer it joined
         core = (labels == k) & ~split
@@ -450,11 +457,13 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     from_region = transforms.distance(region[crop])
     pad = 2.0 + INPAINT_RADIUS + 1
     l2 = v_c[..., 0] * v_c[..., 0] + v_c[..., 1] * v_c[..., 1]
+    if curvature is not None:  # |D t + C t^2| <= |D| span + |C| span^2 over the shutter
+        c2 = v_c[..., 2] * v_c[..., 2] + v_c[..., 3] * v_c[..., 3]
+        l2 = np.square(np.sqrt(l2) + np.sqrt(c2) * np.float32(span))
     # reach() of the vectors at or behind each layer: the largest square, rearmost first
     longest = np.maximum.accumulate(
         [float(l2[labels == k].max(initial=0.0)) for k in range(last, -1, -1)])[::-1]
-    reach_at_or_behind = [math.sqrt(x) * (1 + 1e-6) * max(anchor, 1.0 - anchor)
-                          for x in longest]
+    reach_at_or_behind = [math.sqrt(x) * (1 + 1e-6) * span for x in longest]
 
     def needed(k: int) -> np.ndarray:
         out = from_region <= reach_at_or_behind[k] + pad
@@ -511,7 +520,7 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     lab_w, split_w, lin_w, v_w = labels[win], split[win], lin_c[win], v_c[win]
     hw, ch = reg.shape, lin_c.shape[2]
     planes = np.empty((last + 1,) + hw + (ch + 1,), dtype)
-    vectors = np.zeros((last + 1,) + hw + (2,), np.float32)
+    vectors = np.zeros((last + 1,) + hw + (v_c.shape[2],), np.float32)  # D (and C)
     present = np.zeros((last + 1,) + hw, bool)
     warped = np.zeros(last + 1, bool)
     # Each layer's extent and vectors first (cheap), then the transforms that find how far
@@ -563,7 +572,10 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     # its samples land.
     def rigid_vector(ext_w: np.ndarray, vec_w: np.ndarray) -> np.ndarray | None:
         first = vec_w[np.unravel_index(np.argmax(ext_w), hw)]
-        same = ~(((vec_w[..., 0] != first[0]) | (vec_w[..., 1] != first[1])) & ext_w).any()
+        differs = (vec_w[..., 0] != first[0]) | (vec_w[..., 1] != first[1])
+        for c in range(2, vec_w.shape[2]):  # a curved path: C too
+            differs |= vec_w[..., c] != first[c]
+        same = ~(differs & ext_w).any()
         return first if same else None
 
     rigid = [rigid_vector(ext_w, vec_w) for _, ext_w, vec_w, _ in shapes]
@@ -608,7 +620,8 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
             found = reach_of(i) if reaches is None else reaches[i].result()
             if rigid[i] is not None:
                 dist_at = found
-                d_at = np.broadcast_to(rigid[i].astype(np.float32), (at[0].size, 2))
+                d_at = np.broadcast_to(rigid[i].astype(np.float32),
+                                       (at[0].size, rigid[i].size))
                 vectors[i] = rigid[i]  # read at the region's pixels only; all is cheaper
             else:
                 dist, nearest = found
@@ -616,10 +629,15 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
                 vectors[i] = _at(vec_w, nearest)
                 d_at = _at(vectors[i], reg_flat)
                 warped[i] = True
-            farthest = np.hypot(d_at[:, 0], d_at[:, 1]) * max(anchor, 1.0 - anchor)
+            farthest = np.hypot(d_at[:, 0], d_at[:, 1]) * span
+            if curvature is not None:
+                farthest = farthest + np.hypot(d_at[:, 2], d_at[:, 3]) * (span * span)
             # a bilinear footprint reaches sqrt(2) px
             present[i].reshape(-1)[reg_flat] = dist_at <= farthest + 1.5
     kept = len(shapes)
     return Layers(origin=(int(r0 + win[0].start), int(c0 + win[1].start)),
-                  planes=planes[:kept], vectors=vectors[:kept], flow=own[win],
-                  linear=lin_w, region=reg, present=present[:kept], warped=warped[:kept])
+                  planes=planes[:kept], vectors=np.ascontiguousarray(vectors[:kept, ..., :2]),
+                  flow=own[win],
+                  linear=lin_w, region=reg, present=present[:kept], warped=warped[:kept],
+                  curvature=None if curvature is None else
+                  np.ascontiguousarray(vectors[:kept, ..., 2:]))

@@ -178,20 +178,21 @@ def _inverse_departure(v: np.ndarray, anchor: float, at: tuple[np.ndarray, np.nd
 
 
 def region_mask(v: np.ndarray, anchor: float, tile: int = TILE,
-                spread: float = SPREAD_PX) -> np.ndarray:
+                spread: float = SPREAD_PX, r: float | None = None) -> np.ndarray:
     """The pixels that take the layered path: the flagged tiles of :func:`boundary_mask`,
     narrowed to the pixels within ``R + 2`` of a motion edge (a pixel whose 3 x 3
     neighbourhood's vectors differ by more than ``spread`` in x or y) and the pixels whose
     inverse motion departs from their own vector by more than ``spread`` in x or y (one
     fixed-point step at either end of the shutter, :func:`_inverse_departure`: inside a
     turning or stretching object).  Elsewhere every surface that can reach a pixel moves as
-    the pixel does, and the gather is kept."""
+    the pixel does, and the gather is kept.  ``r``: the samples' reach, when it is more than
+    ``reach(v, anchor)`` (a curved path, :func:`curved_reach`)."""
     import cv2
     from scipy.ndimage import maximum_filter, minimum_filter
 
     h, w = v.shape[:2]
     out = np.zeros((h, w), bool)
-    r = reach(v, anchor)
+    r = reach(v, anchor) if r is None else r
     flagged = _flagged_tiles(v, r, tile, spread)
     if not flagged.any():
         return out
@@ -222,6 +223,32 @@ def region_mask(v: np.ndarray, anchor: float, tile: int = TILE,
     warped[at] = _inverse_departure(crop, anchor, at) > spread
     tiles = flagged[(np.arange(r0, r1) // tile)[:, None], (np.arange(c0, c1) // tile)]
     out[r0:r1, c0:c1] = (near | warped) & tiles
+    return out
+
+
+def curved_reach(v: np.ndarray, c: np.ndarray, anchor: float) -> float:
+    """Farthest a sample of the curved path ``D t + C t^2`` lands from its pixel, ``t`` in
+    ``[-a, 1 - a]``: at most ``max (|D| s + |C| s^2)``, ``s = max(a, 1 - a)``."""
+    if not v.size:
+        return 0.0
+    s = max(anchor, 1.0 - anchor)
+    far = np.hypot(v[..., 0], v[..., 1], dtype=np.float64) * s
+    far += np.hypot(c[..., 0], c[..., 1], dtype=np.float64) * (s * s)
+    return float(far.max()) * (1 + 1e-6)
+
+
+def curved_region(v: np.ndarray, c: np.ndarray, anchor: float) -> np.ndarray:
+    """The pixels that take the layered path on a curved path: :func:`region_mask` with the
+    curved path's reach, and every pixel within that reach (+ 2 px) of a pixel whose path
+    bends away from its chord by more than ``SPREAD_PX / 2`` (``|C| s^2``, ``s = max(a,
+    1 - a)``): there the straight gather of the chord misses the curve, even where
+    everything moves alike (a camera that accelerates)."""
+    s = max(anchor, 1.0 - anchor)
+    r = curved_reach(v, c, anchor)
+    out = region_mask(v, anchor, r=r)
+    bends = np.hypot(c[..., 0], c[..., 1]) * (s * s) > 0.5 * SPREAD_PX
+    if bends.any():
+        out |= distance_to(bends) <= r + 2.0
     return out
 
 
@@ -365,8 +392,12 @@ def plan_order(plan: BlurPlan) -> tuple[np.ndarray, np.ndarray, str] | None:
     return plan.motion.flow, plan.depth, "speed" if plan.speed_order else "depth"
 
 
-def integrate(lin: np.ndarray, plan: BlurPlan) -> np.ndarray:
-    """Layered exposure on the numpy reference (a ``clblur.pipeline`` integrator)."""
+def integrate(lin: np.ndarray, plan: BlurPlan, curvature: np.ndarray | None = None
+              ) -> np.ndarray:
+    """Layered exposure on the numpy reference (a ``clblur.pipeline`` integrator).
+
+    ``curvature``: H x W x 2, the quadratic term ``C`` of a curved path whose chord is the
+    plan's flow (module Conventions, curved paths; :func:`integrator`)."""
     from clblur.reference import integrate as gather
 
     acc = gather(lin, plan)
@@ -374,10 +405,11 @@ def integrate(lin: np.ndarray, plan: BlurPlan) -> np.ndarray:
     if ordered is None:
         return acc
     v, order, rule = ordered
-    region = region_mask(v, plan.anchor)
+    region, r = region_and_reach(v, plan.anchor, curvature)
     if not region.any():
         return acc
-    layers = prepare(lin, v, order, plan.anchor, region, background_linear(plan), rule=rule)
+    layers = prepare(lin, v, order, plan.anchor, region, background_linear(plan), rule=rule,
+                     r=r, curvature=curvature)
     if layers is None:
         return acc
     out = composite(layers, plan.anchor, plan.samples, plan.weights, plan.full_shape,
@@ -387,6 +419,15 @@ def integrate(lin: np.ndarray, plan: BlurPlan) -> np.ndarray:
     view = acc[r0:r0 + h, c0:c0 + w]
     view[layers.region] = out[layers.region]
     return acc
+
+
+def region_and_reach(v: np.ndarray, anchor: float, curvature: np.ndarray | None = None
+                     ) -> tuple[np.ndarray, float]:
+    """The layered region (:func:`region_mask`, or :func:`curved_region` on a curved path) and
+    the samples' reach, on the host."""
+    if curvature is None:
+        return region_mask(v, anchor), reach(v, anchor)
+    return curved_region(v, curvature, anchor), curved_reach(v, curvature, anchor)
 
 
 def background_linear(plan: BlurPlan) -> np.ndarray | None:
@@ -400,13 +441,20 @@ def background_linear(plan: BlurPlan) -> np.ndarray | None:
     return linearise(replace(plan, image=plan.background, background=None))
 
 
-def integrator(backend: str, device: str | None = None):
-    """The layered integrator of a resolved backend (``"numpy"`` or ``"opencl"``)."""
+def integrator(backend: str, device: str | None = None, curvature: np.ndarray | None = None):
+    """The layered integrator of a resolved backend (``"numpy"`` or ``"opencl"``).
+
+    ``curvature``: H x W x 2, the quadratic term ``C`` of a curved path ``D t + C t^2`` whose
+    chord ``D`` is the plan's flow (module Conventions, curved paths): the layers are read
+    along the curve wherever it bends (:func:`curved_region`), and a plan without an
+    ordering of its own should give one layer (IDs all 0) to be blurred along the curve."""
     if backend == "numpy":
-        return integrate
+        if curvature is None:
+            return integrate
+        return lambda lin, plan: integrate(lin, plan, curvature)
     from clblur.opencl.layered import integrator as opencl_integrator
 
-    return opencl_integrator(device)
+    return opencl_integrator(device, curvature=curvature)
 
 
 def layered_half(lin: np.ndarray, v: np.ndarray, anchor: str, *, depth=None,

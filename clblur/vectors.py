@@ -146,17 +146,20 @@ def from_nuke(forward: np.ndarray | None = None, backward: np.ndarray | None = N
 
 
 def blur_bent(image: np.ndarray, first: np.ndarray, second: np.ndarray, response="srgb",
-              **options) -> np.ndarray:
+              *, curved: bool = False, **options) -> np.ndarray:
     """Blur along a bent path: ``first`` ends at the frame time, ``second`` starts there.
 
     Both halves are integrated in the linear domain and the response is applied once
     (``clblur.video.blur_frame``, which takes per-frame flows; with a 360-degree shutter its
-    halves are minus half the backward flow and half the forward flow)."""
+    halves are minus half the backward flow and half the forward flow).  ``curved``: the
+    parabola through the path's three points instead of two straight halves
+    (``clblur.video.blur_curved``; Blender's Vector Blur ``use_curved`` follows a Bezier
+    through the same three points)."""
     from clblur.video import blur_frame
 
     f = _field(first, "first half", 2)
     s = _field(second, "second half", 2)
-    return blur_frame(image, -2 * f, 2 * s, response, shutter=360, **options)
+    return blur_frame(image, -2 * f, 2 * s, response, shutter=360, curved=curved, **options)
 
 
 def read_vectors(path: str | os.PathLike, convention: str,

@@ -19,6 +19,13 @@ Conventions
 * ``samples`` counts samples per half of the shutter (default ``ceil(|v|) + 1`` per pixel).
   Each half includes its ends with equal weight (as ``clblur.blur`` does), so the frame-time
   sample, which ends both halves, counts twice.
+* ``curved=True`` follows the parabola through the bent path's three points instead (start,
+  frame time, end): chord ``D = first + second`` and quadratic term ``C = 2 (second -
+  first)``, read at ``p - D t - C t^2`` for ``t`` in ``[-1/2, 1/2]``
+  (``clblur.layered_exposure``, curved paths).  It bends where a point accelerates or turns
+  (``D t + C t^2`` passes ``p + first`` at the start and ``p - second`` at the end, and
+  ``C = 0`` is the straight chord), and its samples follow the curve: ``samples`` then counts
+  samples over the whole shutter (default ``ceil(|D| + |C| / 2) + 1``).
 """
 
 from __future__ import annotations
@@ -50,8 +57,8 @@ from clblur.pipeline import run_numpy
 from clblur.request import check_image, make_plan
 from clblur.responses import per_channel
 
-__all__ = ["DEFAULT_RESPONSE", "DEFAULT_SHUTTER", "VideoResult", "bent_path", "blur_frame",
-           "blur_video", "half_paths", "shutter_fraction"]
+__all__ = ["DEFAULT_RESPONSE", "DEFAULT_SHUTTER", "VideoResult", "bent_path", "blur_curved",
+           "blur_frame", "blur_video", "half_paths", "shutter_fraction"]
 
 # Chosen from docs/studies/video.md (GoPro 240 fps ground truth).
 DEFAULT_RESPONSE = "srgb"
@@ -102,7 +109,8 @@ def blur_frame(frame: np.ndarray, backward: np.ndarray | None, forward: np.ndarr
                response=DEFAULT_RESPONSE, *, shutter: float = DEFAULT_SHUTTER,
                samples: int | None = None, backend: str = "auto", saturation: float = 1.0,
                device: str | None = None, layers: bool = False,
-               depth: np.ndarray | str | None = None, exposure: str = "frames") -> np.ndarray:
+               depth: np.ndarray | str | None = None, exposure: str = "frames",
+               curved: bool = False) -> np.ndarray:
     """Blur one frame along the bent path given by its backward and forward flows.
 
     ``exposure``: how each half's samples are weighted (``clblur.blur``; ``"continuous"``:
@@ -114,10 +122,17 @@ def blur_frame(frame: np.ndarray, backward: np.ndarray | None, forward: np.ndarr
     ``clblur.layering.departure_order`` of the whole shutter's vectors) or ``"speed"`` /
     None (faster = nearer, each half by its own speed); without ``layers`` every pixel
     gathers along its own vector only.
+    ``curved``: the parabola through the path's three points instead of two straight halves
+    (module Conventions; :func:`blur_curved`).
     Returns an array with the frame's dtype and shape (see the module Conventions).
     """
     first, second = half_paths(backward, forward, shutter, check_image(frame).shape[:2])
     check_exposure(exposure)
+    if curved:
+        order = (depth if depth is not None else "speed") if layers else None
+        return blur_curved(frame, first, second, response, samples=samples, backend=backend,
+                           saturation=saturation, device=device, depth=order,
+                           exposure=exposure)
     if isinstance(depth, str):
         named_order(depth)  # checked; speed: each half orders by its own vectors (None)
         depth = departure_order(first.astype(np.float64) + second) \
@@ -134,6 +149,35 @@ def blur_frame(frame: np.ndarray, backward: np.ndarray | None, forward: np.ndarr
     integrate = bent_path(first, second, samples=samples, backend=backend, device=device,
                           layers=layers, depth=depth, exposure=exposure)
     return run_numpy(plan, integrate)
+
+
+def blur_curved(image: np.ndarray, first: np.ndarray, second: np.ndarray,
+                response=DEFAULT_RESPONSE, *, depth: np.ndarray | str | None = None,
+                samples: int | None = None, backend: str = "auto", saturation: float = 1.0,
+                device: str | None = None, exposure: str = "frames") -> np.ndarray:
+    """Blur ``image`` along the parabola through a bent path's three points (module
+    Conventions): ``first`` (H x W x 2) ends at the frame time, ``second`` starts there.
+
+    ``depth``: an occlusion ordering as ``clblur.blur`` takes it (an H x W depth or layer IDs,
+    ``"speed"`` or ``"departure"`` of the chord): layered exposure along the curve
+    (``clblur.layered_exposure``).  None: one surface, blurred along the curve.  Either way
+    only the pixels that the curve or an occlusion concerns take the layered integrator
+    (``clblur.layered_exposure.curved_region``); the others are the gather along the chord,
+    which is the curve where ``C`` is nil.  Returns the image's dtype and shape.
+    """
+    from clblur.blur import stages
+    from clblur.layered_exposure import integrator
+    from clblur.pipeline import run
+
+    f64, s64 = np.asarray(first, np.float64), np.asarray(second, np.float64)
+    chord = (f64 + s64).astype(np.float32)
+    bend = (2.0 * (s64 - f64)).astype(np.float32)
+    if depth is None:  # one surface: layer IDs all 0, read along the curve
+        depth = np.zeros(check_image(image).shape[:2], np.int32)
+    plan = make_plan(image, chord, response, anchor="center", samples=samples,
+                     saturation=saturation, depth=depth, exposure=exposure, check_flow=True)
+    ran = resolve_backend(backend, device)
+    return run(plan, stages(ran, device), integrator(ran, device, curvature=bend))
 
 
 def bent_path(first: np.ndarray, second: np.ndarray, *, samples: int | None = None,
@@ -202,14 +246,14 @@ def blur_video(src: str | os.PathLike, dst: str | os.PathLike, *,
                codec: str | None = None, crf: int = DEFAULT_CRF,
                save_flows_to: str | os.PathLike | None = None, layers: bool = False,
                order: str = "speed", progress: bool = False,
-               exposure: str = "frames") -> VideoResult:
+               exposure: str = "frames", curved: bool = False) -> VideoResult:
     """Blur every frame of a video file or image folder ``src`` into ``dst``.
 
     The output keeps the input's frame rate and timestamps (``fps`` sets it for an image
     sequence) and copies the audio.  On unreadable or truncated input the frames decoded so
     far are blurred, written and finalised, then ``VideoReadError`` says how many.
     ``layers``: layered exposure, ordered by ``order`` (``"speed"`` or ``"departure"``,
-    :func:`blur_frame`'s ``depth``); ``exposure``: :func:`blur_frame`'s.
+    :func:`blur_frame`'s ``depth``); ``exposure`` and ``curved``: :func:`blur_frame`'s.
     """
     from tqdm import tqdm
 
@@ -237,7 +281,7 @@ def blur_video(src: str | os.PathLike, dst: str | os.PathLike, *,
         t0 = time.perf_counter()
         out = blur_frame(frame.image, backward, forward, response, shutter=shutter,
                          samples=samples, backend=backend, saturation=saturation, device=device,
-                         layers=layers, depth=order, exposure=exposure)
+                         layers=layers, depth=order, exposure=exposure, curved=curved)
         t1 = time.perf_counter()
         sink.write(frame, out)
         timer["blur"] += t1 - t0

@@ -929,3 +929,115 @@ def test_device_layer_build_runs_the_device_transforms(opencl, crossing, monkeyp
     default = clblur.blur(frame, flow, "srgb", backend="opencl", depth=depth)
     assert on_device <= set(calls)
     np.testing.assert_array_equal(default, dev)
+
+
+# ------------------------------------------------------------- curved paths of one frame
+
+@pytest.fixture(scope="module")
+def star():
+    """clblur.scenes' star_leaving (turns 34 degrees and accelerates) at K = 48."""
+    from clblur import scenes as rendered
+
+    scene = rendered.example_scenes(160, 112)["star_leaving"]
+    return rendered.render(scene, "srgb", np.uint8, samples=48)
+
+
+def test_a_curved_path_without_a_bend_is_the_straight_chord(crossing):
+    """Equal halves have no quadratic term: the curved path is the layered blur along the
+    chord, bit for bit."""
+    from clblur.vectors import blur_bent
+
+    sc, frame, truth, flow, depth, swept = crossing
+    half = flow / 2
+    np.testing.assert_array_equal(
+        blur_bent(frame, half, half, "srgb", backend="numpy", layers=True, depth=depth,
+                  curved=True),
+        clblur.blur(frame, flow, "srgb", backend="numpy", depth=depth))
+
+
+def test_a_curved_gather_is_the_mean_along_the_parabola(rng):
+    """One surface that accelerates (no ordering): every sample along ``p - D t - C t^2``,
+    averaged in linear light, against a direct evaluation of that sum."""
+    from clblur.reference import bilinear_at
+    from clblur.vectors import blur_bent
+
+    h, w = 40, 56
+    img = rng.random((h, w, 3)).astype(np.float32)
+    first = np.broadcast_to(np.float32([2.0, 1.0]), (h, w, 2))  # slow, then fast
+    second = np.broadcast_to(np.float32([7.0, -2.0]), (h, w, 2))
+    got = blur_bent(img, first, second, "linear", backend="numpy", curved=True)
+    d = first[0, 0].astype(np.float64) + second[0, 0]
+    c = 2.0 * (second[0, 0].astype(np.float64) - first[0, 0])
+    n = int(np.ceil(np.hypot(*d) + np.hypot(*c) / 2)) + 1
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    want = np.zeros((h, w, 3))
+    for j in range(n):
+        t = j / (n - 1) - 0.5
+        want += bilinear_at(img.astype(np.float64), xx - d[0] * t - c[0] * t * t,
+                            yy - d[1] * t - c[1] * t * t, (0, 0), (h, w)) / n
+    np.testing.assert_allclose(got, want, atol=2e-6)
+    # the path passes the halves' ends: two straight halves end where the curve does
+    straight = blur_bent(img, first, second, "linear", backend="numpy")
+    assert np.abs(got - straight).max() > 0.05  # ... but not along the same points
+
+
+def test_a_curved_path_follows_a_turning_accelerating_star(star):
+    """From one frame and its depth, the parabola through the halves' points follows the
+    star's arcs better than two straight halves (the full-size scene of
+    docs/studies/occlusion.md: 37.4 -> 40.4 dB over the swept region)."""
+    from clblur.vectors import blur_bent
+
+    r = star
+    opts = dict(backend="numpy", layers=True, depth=r.depth)
+    two = psnr(blur_bent(r.sharp, r.flow_first, r.flow_second, "srgb", **opts) / 255.0,
+               r.image / 255.0, r.swept)
+    curved = psnr(blur_bent(r.sharp, r.flow_first, r.flow_second, "srgb", curved=True,
+                            **opts) / 255.0, r.image / 255.0, r.swept)
+    assert curved > two + 1.5
+
+
+@BUILDS
+@pytest.mark.parametrize("dtype", [np.uint8, np.float32])
+def test_opencl_curved_path_matches_the_reference(opencl, star, dtype, build, monkeypatch):
+    from clblur.vectors import blur_bent
+
+    monkeypatch.setenv("CLBLUR_LAYER_BUILD", build)
+    r = star
+    img = r.sharp if dtype == np.uint8 else (r.sharp / 255.0).astype(np.float32)
+    for opts in (dict(layers=True, depth=r.depth), dict(), dict(layers=True, samples=9)):
+        ref = blur_bent(img, r.flow_first, r.flow_second, "srgb", curved=True,
+                        backend="numpy", **opts)
+        got = blur_bent(img, r.flow_first, r.flow_second, "srgb", curved=True,
+                        backend="opencl", **opts)
+        agree(ref, got)
+
+
+def test_command_line_curved_path_of_a_vector_pass(tmp_path, star, capsys):
+    from clblur.cli import main
+    from clblur.io import read_image, write_image
+    from clblur.vectors import blur_bent, from_blender, to_blender
+
+    r = star
+    write_image(tmp_path / "in.png", r.sharp)
+    np.save(tmp_path / "vec.npy", to_blender(2 * r.flow_first, 2 * r.flow_second))
+    np.save(tmp_path / "depth.npy", r.depth)
+    common = ["--flow", str(tmp_path / "vec.npy"), "--vectors", "blender",
+              "--vector-shutter", "1", "--response", "srgb", "--backend", "numpy"]
+    first, second = from_blender(to_blender(2 * r.flow_first, 2 * r.flow_second), 1.0,
+                                 bent=True)
+    for path in ("bent", "curved"):
+        assert main(["blur", str(tmp_path / "in.png"), str(tmp_path / f"{path}.png"), *common,
+                     "--path", path, "--depth", str(tmp_path / "depth.npy")]) == 0
+        np.testing.assert_array_equal(
+            read_image(tmp_path / f"{path}.png"),
+            blur_bent(r.sharp, first, second, "srgb", backend="numpy", layers=True,
+                      depth=r.depth, curved=path == "curved"))
+    capsys.readouterr()
+    np.save(tmp_path / "flow.npy", r.flow)
+    for extra, message in ((["--flow", str(tmp_path / "flow.npy")], "--vectors blender or nuke"),
+                           (common[:6] + ["--anchor", "end"], "anchored at its bend")):
+        assert main(["blur", str(tmp_path / "in.png"), str(tmp_path / "x.png"), *extra,
+                     "--path", "curved"]) == 2
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "x.png").exists()

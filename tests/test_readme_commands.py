@@ -73,6 +73,8 @@ def make_inputs(root: Path) -> Path:
         exr.write_image(work / "ball.exr", np.concatenate([lin * cover, cover], axis=2))
         v = rng.normal(0, 2, (24, 32)).astype(np.float32)
         exr.write_channels(work / "vectors.exr", {f"Vector.{c}": v for c in "XYZW"})
+        exr.write_channels(work / "depth.exr", {"Z": np.where(cover[..., 0] > 0, 1.0, 10.0)
+                                                 .astype(np.float32)})
         exr.write_channels(work / "motion.exr", {f"{layer}.{c}": v for layer in
                                                  ("forward", "backward") for c in "uv"})
         views = {}  # a Blender multilayer EXR with two view layers

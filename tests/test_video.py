@@ -536,6 +536,30 @@ def test_command_line_video_order_departure(tmp_path):
     assert main(["video", str(src), str(tmp_path / "w"), "--order", "nearest"]) == 2
 
 
+def test_command_line_video_curved(tmp_path):
+    """``clblur video --curved`` blurs each frame along the parabola through its three
+    positions (``blur_frame(..., curved=True)``), with the same flows as the bent path."""
+    from clblur.cli import main
+    from clblur.video import DEFAULT_RESPONSE, DEFAULT_SHUTTER
+
+    src = tmp_path / "seq"
+    src.mkdir()
+    frames = moving_frames(3)
+    for i, f in enumerate(frames):
+        write_image(src / f"{i:03d}.png", f)
+    assert main(["video", str(src), str(tmp_path / "bent"), "--backend", "numpy", "--quiet",
+                 "--save-flows", str(tmp_path / "flows")]) == 0
+    assert main(["video", str(src), str(tmp_path / "curved"), "--flow", str(tmp_path / "flows"),
+                 "--curved", "--layers", "--backend", "numpy", "--quiet"]) == 0
+    flows = FlowFolder(tmp_path / "flows")
+    bwd, fwd = (flows.get(d, 1, frames[1].shape[:2]) for d in ("backward", "forward"))
+    got = read_image(sorted((tmp_path / "curved").glob("*.png"))[1])
+    np.testing.assert_array_equal(got, blur_frame(
+        frames[1], bwd, fwd, DEFAULT_RESPONSE, shutter=DEFAULT_SHUTTER, backend="numpy",
+        layers=True, curved=True))
+    assert not np.array_equal(got, read_image(sorted((tmp_path / "bent").glob("*.png"))[1]))
+
+
 def test_clblur_main_reports_bad_video_with_exit_code_2(tmp_path, capsys):
     from clblur.cli import main
 

@@ -8,6 +8,7 @@ from clblur.cli.options import (
     add_blur_options,
     add_memory_option,
     add_motion_options,
+    add_path_option,
     add_vector_options,
     blur_options,
     check_device,
@@ -29,6 +30,7 @@ def register(sub) -> None:
     add_blur_options(p)
     add_memory_option(p, "bound memory use")
     add_vector_options(p, "--flow")
+    add_path_option(p)
     p.add_argument("--depth", default=None, metavar="FILE|speed|departure",
                    help="occlusion order, H x W .npy or EXR depth (FILE.exr[:CHANNEL]; smaller "
                         "= nearer; integers: layer IDs), or one computed from the flow: speed "
@@ -56,13 +58,29 @@ def run(args: argparse.Namespace) -> int:
     alpha = args.alpha == "yes" or (args.alpha == "auto" and channels in (2, 4))
     check_response(args.response, channels=channels - int(alpha))
     check_device(args)
-    if args.depth is not None or alpha:
-        _blur_whole(args, alpha)  # layered exposure and alpha need the whole image
+    _check_path(args, alpha)
+    if args.depth is not None or alpha or args.path != "straight":
+        _blur_whole(args, alpha)  # layered exposure, alpha and paths need the whole image
     else:
         blur_file(args.input, args.output, motion_from_args(args), **blur_options(args),
                   memory_budget=args.memory_budget, progress=True)
     print(f"wrote {args.output}")
     return 0
+
+
+def _check_path(args: argparse.Namespace, alpha: bool) -> None:
+    """A bent or curved path is a renderer's two halves about the frame time."""
+    if args.path == "straight":
+        return
+    if args.flow is None or args.vectors == "clblur":
+        raise InputError(f"--path {args.path} needs a renderer's vector pass: give --flow "
+                         "with --vectors blender or nuke")
+    if args.anchor != "center":
+        raise InputError(f"--anchor {args.anchor} applies to a straight path; a {args.path} "
+                         "path is anchored at its bend (the frame time)")
+    if alpha:
+        raise InputError(f"--path {args.path} takes no alpha channel (use --alpha no, or "
+                         "clblur blur-layers for RGBA layers)")
 
 
 def _blur_whole(args: argparse.Namespace, alpha: bool) -> None:
@@ -72,9 +90,14 @@ def _blur_whole(args: argparse.Namespace, alpha: bool) -> None:
     from clblur.layering import NAMED_ORDERS
     from clblur.tiling import parse_size
 
-    motion = motion_from_args(args)
-    if isinstance(motion, str):
-        motion = read_flow(motion)
+    if args.path == "straight":
+        motion = motion_from_args(args)
+        if isinstance(motion, str):
+            motion = read_flow(motion)
+    else:  # the renderer's two halves (first, second)
+        from clblur.vectors import load_flow
+
+        motion = load_flow(args.flow, args.vectors, args.vector_shutter, bent=True)
     depth = args.depth  # None, a named ordering (computed from the flow) or a file
     if depth is not None and depth not in NAMED_ORDERS:
         depth = read_depth(depth)
@@ -82,5 +105,13 @@ def _blur_whole(args: argparse.Namespace, alpha: bool) -> None:
     image = read_image(args.input, max_bytes=parse_size(args.memory_budget))
     if image.dtype.kind == "f" and not args.output.lower().endswith((".tif", ".tiff", ".exr")):
         raise InputError(f"{args.output} cannot hold float images; write .tif, .tiff or .exr")
-    out = clblur.blur(image, motion, **blur_options(args), depth=depth, alpha=alpha)
+    if args.path == "straight":
+        out = clblur.blur(image, motion, **blur_options(args), depth=depth, alpha=alpha)
+    else:
+        from clblur.vectors import blur_bent
+
+        options = blur_options(args)
+        del options["anchor"]  # the bend (_check_path)
+        out = blur_bent(image, *motion, **options, layers=depth is not None, depth=depth,
+                        curved=args.path == "curved")
     write_image(args.output, out)

@@ -6,6 +6,7 @@ import argparse
 
 from clblur.cli.options import (
     add_blur_options,
+    add_path_option,
     add_vector_options,
     blur_options,
     check_device,
@@ -33,10 +34,7 @@ def register(sub) -> None:
                         "Ball.Combined; vectors: PREFIX.Vector.X/Y/Z/W with --vectors blender)")
     add_blur_options(p)
     add_vector_options(p, "the layers' vector files")
-    p.add_argument("--path", choices=["straight", "bent", "curved"], default="straight",
-                   help="with --vectors blender|nuke: the exposure chord (straight, default), "
-                        "the two halves about the frame time (bent), or the parabola through "
-                        "their three points (curved)")
+    add_path_option(p)
     p.add_argument("--overscan", type=int, default=0, metavar="PX",
                    help="pixels by which the layers extend beyond the output on every side "
                         "(default 0)")

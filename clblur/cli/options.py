@@ -111,6 +111,17 @@ def add_vector_options(p: argparse.ArgumentParser, what: str) -> None:
                         "i.e. 180 degrees)")
 
 
+PATHS = ("straight", "bent", "curved")
+
+
+def add_path_option(p: argparse.ArgumentParser) -> None:
+    """--path: how a renderer's vector pass is followed over the shutter."""
+    p.add_argument("--path", choices=list(PATHS), default="straight",
+                   help="with --vectors blender|nuke: the exposure chord (straight, default), "
+                        "the two halves about the frame time (bent), or the parabola through "
+                        "their three points (curved)")
+
+
 def motion_from_args(args: argparse.Namespace) -> object:
     """The motion a blur command asked for; a flow stays a path so big ones can be mapped."""
     from clblur.io import read_psf

@@ -61,6 +61,9 @@ def register(subparsers) -> None:
                         "speed, faster = nearer (default); departure, what moves against the "
                         "frame's dominant motion (a camera that pans or tracks over a static "
                         "scene)")
+    p.add_argument("--curved", action="store_true",
+                   help="follow the parabola through each pixel's previous, current and next "
+                        "positions, not two straight halves (turning or accelerating motion)")
     p.add_argument("--save-flows", default=None, metavar="DIR",
                    help="also write the flows used, in the --flow DIR layout")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -82,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
                         codec=args.codec, crf=args.crf, save_flows_to=args.save_flows,
                         layers=args.layers or args.order is not None,
                         order=args.order or "speed", progress=not args.quiet,
-                        exposure=args.exposure)
+                        exposure=args.exposure, curved=args.curved)
     audio = {"copied": ", audio copied", "dropped": ", audio dropped (image sequence output)",
              "none": ""}[result.audio]
     print(f"wrote {result.frames} frame(s) at {float(result.fps):g} fps to {result.output}"

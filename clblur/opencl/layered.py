@@ -210,7 +210,8 @@ def transforms(device: str | None = None) -> Transforms:
 BUILDS = ("auto", "device", "host")
 
 
-def integrator(device: str | None = None, build: str | None = None):
+def integrator(device: str | None = None, build: str | None = None,
+               curvature: np.ndarray | None = None):
     """The sparse layered integrator on the device (``clblur.pipeline`` Conventions).
 
     ``build``: where the layered region is found and the layers' labels, distance transforms
@@ -222,7 +223,8 @@ def integrator(device: str | None = None, build: str | None = None):
     63 % of it layered) took 1.0 s against 1.16 s with the host build, the bench frames the
     same (``bench/results_occlusion.md``, 2026-11-27).  None: the environment variable
     ``CLBLUR_LAYER_BUILD``, else ``"auto"``.  Both builds are held to the reference
-    (``docs/tolerances.md``)."""
+    (``docs/tolerances.md``).  ``curvature``: a curved path's quadratic term
+    (``clblur.layered_exposure.integrator``); its region is found on the host."""
     if build is None:
         build = os.environ.get("CLBLUR_LAYER_BUILD", "auto").strip().lower() or "auto"
     if build not in BUILDS:
@@ -235,14 +237,13 @@ def integrator(device: str | None = None, build: str | None = None):
             return None
         on_device = build != "host"
         v, order, rule = ordered
-        if on_device:
+        ops = transforms(device) if on_device else None  # None: layer_planes.HOST
+        if on_device and curvature is None:
             from clblur.opencl import region as device_region
 
-            ops = transforms(device)
             region, r = device_region.region_and_reach(v, plan.anchor, device=device)
         else:
-            ops, r = None, None  # prepare's default: layer_planes.HOST, looked up per call
-            region = layered.region_mask(v, plan.anchor)
+            region, r = layered.region_and_reach(v, plan.anchor, curvature)
         if not region.any():
             return None
         def crop_linear(crop):  # linearise only the crop the layers need, in float32 (the planes')
@@ -250,7 +251,7 @@ def integrator(device: str | None = None, build: str | None = None):
                                        np.float32)
         layers = layered.prepare(crop_linear, v, order, plan.anchor, region,
                                  layered.background_linear(plan), rule=rule,
-                                 dtype=np.float32, transforms=ops, r=r)
+                                 dtype=np.float32, transforms=ops, r=r, curvature=curvature)
         if layers is None:
             return None
         values = composite(layers, plan.anchor, plan.samples, plan.weights, plan.full_shape,

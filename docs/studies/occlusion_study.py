@@ -94,6 +94,12 @@ def methods_for(r: scenes.Render, backend: str, scene: scenes.Scene | None = Non
         out["depth layers, bent path"] = vectors.blur_bent(
             r.sharp, r.flow_first, r.flow_second, RESPONSE, **backend_opts, layers=True,
             depth=r.depth)
+        if "curved" in inspect.signature(vectors.blur_bent).parameters:
+            # the parabola through the same halves' three points (a tree from before the
+            # option runs the script too)
+            out["depth layers, curved path"] = vectors.blur_bent(
+                r.sharp, r.flow_first, r.flow_second, RESPONSE, **backend_opts, layers=True,
+                depth=r.depth, curved=True)
     if depth_supported() and plate_supported():
         # a multi-layer render also hands over the background alone: the hidden light of the
         # background is then known (hidden parts of far objects still are not)
@@ -183,6 +189,20 @@ def gopro_part(args) -> dict | None:
             got["depth layers (proxy)"] = depth_blur_frame(frames[c], bwd, fwd, args.backend)
             got["depth layers (two-layer proxy IDs)"] = depth_blur_frame(
                 frames[c], bwd, fwd, args.backend, ids=True)
+        if "curved" in inspect.signature(video.blur_frame).parameters:
+            # the parabola through the three positions (clblur video --curved): one surface
+            # read along the curve, then with the depth proxy's layers
+            got["curved path"] = video.blur_frame(frames[c], bwd, fwd, RESPONSE, shutter=360,
+                                                  backend=args.backend, curved=True)
+            got["curved path, depth layers (proxy)"] = video.blur_frame(
+                frames[c], bwd, fwd, RESPONSE, shutter=360, backend=args.backend, layers=True,
+                depth="departure", curved=True)
+            # what of its gain is the curve: the same with equal halves (no curvature), i.e.
+            # the straight chord, one surface read along its inverse motion
+            first, second = video.half_paths(bwd, fwd, 360, frames[c].shape[:2])
+            mean = (first + second) / 2
+            got["chord along the inverse motion (curved path, equal halves)"] = \
+                video.blur_curved(frames[c], mean, mean, RESPONSE, backend=args.backend)
         for m, img in got.items():
             rows.setdefault(m, {})[str(c)] = vs.psnr(img, truth)
         print(f"GoPro frame {c}: " + ", ".join(f"{m} {rows[m][str(c)]:.2f}" for m in rows),
@@ -279,7 +299,8 @@ def figures(renders: dict, table: dict) -> None:
 
 def summarise(table: dict, gopro: dict | None, gentle: dict | None = None) -> str:
     ms = ["gather", "speed layers", "depth layers", "depth rank as layer IDs",
-          "depth layers, bent path", "depth layers + clean plate",
+          "depth layers, bent path", "depth layers, curved path",
+          "depth layers + clean plate",
           "render layers blurred apart, then over", "render layers",
           "render layers, bent path, overscan", "render layers, curved path, overscan",
           "sharp frame (no blur)"]
