@@ -169,11 +169,13 @@ def blur_curved(image: np.ndarray, first: np.ndarray, second: np.ndarray,
     from clblur.layered_exposure import integrator
     from clblur.pipeline import run
 
-    f64, s64 = np.asarray(first, np.float64), np.asarray(second, np.float64)
+    shape = check_image(image).shape[:2]
+    f64, s64 = (_check_flow(h, shape, what).astype(np.float64)
+                for h, what in ((first, "first half"), (second, "second half")))
     chord = (f64 + s64).astype(np.float32)
     bend = (2.0 * (s64 - f64)).astype(np.float32)
     if depth is None:  # one surface: layer IDs all 0, read along the curve
-        depth = np.zeros(check_image(image).shape[:2], np.int32)
+        depth = np.zeros(shape, np.int32)
     plan = make_plan(image, chord, response, anchor="center", samples=samples,
                      saturation=saturation, depth=depth, exposure=exposure, check_flow=True)
     ran = resolve_backend(backend, device)

@@ -1041,3 +1041,14 @@ def test_command_line_curved_path_of_a_vector_pass(tmp_path, star, capsys):
         err = capsys.readouterr().err
         assert message in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "x.png").exists()
+
+
+def test_a_curved_path_checks_its_halves():
+    from clblur.video import blur_curved
+
+    img = np.zeros((10, 12, 3), np.uint8)
+    ok = np.zeros((10, 12, 2), np.float32)
+    with pytest.raises(ValueError, match=r"second half flow has shape \(10, 11, 2\)"):
+        blur_curved(img, ok, np.zeros((10, 11, 2)), backend="numpy")
+    with pytest.raises(ValueError, match="first half flow contains NaN"):
+        blur_curved(img, np.full_like(ok, np.nan), ok, backend="numpy")
