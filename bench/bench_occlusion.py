@@ -10,9 +10,14 @@ discs moving 26 and 40 px over the shutter, the faster one behind) with a per-pi
 depth map; median wall time and median process CPU time (all threads) of ``clblur.blur``
 with and without ``depth`` on the chosen backend (PoCL here).
 
+Curved path: ``clblur.video.blur_frame`` of GoPro frame 10 (``$CLBLUR_DATA/gopro240``, DIS
+flows to frames 2 and 18, 360-degree shutter, skipped without the data) along the bent path
+(the default: two straight halves gathered) and along the parabola through the three
+positions (``curved=True``), alone and with the departure ordering.
+
 Run:  python bench/bench_occlusion.py [--backend opencl] [--k 64] [--repeat 5]
           [--timing-only] [--results PATH]
-Prints two tables and writes them at the top of bench/results_occlusion.md, or PATH (the notes
+Prints three tables and writes them at the top of bench/results_occlusion.md, or PATH (the notes
 below its marker line, written by hand, are kept).  ``--timing-only`` skips the accuracy table
 (the numpy reference's, the same on every device): the GPU run writes
 ``bench/results_occlusion_gpu.md`` that way.
@@ -120,6 +125,42 @@ def _timing_row(backend: str, repeat: int, label: str, pan) -> str:
             f"{layered[1] / plain[1]:.2f} | {100 * share:.1f} % |")
 
 
+def curved_timing(backend: str, repeat: int) -> list[str]:
+    """Wall and process CPU time of one GoPro frame's blur along the bent and curved paths."""
+    from clblur import video
+    from clblur.flow import FlowEstimator
+    from clblur.io import gopro_frames, read_image
+
+    names = gopro_frames()
+    if len(names) < 19:
+        return []
+    frames = [read_image(names[i]) for i in (2, 10, 18)]
+    est = FlowEstimator("dis")
+    bwd, fwd = est(frames[1], frames[0]), est(frames[1], frames[2])
+    mp = frames[1].shape[0] * frames[1].shape[1] / 1e6
+    rows = [f"| GoPro frame 10 ({frames[1].shape[1]} x {frames[1].shape[0]}), {backend} | "
+            "wall / CPU (s) | ratio to the bent gather, wall / CPU | MP per CPU-second |",
+            "|---|---|---|---|"]
+    base = None
+    for label, opts in (("bent path, gather (the default)", {}),
+                        ("curved path", dict(curved=True)),
+                        ("curved path, departure layers",
+                         dict(curved=True, layers=True, depth="departure"))):
+        video.blur_frame(frames[1], bwd, fwd, "srgb", shutter=360, backend=backend, **opts)
+        wall, cpu = [], []
+        for _ in range(repeat):
+            t0, c0 = time.perf_counter(), time.process_time()
+            video.blur_frame(frames[1], bwd, fwd, "srgb", shutter=360, backend=backend, **opts)
+            wall.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
+        w, c = float(np.median(wall)), float(np.median(cpu))
+        base = base or (w, c)
+        rows.append(f"| {label} | {w:.3f} / {c:.3f} | {w / base[0]:.1f} / {c / base[1]:.1f} | "
+                    f"{mp / c:.1f} |")
+        print(rows[-1], flush=True)
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--backend", default="opencl")
@@ -138,6 +179,7 @@ def main() -> None:
         "the numpy reference, response srgb, default sample counts):", "",
         *accuracy(args.k), ""]
     spd = timing(args.backend, args.repeat)
+    curved = curved_timing(args.backend, args.repeat)
     load = os.getloadavg()[0]
     stamp = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     command = " ".join(["python bench/bench_occlusion.py", *sys.argv[1:]])
@@ -149,7 +191,10 @@ def main() -> None:
         "",
         *acc,
         "Cost against the plain gather (median wall time and median process CPU time of "
-        "`clblur.blur`, per-pixel flow, response srgb):", "", *spd, ""])
+        "`clblur.blur`, per-pixel flow, response srgb):", "", *spd, "",
+        *(["Curved path against the bent path on real flow (`clblur.video.blur_frame`, "
+           "median of the runs; their PSNR against the GoPro truth: docs/studies/occlusion.md, "
+           "GoPro table):", "", *curved, ""] if curved else [])])
     write_results(args.results, text)
     print(f"wrote {args.results}")
 

@@ -46,8 +46,9 @@ class Layers:
     zeros, so skipping it changes nothing but the sample count); ``warped``: K bool, whether
     layer ``k``'s vectors vary (not a rigid translation).  ``curvature``: None (straight
     paths), or K x h x w x 2 float32 ``C_k``, the quadratic term of a curved path
-    (``clblur.layered_exposure``, curved paths; only ``clblur.render_layers`` builds it; a
-    layer is ``warped`` when its ``D_k`` or its ``C_k`` vary).  ``inverse_steps``: fixed-point
+    (``clblur.layered_exposure``, curved paths; built by ``clblur.render_layers`` and, for
+    one frame, by :func:`prepare`; a layer is ``warped`` when its ``D_k`` or its ``C_k``
+    vary).  ``inverse_steps``: fixed-point
     steps of a warped layer's inverse motion (``clblur.layered_exposure``); None is
     ``INVERSE_STEPS``, the count for estimated flow; ``clblur.render_layers`` sets its own for
     a renderer's exact vectors.  ``reach``: None, or K x h x w bool, the pixels at which

@@ -53,11 +53,14 @@ Conventions
   from the solution, so the last iterate is kept only where its step (the residual
   ``|q + D_k(q) t - p|`` of the iterate before it) is the smallest so far; elsewhere the
   iterate with the smallest residual is read.
-* **Curved paths** (``Layers.curvature``, built by ``clblur.render_layers`` from a bent
-  path's two halves): layer ``k`` moves along ``D_k t + C_k t^2``, ``t = (s_j - a)``, read at
-  the solution of ``q = p - D_k(q) t - C_k(q) t^2`` (the same fixed-point steps, ``C_k`` read
-  as ``D_k`` is), and a pixel's default sample count takes ``|D_k| + |C_k| / 2`` (a bound on
-  the path's length over a unit time span) in place of ``|D_k|``.
+* **Curved paths** (``Layers.curvature``, from a bent path's two halves: built by
+  ``clblur.render_layers`` for a multi-layer render, by :func:`prepare` for one frame,
+  ``clblur.video.blur_curved``, whose region :func:`curved_region` also takes the pixels
+  whose path bends away from its chord): layer ``k`` moves along ``D_k t + C_k t^2``,
+  ``t = (s_j - a)``, read at the solution of ``q = p - D_k(q) t - C_k(q) t^2`` (the same
+  fixed-point steps, ``C_k`` read as ``D_k`` is), and a pixel's default sample count takes
+  ``|D_k| + |C_k| / 2`` (a bound on the path's length over a unit time span) in place of
+  ``|D_k|``.
 * **What is behind an object is not in the image.**  Assumption: a hidden pixel of a farther
   layer continues the visible pixels of the layers at or behind it smoothly (its light the
   membrane fill of ``clblur.layer_planes.harmonic_fill``) and moves with the nearest of them
