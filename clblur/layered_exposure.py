@@ -240,14 +240,16 @@ def curved_reach(v: np.ndarray, c: np.ndarray, anchor: float) -> float:
     return float(far.max()) * (1 + 1e-6)
 
 
-def curved_region(v: np.ndarray, c: np.ndarray, anchor: float) -> np.ndarray:
+def curved_region(v: np.ndarray, c: np.ndarray, anchor: float,
+                  r: float | None = None) -> np.ndarray:
     """The pixels that take the layered path on a curved path: :func:`region_mask` with the
     curved path's reach, and every pixel within that reach (+ 2 px) of a pixel whose path
     bends away from its chord by more than ``SPREAD_PX / 2`` (``|C| s^2``, ``s = max(a,
     1 - a)``): there the straight gather of the chord misses the curve, even where
-    everything moves alike (a camera that accelerates)."""
+    everything moves alike (a camera that accelerates).  ``r``: :func:`curved_reach`, where
+    the caller has it."""
     s = max(anchor, 1.0 - anchor)
-    r = curved_reach(v, c, anchor)
+    r = curved_reach(v, c, anchor) if r is None else r
     out = region_mask(v, anchor, r=r)
     bends = np.hypot(c[..., 0], c[..., 1]) * (s * s) > 0.5 * SPREAD_PX
     if bends.any():
@@ -430,7 +432,8 @@ def region_and_reach(v: np.ndarray, anchor: float, curvature: np.ndarray | None 
     the samples' reach, on the host."""
     if curvature is None:
         return region_mask(v, anchor), reach(v, anchor)
-    return curved_region(v, curvature, anchor), curved_reach(v, curvature, anchor)
+    r = curved_reach(v, curvature, anchor)
+    return curved_region(v, curvature, anchor, r), r
 
 
 def background_linear(plan: BlurPlan) -> np.ndarray | None:
