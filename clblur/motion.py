@@ -32,7 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["ANCHORS", "FLOW_LIMIT", "PSF", "EXPOSURES", "Field", "Uniform", "anchor_value",
-           "check_flow", "check_exposure", "flow_error", "parse_motion", "psf", "sample_counts",
+           "check_flow", "check_exposure", "curved_terms", "flow_error", "parse_motion", "psf",
+           "sample_counts",
            "sample_fractions", "sample_weight", "time_weights", "trapezoid_weights",
            "uniform_taps"]
 
@@ -160,6 +161,17 @@ def psf(kernel: np.ndarray) -> PSF:
     if total <= 0:
         raise ValueError("PSF weights sum to zero")
     return PSF(k / total)
+
+
+def curved_terms(first: np.ndarray, second: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The parabola through a bent path's three points, ``P(t) - P(0) = D t + C t^2`` for
+    ``t`` in ``[-1/2, 1/2]`` (anchor ``center``): ``first`` (H x W x 2) ends at the frame
+    time, ``second`` starts there; returns float32 ``(D, C) = (first + second, 2 (second -
+    first))``, formed in float64.  It passes the start (``-first``) and the end (``second``)
+    and is exact for a constant acceleration; ``C = 0`` is the straight chord."""
+    f = np.asarray(first, np.float64)
+    s = np.asarray(second, np.float64)
+    return (f + s).astype(np.float32), (2.0 * (s - f)).astype(np.float32)
 
 
 def sample_counts(dx: np.ndarray, dy: np.ndarray) -> np.ndarray:

@@ -58,6 +58,7 @@ import numpy as np
 
 from clblur.errors import InputError
 from clblur.layer_planes import Layers, bounding_box
+from clblur.motion import curved_terms
 from clblur.request import BlurPlan, make_plan, retime
 
 __all__ = ["RENDER_INVERSE_STEPS", "blur_layers", "layers_for", "path_offsets", "still_alone",
@@ -471,9 +472,9 @@ def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "cente
     region[overscan:h - overscan, overscan:w - overscan] = True
     planes = np.float64 if ran == "numpy" else np.float32  # what each backend composites in
     if curved:  # one parabola through the halves' three points
-        first, second = ([_field_of(p).astype(np.float64) for p in half] for half in plans)
-        chord = [(f + s).astype(np.float32) for f, s in zip(first, second, strict=True)]
-        bend = [(2.0 * (s - f)).astype(np.float32) for f, s in zip(first, second, strict=True)]
+        terms = [curved_terms(_field_of(f), _field_of(s))
+                 for f, s in zip(plans[0], plans[1], strict=True)]
+        chord, bend = [d for d, _ in terms], [c for _, c in terms]
         stack = layers_for(linear, chord, 0.5, region, curvature=bend, dtype=planes,
                            reach_counts=exposure == "frames")
         acc, alone, which = _composite(stack, retime(plans[0][0], anchor=0.5,

@@ -52,7 +52,7 @@ from clblur.io.video import (
 )
 from clblur.layered_exposure import layered_half
 from clblur.layering import departure_order, named_order
-from clblur.motion import check_exposure
+from clblur.motion import check_exposure, curved_terms
 from clblur.pipeline import run_numpy
 from clblur.request import check_image, make_plan
 from clblur.responses import per_channel
@@ -170,10 +170,8 @@ def blur_curved(image: np.ndarray, first: np.ndarray, second: np.ndarray,
     from clblur.pipeline import run
 
     shape = check_image(image).shape[:2]
-    f64, s64 = (_check_flow(h, shape, what).astype(np.float64)
-                for h, what in ((first, "first half"), (second, "second half")))
-    chord = (f64 + s64).astype(np.float32)
-    bend = (2.0 * (s64 - f64)).astype(np.float32)
+    chord, bend = curved_terms(_check_flow(first, shape, "first half"),
+                               _check_flow(second, shape, "second half"))
     if depth is None:  # one surface: layer IDs all 0, read along the curve
         depth = np.zeros(shape, np.int32)
     plan = make_plan(image, chord, response, anchor="center", samples=samples,
