@@ -70,6 +70,28 @@ def test_crossing_with_the_faster_object_behind(crossing):
     assert psnr(plate, truth, swept) > 45.5
 
 
+@pytest.mark.parametrize("view", ["flip x", "flip y", "transpose"])
+def test_layered_exposure_commutes_with_flips_and_transposition(crossing, view):
+    """Mirroring or transposing the scene (image, depth and the vectors with it) mirrors or
+    transposes the result.  Not bit for bit: the culling's tiles start at the top left and
+    the nearest-pixel transforms break ties in row-major order, so a handful of pixels on
+    the layers' seams take another equidistant neighbour.  Measured on this scene: under
+    0.4 % of the pixels move by more than 1e-3, none by more than 0.008, swept PSNR within
+    0.03 dB."""
+    sc, frame, truth, flow, depth, swept = crossing
+    mirror = {"flip x": (lambda a: a[:, ::-1], np.float32([-1, 1])),
+              "flip y": (lambda a: a[::-1], np.float32([1, -1])),
+              "transpose": (lambda a: a.swapaxes(0, 1), None)}
+    view_of, sign = mirror[view]
+    moved = view_of(flow)[..., ::-1] if sign is None else view_of(flow) * sign
+    img, v, d = (np.ascontiguousarray(x) for x in (view_of(frame), moved, view_of(depth)))
+    got = view_of(clblur.blur(img, v, "srgb", backend="numpy", depth=d))
+    want = clblur.blur(frame, flow, "srgb", backend="numpy", depth=depth)
+    diff = np.abs(got - want)
+    assert (diff > 1e-3).mean() < 0.01 and diff.max() < 0.02 and diff.mean() < 1e-4
+    assert abs(psnr(got, truth, swept) - psnr(want, truth, swept)) < 0.1
+
+
 def test_a_far_object_continues_under_a_near_one_as_far_as_its_convex_hull():
     """The amodal completion of an intermediate layer: the convex hull of what shows of it,
     where a nearer layer covers it; never outside the object for a convex one."""
