@@ -90,14 +90,9 @@ def _blur_whole(args: argparse.Namespace, alpha: bool) -> None:
     from clblur.layering import NAMED_ORDERS
     from clblur.tiling import parse_size
 
-    if args.path == "straight":
-        motion = motion_from_args(args)
-        if isinstance(motion, str):
-            motion = read_flow(motion)
-    else:  # the renderer's two halves (first, second)
-        from clblur.vectors import load_flow
-
-        motion = load_flow(args.flow, args.vectors, args.vector_shutter, bent=True)
+    motion = motion_from_args(args, bent=args.path != "straight")  # bent: the two halves
+    if isinstance(motion, str):
+        motion = read_flow(motion)
     depth = args.depth  # None, a named ordering (computed from the flow) or a file
     if depth is not None and depth not in NAMED_ORDERS:
         depth = read_depth(depth)

@@ -122,8 +122,10 @@ def add_path_option(p: argparse.ArgumentParser) -> None:
                         "their three points (curved)")
 
 
-def motion_from_args(args: argparse.Namespace) -> object:
-    """The motion a blur command asked for; a flow stays a path so big ones can be mapped."""
+def motion_from_args(args: argparse.Namespace, bent: bool = False) -> object:
+    """The motion a blur command asked for; a flow stays a path so big ones can be mapped.
+    ``bent``: a renderer's vector pass as its two halves about the frame time (``--path
+    bent|curved``; `clblur blur` checks first that a pass was given)."""
     from clblur.io import read_psf
 
     if args.motion is not None:
@@ -132,7 +134,7 @@ def motion_from_args(args: argparse.Namespace) -> object:
         if getattr(args, "vectors", "clblur") != "clblur":  # a renderer's vector pass
             from clblur.vectors import load_flow
 
-            return load_flow(args.flow, args.vectors, args.vector_shutter)
+            return load_flow(args.flow, args.vectors, args.vector_shutter, bent=bent)
         return args.flow
     return read_psf(args.psf)
 
