@@ -90,8 +90,9 @@ def speed_scene(h: int = 720, w: int = 1280, pan: tuple[float, float] = (0.0, 0.
 
 def timing(backend: str, repeat: int) -> list[str]:
     rows = ["| 1280 x 720 RGB uint8, backend | plain gather: wall / CPU (s) | "
-            "depth layers: wall / CPU (s) | ratio wall / CPU | pixels on the layered path |",
-            "|---|---|---|---|---|"]
+            "depth layers: wall / CPU (s) | ratio wall / CPU | MP per CPU-second, gather / "
+            "layers | pixels on the layered path |",
+            "|---|---|---|---|---|---|"]
     for label, pan in (("static background", (0.0, 0.0)), ("background panning 16 px",
                                                              (16.0, 2.0))):
         rows.append(_timing_row(backend, repeat, label, pan))
@@ -120,9 +121,11 @@ def _timing_row(backend: str, repeat: int, label: str, pan) -> str:
 
     plain = best()
     layered = best(depth=depth)
+    mp = img.shape[0] * img.shape[1] / 1e6
     return (f"| {label}, {backend} | {plain[0]:.3f} / {plain[1]:.3f} | "
             f"{layered[0]:.3f} / {layered[1]:.3f} | {layered[0] / plain[0]:.2f} / "
-            f"{layered[1] / plain[1]:.2f} | {100 * share:.1f} % |")
+            f"{layered[1] / plain[1]:.2f} | {mp / plain[1]:.1f} / {mp / layered[1]:.1f} | "
+            f"{100 * share:.1f} % |")
 
 
 def curved_timing(backend: str, repeat: int) -> list[str]:
