@@ -22,7 +22,7 @@ from clblur.halo import halo_for_reach, reach
 from clblur.layering import layer_labels
 
 __all__ = ["HOST", "INPAINT_RADIUS", "Layers", "MID_EXTEND_PX", "SPLIT_PRIOR", "bounding_box",
-           "Transforms", "distance_to", "harmonic_fill", "hidden_hull", "prepare",
+           "Transforms", "crop_margin", "distance_to", "harmonic_fill", "hidden_hull", "prepare",
            "split_coverage"]
 
 # px the reconstruction of hidden light extends beyond the pixels a sample reads, so that
@@ -378,6 +378,13 @@ def split_coverage(light: np.ndarray, front: np.ndarray, behind: np.ndarray) -> 
     return np.where(np.isfinite(a), a, 0.5)
 
 
+def crop_margin(r: float) -> int:
+    """How far beyond its region (px) :func:`prepare` reads the image, vectors and ordering
+    for samples that reach ``r``: the rearmost layer's reconstruction (``2 r + 2`` under what
+    hides it) read from up to ``r`` away, plus the bilinear footprint."""
+    return int(math.ceil(2.0 * r + 2.0 + r)) + 3
+
+
 def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
             region: np.ndarray, background: np.ndarray | None = None,
             split_edges: bool = True, rule: str = "depth",
@@ -405,8 +412,7 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     h, w = region.shape
     r = reach(v, anchor) if r is None else r
     band = 2.0 * r + 2.0
-    margin = int(math.ceil(band + r)) + 3
-    crop = bounding_box(region, margin)
+    crop = bounding_box(region, crop_margin(r))
     (r0, r1), (c0, c1) = (crop[0].start, crop[0].stop), (crop[1].start, crop[1].stop)
     labels = transforms.labels(order[crop], rule=rule)
     last = int(labels.max())

@@ -29,7 +29,9 @@ Conventions
   ``SPREAD_PX`` in x or y; within such tiles, only pixels near a motion edge or inside a
   turning or stretching layer (:func:`region_mask`).  Elsewhere every surface that can reach a
   pixel moves alike, nothing is revealed or hidden, and the result is the plain gather, bit
-  for bit.
+  for bit.  Pieces of the region too far apart for their layers to meet (their boxes grown
+  by ``crop_margin(R)`` do not overlap) are layered apart, each on its own crop, its
+  surfaces cut and ordered there (:func:`region_parts`).
 * Each layer ``k`` is a premultiplied image ``P_k = (M_k L, M_k)`` (linear light ``L``, 0/1
   coverage ``M_k``) with a vector field ``D_k``: a pixel's own vector on the layer, and the
   vector of the nearest layer pixel elsewhere (a layer moves locally as one piece).  At shutter
@@ -85,7 +87,14 @@ import math
 import numpy as np
 
 from clblur.halo import reach
-from clblur.layer_planes import SPLIT_PRIOR, Layers, distance_to, prepare, split_coverage
+from clblur.layer_planes import (
+    SPLIT_PRIOR,
+    Layers,
+    crop_margin,
+    distance_to,
+    prepare,
+    split_coverage,
+)
 from clblur.layering import (
     DEPTH_TAU,
     GAP_FRACTION,
@@ -101,7 +110,7 @@ from clblur.request import BlurPlan
 __all__ = ["DEPTH_TAU", "GAP_FRACTION", "INVERSE_STEPS", "MAX_LAYERS", "SPLIT_PRIOR",
            "SPREAD_PX", "TILE", "Layers",
            "boundary_mask", "depth_components", "order_components", "region_mask",
-           "integrate", "integrator", "layer_labels", "layered_half", "prepare",
+           "integrate", "integrator", "layer_labels", "layered_half", "prepare", "region_parts",
            "speed_order", "split_coverage", "steps_of", "composite"]
 
 SPREAD_PX = 1.0
@@ -413,17 +422,56 @@ def integrate(lin: np.ndarray, plan: BlurPlan, curvature: np.ndarray | None = No
     region, r = region_and_reach(v, plan.anchor, curvature)
     if not region.any():
         return acc
-    layers = prepare(lin, v, order, plan.anchor, region, background_linear(plan), rule=rule,
-                     r=r, curvature=curvature)
-    if layers is None:
-        return acc
-    out = composite(layers, plan.anchor, plan.samples, plan.weights, plan.full_shape,
-                    plan.ends)
-    h, w = layers.region.shape
-    r0, c0 = layers.origin
-    view = acc[r0:r0 + h, c0:c0 + w]
-    view[layers.region] = out[layers.region]
+    plate = background_linear(plan)
+    for part in region_parts(region, r):
+        layers = prepare(lin, v, order, plan.anchor, part, plate, rule=rule, r=r,
+                         curvature=curvature)
+        if layers is None:  # one surface there: what the gather integrated
+            continue
+        out = composite(layers, plan.anchor, plan.samples, plan.weights, plan.full_shape,
+                        plan.ends)
+        h, w = layers.region.shape
+        r0, c0 = layers.origin
+        view = acc[r0:r0 + h, c0:c0 + w]
+        view[layers.region] = out[layers.region]
     return acc
+
+
+def region_parts(region: np.ndarray, r: float, tile: int = TILE) -> list[np.ndarray]:
+    """``region`` (H x W bool) cut into parts whose layers are built apart (H x W bool each,
+    in raster order); ``[region]`` itself when it is one part.
+
+    Why: :func:`prepare` builds the layers on the bounding box of its region grown by
+    ``crop_margin(r)``, so two objects in opposite corners made it build them on the whole
+    frame: time and memory grew with the frame, not with what moves.  A part is a group of
+    the region's ``tile`` x ``tile`` tiles that lie within ``2 ceil(crop_margin(r) / tile)``
+    tiles of one another, in chains (8-connected after that dilation of the tile grid):
+    pieces whose crops would overlap are built together, once.  Every sample of a part's
+    pixel, and everything that builds the layers it reads, lies within its own crop, so a
+    part's result is the one its crop gives; its surfaces are cut and ordered there."""
+    from scipy.ndimage import find_objects, label, maximum_filter
+
+    h, w = region.shape
+    th, tw = -(-h // tile), -(-w // tile)
+    padded = np.zeros((th * tile, tw * tile), bool)
+    padded[:h, :w] = region
+    tiles = padded.reshape(th, tile, tw, tile).any(axis=(1, 3))
+    grow = math.ceil(crop_margin(r) / tile)
+    groups, n = label(maximum_filter(tiles, size=2 * grow + 1), structure=np.ones((3, 3), bool))
+    if n <= 1:
+        return [region]
+    groups[~tiles] = 0
+    parts = []
+    for k, box in enumerate(find_objects(groups), start=1):
+        if box is None:
+            continue
+        rows = slice(box[0].start * tile, min(box[0].stop * tile, h))
+        cols = slice(box[1].start * tile, min(box[1].stop * tile, w))
+        on = np.repeat(np.repeat(groups[box] == k, tile, axis=0), tile, axis=1)
+        part = np.zeros((h, w), bool)
+        part[rows, cols] = on[:rows.stop - rows.start, :cols.stop - cols.start] & region[rows, cols]
+        parts.append(part)
+    return parts
 
 
 def region_and_reach(v: np.ndarray, anchor: float, curvature: np.ndarray | None = None

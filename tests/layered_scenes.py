@@ -123,4 +123,9 @@ def scenes() -> dict[str, Scene]:
             Disc((66.0, 34.0), 9.0, (-28.0, 0.0), 5.0, 6),
         )),
         "static": Scene((48, 64), (Disc((30.0, 24.0), 10.0, (0.0, 0.0), 10.0, 8),)),
+        # two discs in opposite corners: layered apart, each on its own crop
+        "two-far-apart": Scene((160, 288), (
+            Disc((34.0, 30.0), 14.0, (16.0, 0.0), 10.0, 9),
+            Disc((250.0, 128.0), 12.0, (-10.0, 8.0), 20.0, 10),
+        )),
     }

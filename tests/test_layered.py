@@ -441,6 +441,60 @@ def test_video_layers_use_the_layered_integrator():
     np.testing.assert_array_equal(got, expected)
 
 
+# ------------------------------------------------------- parts of the region, built apart
+
+def _two_corners(h: int = 160, w: int = 288, keep: tuple[int, ...] = (0, 1)):
+    """Two textured discs in opposite corners over a static textured background."""
+    yy, xx = np.mgrid[:h, :w]
+    img = np.stack([np.sin(xx / 5.0 + c) * np.cos(yy / 7.0 - c) for c in range(3)], -1)
+    img = ((img * 0.4 + 0.5) * 255).astype(np.uint8)
+    flow, depth = np.zeros((h, w, 2), np.float32), np.full((h, w), 50.0)
+    for i, (cx, cy, v, z) in enumerate(((30, 28, (12.0, 0.0), 5.0),
+                                         (w - 34, h - 30, (-8.0, 6.0), 9.0))):
+        if i in keep:
+            inside = np.hypot(xx - cx, yy - cy) < 14
+            img[inside] = 255 - img[inside]
+            flow[inside], depth[inside] = v, z
+    return img, flow, depth
+
+
+def test_region_parts_split_far_pieces_and_keep_near_ones():
+    img, flow, depth = _two_corners()
+    region, r = layered.region_and_reach(flow, 0.5)
+    parts = layered.region_parts(region, r)
+    assert len(parts) == 2
+    np.testing.assert_array_equal(parts[0] | parts[1], region)
+    assert not (parts[0] & parts[1]).any() and parts[0][:40, :60].any()
+    # pieces whose crops would overlap stay one part: the region itself
+    near = np.zeros_like(region)
+    near[20:30, 20:30] = near[20:30, 20 + 2 * layered.crop_margin(r):][:, :10] = True
+    assert len(layered.region_parts(near, r)) == 1
+    assert layered.region_parts(near, r)[0] is near
+
+
+def test_layers_are_built_on_each_part_alone(monkeypatch):
+    """Two objects in opposite corners: the layers are built on two small windows, not on
+    the frame between them, and each object's blur is what the frame with it alone gives,
+    bit for bit."""
+    from clblur import layer_planes
+
+    img, flow, depth = _two_corners()
+    windows = []
+
+    def spy(*args, **kwargs):
+        layers = layer_planes.prepare(*args, **kwargs)
+        windows.append(layers.region.size)
+        return layers
+    monkeypatch.setattr(layered, "prepare", spy)
+    both = clblur.blur(img, flow, "srgb", backend="numpy", depth=depth)
+    assert len(windows) == 2 and sum(windows) < 0.3 * flow.shape[0] * flow.shape[1]
+    monkeypatch.undo()
+    for keep, near in (((0,), np.s_[:80, :144]), ((1,), np.s_[80:, 144:])):
+        one_img, one_flow, one_depth = _two_corners(keep=keep)
+        alone = clblur.blur(one_img, one_flow, "srgb", backend="numpy", depth=one_depth)
+        np.testing.assert_array_equal(both[near], alone[near])
+
+
 # ----------------------------------------------------------------------------- pipeline
 
 def test_reference_blur_is_the_pipeline(rng):
@@ -517,6 +571,22 @@ def test_opencl_layered_matches_the_reference(opencl, crossing, dtype, build, mo
                             **{k: v for k, v in opts.items() if k != "background"})
         region = layered.boundary_mask(flow, 0.0 if opts.get("anchor") == "start" else 0.5)
         np.testing.assert_array_equal(got[~region], plain[~region])
+
+
+@BUILDS
+def test_opencl_builds_the_parts_apart_as_the_reference(opencl, build, monkeypatch):
+    """The device integrator cuts the region into the same parts and returns every part's
+    pixels (two objects in opposite corners)."""
+    monkeypatch.setenv("CLBLUR_LAYER_BUILD", build)
+    img, flow, depth = _two_corners()
+    ref = clblur.blur(img, flow, "srgb", backend="numpy", depth=depth)
+    got = clblur.blur(img, flow, "srgb", backend="opencl", depth=depth)
+    agree(ref, got)
+    plain = clblur.blur(img, flow, "srgb", backend="opencl")
+    region = layered.boundary_mask(flow, 0.5)
+    for corner in (np.s_[:80, :144], np.s_[80:, 144:]):  # both parts were layered
+        assert (got[corner] != plain[corner]).any()
+    np.testing.assert_array_equal(got[~region], plain[~region])
 
 
 @BUILDS

@@ -249,15 +249,21 @@ def integrator(device: str | None = None, build: str | None = None,
         def crop_linear(crop):  # linearise only the crop the layers need, in float32 (the planes')
             return reference.linearise(replace(plan, image=plan.image[crop], background=None),
                                        np.float32)
-        layers = layered.prepare(crop_linear, v, order, plan.anchor, region,
-                                 layered.background_linear(plan), rule=rule,
-                                 dtype=np.float32, transforms=ops, r=r, curvature=curvature)
-        if layers is None:
+        plate = layered.background_linear(plan)
+        found = []  # (rows, cols, values) of each part built as layers
+        for part in layered.region_parts(region, r):
+            layers = layered.prepare(crop_linear, v, order, plan.anchor, part, plate,
+                                     rule=rule, dtype=np.float32, transforms=ops, r=r,
+                                     curvature=curvature)
+            if layers is None:  # one surface there: the gather's result stands
+                continue
+            values = composite(layers, plan.anchor, plan.samples, plan.weights,
+                               plan.full_shape, device, ends=plan.ends)
+            rows, cols = np.nonzero(layers.region)
+            r0, c0 = layers.origin
+            found.append((rows + r0, cols + c0, values.astype(np.float64)))
+        if not found:
             return None
-        values = composite(layers, plan.anchor, plan.samples, plan.weights, plan.full_shape,
-                           device, ends=plan.ends)
-        rows, cols = np.nonzero(layers.region)
-        r0, c0 = layers.origin
-        return rows + r0, cols + c0, values.astype(np.float64)
+        return tuple(np.concatenate(parts) for parts in zip(*found, strict=True))
     integrate.sparse = True
     return integrate
