@@ -29,8 +29,8 @@ Conventions
   ``SPREAD_PX`` in x or y; within such tiles, only pixels near a motion edge or inside a
   turning or stretching layer (:func:`region_mask`).  Elsewhere every surface that can reach a
   pixel moves alike, nothing is revealed or hidden, and the result is the plain gather, bit
-  for bit.  Pieces of the region too far apart for their layers to meet (their boxes grown
-  by ``crop_margin(R)`` do not overlap) are layered apart, each on its own crop, its
+  for bit.  Pieces of the region far apart (no ``TILE`` tile of one within about
+  ``2 crop_margin(R)`` of a tile of another) are layered apart, each on its own crop, its
   surfaces cut and ordered there (:func:`region_parts`).
 * Each layer ``k`` is a premultiplied image ``P_k = (M_k L, M_k)`` (linear light ``L``, 0/1
   coverage ``M_k``) with a vector field ``D_k``: a pixel's own vector on the layer, and the
@@ -445,10 +445,12 @@ def region_parts(region: np.ndarray, r: float, tile: int = TILE) -> list[np.ndar
     ``crop_margin(r)``, so two objects in opposite corners made it build them on the whole
     frame: time and memory grew with the frame, not with what moves.  A part is a group of
     the region's ``tile`` x ``tile`` tiles that lie within ``2 ceil(crop_margin(r) / tile)``
-    tiles of one another, in chains (8-connected after that dilation of the tile grid):
-    pieces whose crops would overlap are built together, once.  Every sample of a part's
-    pixel, and everything that builds the layers it reads, lies within its own crop, so a
-    part's result is the one its crop gives; its surfaces are cut and ordered there."""
+    tiles of one another, in chains (8-connected after that dilation of the tile grid), so
+    pieces near enough for their crops to overlap are built together, once.  Every sample of
+    a part's pixel, and everything that builds the layers it reads, lies within its own crop,
+    so a part's result is the one its crop gives (its surfaces cut and ordered there),
+    whatever the other parts are; two parts' crops may still overlap where one part's box
+    wraps around another, which costs time only."""
     from scipy.ndimage import find_objects, label, maximum_filter
 
     h, w = region.shape
