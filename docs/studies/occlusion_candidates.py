@@ -21,7 +21,7 @@ single fused kernel could do):
 Scored as ``bench/bench_occlusion.py`` scores (``tests/layered_scenes.py``, sRGB-encoded,
 swept region, the truth's K here 64), against the gather and the depth layers of
 ``clblur.blur`` (numpy reference).  Run: ``python docs/studies/occlusion_candidates.py``
-(about 40 s).  Measured 2026-11-28 (``occlusion.md``, Cost): see the table it prints.
+(about 15 s).  Measured 2026-11-29: ``occlusion.md``, Cost.
 """
 
 from __future__ import annotations
