@@ -67,9 +67,9 @@ def accuracy(k: int) -> list[str]:
     return rows
 
 
-def speed_scene(h: int = 720, w: int = 1280, pan: tuple[float, float] = (0.0, 0.0)):
-    """Textured background moving by ``pan`` and two textured discs (vectors of 40 and 26 px
-    over the shutter), the faster one behind."""
+def discs_scene(h: int, w: int, discs, pan: tuple[float, float] = (0.0, 0.0)):
+    """Textured background moving by ``pan`` with textured discs ``(cx, cy, radius, (dx, dy),
+    depth)`` over it (a nearer disc covers a farther one): (image, flow, depth)."""
     import cv2
 
     rng = np.random.default_rng(0)
@@ -79,36 +79,28 @@ def speed_scene(h: int = 720, w: int = 1280, pan: tuple[float, float] = (0.0, 0.
     flow = np.zeros((h, w, 2), np.float32) + np.float32(pan)
     depth = np.full((h, w), 100.0)
     yy, xx = np.mgrid[0:h, 0:w]
-    for (cx, cy, rad, v, z) in ((500, 360, 110, (40.0, 0.0), 20.0),
-                                (620, 330, 90, (-24.0, 6.0), 10.0)):
+    for (cx, cy, rad, v, z) in discs:
         inside = (np.hypot(xx - cx, yy - cy) < rad) & (z < depth)
         img[inside] = np.roll(base, 37, axis=0)[inside]
         flow[inside] = v
         depth[inside] = z
     return img, flow, depth
+
+
+def speed_scene(h: int = 720, w: int = 1280, pan: tuple[float, float] = (0.0, 0.0)):
+    """Textured background moving by ``pan`` and two textured discs (vectors of 40 and 26 px
+    over the shutter), the faster one behind."""
+    return discs_scene(h, w, ((500, 360, 110, (40.0, 0.0), 20.0),
+                              (620, 330, 90, (-24.0, 6.0), 10.0)), pan)
 
 
 def spread_scene(h: int = 1080, w: int = 1920):
     """Textured static background and three textured discs far apart (top left, top right,
     bottom middle; vectors of 40, 25 and 32 px): layers built on three small crops, not on
     the frame between them (``clblur.layered_exposure.region_parts``)."""
-    import cv2
-
-    rng = np.random.default_rng(0)
-    base = cv2.resize(rng.integers(0, 256, (h // 8, w // 8, 3), dtype=np.uint8), (w, h),
-                      interpolation=cv2.INTER_CUBIC)
-    img = base.copy()
-    flow = np.zeros((h, w, 2), np.float32)
-    depth = np.full((h, w), 100.0)
-    yy, xx = np.mgrid[0:h, 0:w]
-    for (cx, cy, rad, v, z) in ((260, 220, 90, (40.0, 0.0), 20.0),
-                                (1650, 260, 80, (-24.0, 6.0), 10.0),
-                                (960, 840, 100, (10.0, -30.0), 15.0)):
-        inside = (np.hypot(xx - cx, yy - cy) < rad) & (z < depth)
-        img[inside] = np.roll(base, 37, axis=0)[inside]
-        flow[inside] = v
-        depth[inside] = z
-    return img, flow, depth
+    return discs_scene(h, w, ((260, 220, 90, (40.0, 0.0), 20.0),
+                              (1650, 260, 80, (-24.0, 6.0), 10.0),
+                              (960, 840, 100, (10.0, -30.0), 15.0)))
 
 
 def timing(backend: str, repeat: int) -> list[str]:
