@@ -83,6 +83,7 @@ Conventions
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -110,7 +111,8 @@ from clblur.request import BlurPlan
 __all__ = ["DEPTH_TAU", "GAP_FRACTION", "INVERSE_STEPS", "MAX_LAYERS", "SPLIT_PRIOR",
            "SPREAD_PX", "TILE", "Layers",
            "boundary_mask", "depth_components", "order_components", "region_mask",
-           "integrate", "integrator", "layer_labels", "layered_half", "prepare", "region_parts",
+           "built_parts", "integrate", "integrator", "layer_labels", "layered_half", "prepare",
+           "region_parts",
            "speed_order", "split_coverage", "steps_of", "composite"]
 
 SPREAD_PX = 1.0
@@ -422,12 +424,8 @@ def integrate(lin: np.ndarray, plan: BlurPlan, curvature: np.ndarray | None = No
     region, r = region_and_reach(v, plan.anchor, curvature)
     if not region.any():
         return acc
-    plate = background_linear(plan)
-    for part in region_parts(region, r):
-        layers = prepare(lin, v, order, plan.anchor, part, plate, rule=rule, r=r,
-                         curvature=curvature)
-        if layers is None:  # one surface there: what the gather integrated
-            continue
+    for layers in built_parts(lin, v, order, plan.anchor, region, r,
+                              background_linear(plan), rule=rule, curvature=curvature):
         out = composite(layers, plan.anchor, plan.samples, plan.weights, plan.full_shape,
                         plan.ends)
         h, w = layers.region.shape
@@ -435,6 +433,17 @@ def integrate(lin: np.ndarray, plan: BlurPlan, curvature: np.ndarray | None = No
         view = acc[r0:r0 + h, c0:c0 + w]
         view[layers.region] = out[layers.region]
     return acc
+
+
+def built_parts(lin, v: np.ndarray, order: np.ndarray, anchor: float, region: np.ndarray,
+                r: float, background: np.ndarray | None, **options) -> Iterator[Layers]:
+    """The layers of each part of ``region`` (:func:`region_parts`), built one after the
+    other by :func:`prepare` (``options``: its keywords); a part where the ordering gives one
+    surface on a straight path yields nothing (the gather's result stands there)."""
+    for part in region_parts(region, r):
+        layers = prepare(lin, v, order, anchor, part, background, r=r, **options)
+        if layers is not None:
+            yield layers
 
 
 def region_parts(region: np.ndarray, r: float, tile: int = TILE) -> list[np.ndarray]:

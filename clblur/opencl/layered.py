@@ -249,14 +249,11 @@ def integrator(device: str | None = None, build: str | None = None,
         def crop_linear(crop):  # linearise only the crop the layers need, in float32 (the planes')
             return reference.linearise(replace(plan, image=plan.image[crop], background=None),
                                        np.float32)
-        plate = layered.background_linear(plan)
         found = []  # (rows, cols, values) of each part built as layers
-        for part in layered.region_parts(region, r):
-            layers = layered.prepare(crop_linear, v, order, plan.anchor, part, plate,
-                                     rule=rule, dtype=np.float32, transforms=ops, r=r,
-                                     curvature=curvature)
-            if layers is None:  # one surface there: the gather's result stands
-                continue
+        for layers in layered.built_parts(crop_linear, v, order, plan.anchor, region, r,
+                                          layered.background_linear(plan), rule=rule,
+                                          dtype=np.float32, transforms=ops,
+                                          curvature=curvature):
             values = composite(layers, plan.anchor, plan.samples, plan.weights,
                                plan.full_shape, device, ends=plan.ends)
             rows, cols = np.nonzero(layers.region)
