@@ -154,17 +154,45 @@ def inverse_table(p: dict[str, float], curve: ExpShape | None = None,
 
     ``beta``: the channel's normalised black level (``effects.black_levels``); default the
     first channel's, ``p["black"]``."""
+    curve = shape(p) if curve is None else curve
+    return _code_tables(curve, p["black"] if beta is None else beta, p["rho"], p["sat"])[0].copy()
+
+
+def _code_tables(curve: ExpShape, beta: float, rho: float, sat: float
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """``(T, T'^2 / 12)``: the inverse table (``inverse_table``) and its code step's rounding
+    variance, read-only.
+
+    Remembered by value (``_tables``): a fit's finite differences move one parameter at a
+    time, and most of them (gains, noise, time weights, exposures) leave the tables as they
+    were; building them again was a fifth of a series study's time."""
+    if type(curve) is not ExpShape or curve.black != 0.0:
+        return _build_tables(curve, float(beta), float(rho), float(sat))
+    return _tables(curve.gamma, curve.rho, curve.warp, float(beta), float(rho), float(sat))
+
+
+@functools.lru_cache(maxsize=256)
+def _tables(gamma: float, shape_rho: float, warp: tuple[float, ...], beta: float, rho: float,
+            sat: float) -> tuple[np.ndarray, np.ndarray]:
+    return _build_tables(_shape(gamma, shape_rho, warp), beta, rho, sat)
+
+
+def _build_tables(curve: ExpShape, beta: float, rho: float, sat: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
     v = np.arange(CODES, dtype=np.float64) / 255.0
-    beta = p["black"] if beta is None else beta
     # Full scale as clblur.pixels (I^-1(1) where finite, else the top code bin's margin
     # for Eq. 3), blended continuously in rho: a jump at rho = 1 would let a response
     # *shape* a hair away from Eq. 3 act as a saturation factor of 2.
-    top = 1.0 - p["rho"] * (1.0 - TOP)
+    top = 1.0 - rho * (1.0 - TOP)
     w = np.clip((v - beta) / (1.0 - beta), 0.0, top)
-    curve = shape(p) if curve is None else curve
     t = curve.inverse(w)
-    t[-1] = p["sat"] * curve.inverse(np.array([top]))[0]
-    return t
+    t[-1] = sat * curve.inverse(np.array([top]))[0]
+    step = np.gradient(t)
+    step[-1] = step[-2]  # a clipped code's error is the saturation factor's business
+    rounding = step * step / 12.0
+    t.flags.writeable = False
+    rounding.flags.writeable = False
+    return t, rounding
 
 
 def forward(x: np.ndarray, gamma: float, rho: float, warp=()) -> tuple[np.ndarray, np.ndarray]:
@@ -206,10 +234,8 @@ def predict(g: Group, p: dict[str, float], source_share: bool = False) -> tuple[
     for c in range(nc):
         key = betas[c], factors[c]
         if key not in tables:
-            t = inverse_table(p, curves[factors[c]], betas[c])
-            step = np.gradient(t)
-            step[-1] = step[-2]  # a clipped code's error is the saturation factor's business
-            tables[key] = t, step * step / 12.0 + na2 * t + nb2
+            t, rounding = _code_tables(curves[factors[c]], betas[c], p["rho"], p["sat"])
+            tables[key] = t, rounding + na2 * t + nb2
         t, src_table = tables[key]
         num = np.zeros(n)
         for (i, k), hs in g.hist.items():
