@@ -58,32 +58,40 @@
 #endif
 #define CP (CHANNELS + 1)
 
-/* Bilinear taps at full-image (x, y), clamped to the image, then to the crop. */
+/* Bilinear taps at full-image (x, y), clamped to the image, then to the crop.  One body for
+ * the scalar kernel's taps (size_t indices) and the 8-lane kernel's (int8, locate8 below),
+ * so that both clamp and round alike. */
+#define DEFINE_LOCATE(NAME, TAPS, REAL, INT, CAST, WIDE)                                  \
+static TAPS NAME(int h, int w, int r0, int c0, int fh, int fw, REAL x, REAL y)            \
+{                                                                                         \
+    TAPS t;                                                                               \
+    x = clamp(x, 0.0f, (float)(fw - 1));                                                  \
+    y = clamp(y, 0.0f, (float)(fh - 1));                                                  \
+    REAL fx0 = floor(x), fy0 = floor(y);                                                  \
+    INT x0 = CAST(fx0), y0 = CAST(fy0);                                                   \
+    INT x1 = min(x0 + 1, fw - 1), y1 = min(y0 + 1, fh - 1);                               \
+    t.fx = x - fx0;                                                                       \
+    t.fy = y - fy0;                                                                       \
+    x0 = clamp(x0 - c0, 0, w - 1);                                                        \
+    x1 = clamp(x1 - c0, 0, w - 1);                                                        \
+    y0 = clamp(y0 - r0, 0, h - 1);                                                        \
+    y1 = clamp(y1 - r0, 0, h - 1);                                                        \
+    t.a = WIDE(y0) * w + x0;                                                              \
+    t.b = WIDE(y0) * w + x1;                                                              \
+    t.c = WIDE(y1) * w + x0;                                                              \
+    t.d = WIDE(y1) * w + x1;                                                              \
+    return t;                                                                             \
+}
+#define CAST_INT(v) ((int)(v))
+#define WIDE_SIZE(v) ((size_t)(v))
+#define AS_IS(v) (v)
+
 typedef struct {
     size_t a, b, c, d;
     float fx, fy;
 } taps;
 
-static taps locate(int h, int w, int r0, int c0, int fh, int fw, float x, float y)
-{
-    taps t;
-    x = clamp(x, 0.0f, (float)(fw - 1));
-    y = clamp(y, 0.0f, (float)(fh - 1));
-    float fx0 = floor(x), fy0 = floor(y);
-    int x0 = (int)fx0, y0 = (int)fy0;
-    int x1 = min(x0 + 1, fw - 1), y1 = min(y0 + 1, fh - 1);
-    t.fx = x - fx0;
-    t.fy = y - fy0;
-    x0 = clamp(x0 - c0, 0, w - 1);
-    x1 = clamp(x1 - c0, 0, w - 1);
-    y0 = clamp(y0 - r0, 0, h - 1);
-    y1 = clamp(y1 - r0, 0, h - 1);
-    t.a = (size_t)y0 * w + x0;
-    t.b = (size_t)y0 * w + x1;
-    t.c = (size_t)y1 * w + x0;
-    t.d = (size_t)y1 * w + x1;
-    return t;
-}
+DEFINE_LOCATE(locate, taps, float, int, CAST_INT, WIDE_SIZE)
 
 #if CP == 4
 typedef float4 px_t;
@@ -286,26 +294,7 @@ typedef struct {
     float8 fx, fy;
 } taps8;
 
-static taps8 locate8(int h, int w, int r0, int c0, int fh, int fw, float8 x, float8 y)
-{
-    taps8 t;
-    x = clamp(x, 0.0f, (float)(fw - 1));
-    y = clamp(y, 0.0f, (float)(fh - 1));
-    float8 fx0 = floor(x), fy0 = floor(y);
-    int8 x0 = convert_int8(fx0), y0 = convert_int8(fy0);
-    int8 x1 = min(x0 + 1, fw - 1), y1 = min(y0 + 1, fh - 1);
-    t.fx = x - fx0;
-    t.fy = y - fy0;
-    x0 = clamp(x0 - c0, 0, w - 1);
-    x1 = clamp(x1 - c0, 0, w - 1);
-    y0 = clamp(y0 - r0, 0, h - 1);
-    y1 = clamp(y1 - r0, 0, h - 1);
-    t.a = y0 * w + x0;
-    t.b = y0 * w + x1;
-    t.c = y1 * w + x0;
-    t.d = y1 * w + x1;
-    return t;
-}
+DEFINE_LOCATE(locate8, taps8, float8, int8, convert_int8, AS_IS)
 
 /* Bilinear sample of 8 lanes at full-image (x, y): the per-lane taps of locate(), and
  * sample() done per channel; 8 contiguous pixels per corner when the lanes' taps are. */
