@@ -823,6 +823,32 @@ def test_study_of_a_folder_is_the_study_of_its_manifest(tmp_path, capsys, monkey
     assert "--times is for a folder" in capsys.readouterr().err
 
 
+def test_study_never_writes_over_its_times_file_or_loses_its_report(tmp_path, capsys,
+                                                                      monkeypatch):
+    # the report (and the .md beside it) must not replace the --times file, and a report
+    # named .md would be overwritten by its own summary: all refused before any work
+    from clblur.cli import main
+    from clblur.study import run as study_run
+
+    images, times = _film_series(np.random.default_rng(3), exposures=3, channels=1)
+    (tmp_path / "s").mkdir()
+    for i, im in enumerate(images):
+        write_image(tmp_path / "s" / f"e{i}.png", im)
+    listing = "".join(f"e{i}.png {t}\n" for i, t in enumerate(times))
+    for name in ("times.txt", "t.md"):
+        (tmp_path / name).write_text(listing)
+    monkeypatch.setattr(study_run, "study", lambda *a, **k: pytest.fail("study ran"))
+    for times_file, report, why in (("times.txt", "times.txt", "input"),
+                                    ("t.md", "t.json", "input"),
+                                    ("times.txt", "r.md", "name the JSON report")):
+        code = main(["study", str(tmp_path / "s"), "--times", str(tmp_path / times_file),
+                     "--report", str(tmp_path / report), "--quiet"])
+        err = capsys.readouterr().err
+        assert code == 2 and len(err.strip().splitlines()) == 1 and why in err, err
+        assert (tmp_path / times_file).read_text() == listing
+    assert not (tmp_path / "r.md").exists()
+
+
 def test_study_and_calibrate_give_the_same_curve_shape():
     # issue 9: one response model; on one exposure series the study's response_shape and
     # `clblur calibrate`'s best curve agree (log exposure up to a common unit, in stops)

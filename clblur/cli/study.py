@@ -45,8 +45,11 @@ def run(args: argparse.Namespace) -> int:
 
     # every output checked before the study runs (it takes minutes); study() refuses an
     # output that would replace an input
-    check_output(args.report, args.manifest)
-    check_output(Path(args.report).with_suffix(".md"), args.manifest)
+    if Path(args.report).suffix.lower() == ".md":
+        raise InputError(f"--report {args.report}: name the JSON report (.json); its .md "
+                         "summary is written beside it")
+    check_output(args.report, args.manifest, args.times)
+    check_output(Path(args.report).with_suffix(".md"), args.manifest, args.times)
     if args.splits < 1:
         raise InputError(f"--splits must be at least 1, got {args.splits}")
     if args.figures is not None and Path(args.figures).exists() \

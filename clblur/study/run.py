@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from clblur.calibration.series import photometric_exposure
+from clblur.errors import InputError
 from clblur.io import (
     atomic_write_text,
     light_channels,
@@ -160,9 +161,9 @@ def study_groups(kind: str, groups: list[Group], *, alpha: float = 0.05,
     from tqdm import tqdm
 
     if not groups:
-        raise ValueError("nothing to study: no pairs, stacks or exposure steps")
+        raise InputError("nothing to study: no pairs, stacks or exposure steps")
     if not 0 < alpha < 1:
-        raise ValueError(f"alpha must be in (0, 1), got {alpha}")
+        raise InputError(f"alpha must be in (0, 1), got {alpha}")
     _check_splits(splits)
     chosen = []
     for s in reversed(range(splits)):  # the first split last: its folds stay assigned
@@ -178,7 +179,7 @@ def study_groups(kind: str, groups: list[Group], *, alpha: float = 0.05,
 
 def _check_splits(splits: int) -> None:
     if not isinstance(splits, int) or isinstance(splits, bool) or splits < 1:
-        raise ValueError(f"splits must be an integer >= 1, got {splits!r}")
+        raise InputError(f"splits must be an integer >= 1, got {splits!r}")
 
 
 def split_summary(chosen: list[list[str]]) -> dict:
@@ -201,12 +202,15 @@ def study(manifest: str | os.PathLike | Manifest, *, report: str | os.PathLike |
     ``align``: see ``groups_from_manifest`` (the report's ``registration``)."""
     m = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)
     if not isinstance(max_pixels, int) or max_pixels < 1000:
-        raise ValueError(f"max_pixels must be an integer >= 1000, got {max_pixels!r}")
+        raise InputError(f"max_pixels must be an integer >= 1000, got {max_pixels!r}")
     _check_splits(splits)
     inputs = manifest_inputs(m)
     if report is not None:  # refuse before the work, not after
         if not Path(report).parent.is_dir():
-            raise ValueError(f"output folder does not exist: {Path(report).parent}")
+            raise InputError(f"output folder does not exist: {Path(report).parent}")
+        if Path(report).suffix.lower() == ".md":  # the summary would replace the report
+            raise InputError(f"report {report}: name the JSON report (.json); its .md "
+                             "summary is written beside it")
         refuse_overwrite(report, *inputs)
         refuse_overwrite(Path(report).with_suffix(".md"), *inputs)
     if figures_dir is not None:  # its figures have fixed names
@@ -217,11 +221,11 @@ def study(manifest: str | os.PathLike | Manifest, *, report: str | os.PathLike |
     usable = sum(int(g.valid.sum()) for g in groups)
     sampled = sum(int(g.valid.shape[0]) for g in groups)
     if sampled < MIN_USABLE:  # too few target pixels whose whole path lies in the image
-        raise ValueError(f"manifest {m.path}: only {sampled} target pixels can be sampled "
+        raise InputError(f"manifest {m.path}: only {sampled} target pixels can be sampled "
                          "(a pixel's whole blur path or kernel must lie inside the image): "
                          "the images are too small for their motion or kernel")
     if usable < MIN_USABLE:  # nothing between black and white: nothing to fit or score
-        raise ValueError(f"manifest {m.path}: only {usable} sampled pixel values lie between "
+        raise InputError(f"manifest {m.path}: only {usable} sampled pixel values lie between "
                          "the black and white clipping codes; the images are saturated or "
                          "black")
     result = study_groups(m.kind, groups, alpha=alpha, progress=progress, splits=splits)
