@@ -47,6 +47,7 @@ from clblur.io.video import (
     Frame,
     ImageSequenceSource,
     VideoReadError,
+    check_crf,
     open_sink,
     open_source,
 )
@@ -262,6 +263,7 @@ def blur_video(src: str | os.PathLike, dst: str | os.PathLike, *,
     per_channel(response, 1)  # fail on a bad response before decoding anything
     named_order(order)  # and on a bad layer order
     check_exposure(exposure)
+    check_crf(crf, dst, codec)
     flows = _Flows(flow, save_flows_to)
     source = open_source(src, fps)
     if fps is not None and not isinstance(source, ImageSequenceSource):

@@ -11,6 +11,7 @@ import pytest
 
 from clblur import blur
 from clblur.cli import video as video_cli
+from clblur.errors import InputError
 from clblur.flow import FlowEstimator, FlowFolder, save_flows
 from clblur.io import gopro_frames, read_image, write_image
 from clblur.io.video import VideoReadError
@@ -480,6 +481,25 @@ def test_command_line(tmp_path, capsys):
     args = parser().parse_args(["video", str(src), str(tmp_path / "p.mp4"), "--fps", "0"])
     with pytest.raises(ValueError, match="--fps"):
         args.func(args)
+
+
+@pytest.mark.parametrize("out, crf, ok", [("o.mp4", -5, False), ("o.mp4", 52, False),
+                                           ("o.webm", 63, True), ("o.webm", 64, False),
+                                           ("o.avi", 99, True), ("frames", -1, True)])
+def test_a_crf_outside_the_encoder_s_scale_is_refused_before_any_frame(tmp_path, out, crf,
+                                                                       ok):
+    # FFmpeg refused crf -5 only when the first frame was encoded (a traceback, after the
+    # first blur); mpeg4 and image sequences have no crf scale
+    from clblur.io.video import check_crf
+
+    if ok:
+        check_crf(crf, tmp_path / out)
+        return
+    src = tmp_path / "in.mp4"
+    write_video(src, moving_frames(2))
+    with pytest.raises(InputError, match=f"crf {crf} is outside"):
+        blur_video(src, tmp_path / out, backend="numpy", crf=crf)
+    assert sorted(tmp_path.iterdir()) == [src], "nothing may be written"
 
 
 def test_gopro_frames_blur_towards_the_long_exposure(shared_data):

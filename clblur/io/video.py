@@ -31,20 +31,24 @@ from pathlib import Path
 
 import numpy as np
 
+from clblur.errors import InputError
 from clblur.io.atomic import tmp_beside
 from clblur.io.images import read_image, write_image
 from clblur.io.paths import resolve_inside
 from clblur.pixels import quantise
 
-__all__ = ["DEFAULT_CRF", "IMAGE_SUFFIXES", "VIDEO_CODECS", "Frame", "ImageSequenceSink",
-           "ImageSequenceSource", "VideoFileSink", "VideoFileSource", "VideoReadError",
-           "is_image_sequence", "open_sink", "open_source"]
+__all__ = ["CRF_RANGES", "DEFAULT_CRF", "IMAGE_SUFFIXES", "VIDEO_CODECS", "Frame",
+           "ImageSequenceSink", "ImageSequenceSource", "VideoFileSink", "VideoFileSource",
+           "VideoReadError", "check_crf", "is_image_sequence", "open_sink", "open_source"]
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp")
 # Default encoder per output container; libx264 at CRF 17 is visually lossless for most content.
 VIDEO_CODECS = {".mp4": "libx264", ".mov": "libx264", ".mkv": "libx264", ".avi": "mpeg4",
                 ".webm": "libvpx-vp9"}
 DEFAULT_CRF = 17
+# the encoders' constant-quality scales: x264 and x265 (8-bit) take 0 - 51, libvpx-vp9 0 - 63;
+# out of range, FFmpeg refuses only when the first frame is encoded, after the first blur
+CRF_RANGES = {"libx264": (0, 51), "libx265": (0, 51), "libvpx-vp9": (0, 63)}
 
 
 class VideoReadError(ValueError):
@@ -252,6 +256,20 @@ class ImageSequenceSink:
         pass
 
 
+def check_crf(crf: int, path: str | os.PathLike, codec: str | None = None) -> None:
+    """Refuse a ``crf`` the encoder that ``path`` (or ``codec``) gets would reject; image
+    sequences and encoders without a ``crf`` scale take any integer."""
+    if isinstance(crf, bool) or not isinstance(crf, (int, np.integer)):
+        raise InputError(f"crf must be an integer, got {crf!r}")
+    suffix = Path(path).suffix.lower()
+    codec = codec or VIDEO_CODECS.get(suffix)
+    if suffix in VIDEO_CODECS and codec in CRF_RANGES:
+        lo, hi = CRF_RANGES[codec]
+        if not lo <= crf <= hi:
+            raise InputError(f"crf {crf} is outside {codec}'s quality scale {lo} - {hi} "
+                             "(lower is better)")
+
+
 class VideoFileSink:
     """Encodes frames into a temporary file beside ``path``; ``close`` renames it into place."""
 
@@ -269,6 +287,7 @@ class VideoFileSink:
         if not self.path.parent.exists():
             raise ValueError(f"output folder does not exist: {self.path.parent}")
         codec = codec or VIDEO_CODECS[suffix]
+        check_crf(crf, self.path, codec)
         self.tmp = tmp_beside(self.path)
         self.container = av.open(str(self.tmp), "w", format=suffix.lstrip(".").replace(
             "mkv", "matroska"))
