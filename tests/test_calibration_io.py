@@ -219,6 +219,24 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
     assert code == 2 and "refusing to overwrite" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("option", [("--gaps", "100"), ("--gaps", "nan"),
+                                    ("--eval-pixels", "0"), ("--eval-pixels", "-3")])
+def test_cli_refuses_to_name_a_best_model_it_could_not_score(tmp_path, capsys, option):
+    # a gap the series does not have left every score nan, and the first model was
+    # written as "best" (exit 0); a gap or pixel count that is no number of the kind
+    # asked for failed deep inside numpy
+    images, _ = ramp_stack(4, shape=(40, 60))
+    write_folder(tmp_path / "s", images)
+    (tmp_path / "t.txt").write_text("\n".join(f"1/{2**i}" for i in range(4)))
+    code = main(["calibrate", str(tmp_path / "s"), "--times", str(tmp_path / "t.txt"),
+                 "--model", "exp", "gamma-offset", "-o", str(tmp_path / "r.json"),
+                 "--samples", "64", "--no-refit", "--quiet", *option])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert ("100-stop" in err) if option[1] == "100" else (option[0] in err)
+    assert not (tmp_path / "r.json").exists()
+
+
 def test_calibrate_api_ranks_models(tmp_path):
     from clblur.calibration import calibrate
 

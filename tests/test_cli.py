@@ -143,7 +143,7 @@ def test_a_named_device_that_does_not_exist_is_an_error(tmp_path, scene, capsys)
 
 
 def test_nan_columns_say_why():
-    from clblur.cli.calibrate import nan_reasons
+    from clblur.calibration.compare import nan_reasons
 
     lines = nan_reasons({"n_pairs": {1: 0, 4: 3, 2: 2}, "n_values": {1: 0, 4: 0, 2: 100}})
     assert len(lines) == 2

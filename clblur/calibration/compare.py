@@ -15,8 +15,9 @@ from clblur.calibration.fitting import ResponseFit, fit
 from clblur.calibration.models import MODELS, EmorBasis
 from clblur.calibration.sampling import VALID_LOW, sample_series
 from clblur.calibration.series import ExposureSeries, check_brightening, load_series
+from clblur.errors import InputError
 
-__all__ = ["Calibration", "available_models", "calibrate", "selection_score"]
+__all__ = ["Calibration", "available_models", "calibrate", "nan_reasons", "selection_score"]
 
 
 @dataclass
@@ -67,6 +68,13 @@ def calibrate(source: ExposureSeries | str | os.PathLike, models=None, *, times=
     skipped, its reason in ``Calibration.skipped``, unless it is the only one asked for.
     ``align``: register a series read from ``source`` (``load_series``); a given
     ``ExposureSeries`` is taken as it is (``ExposureSeries.aligned`` registers one)."""
+    # checked before the series is read and registered
+    if gaps is not None and (not len(gaps) or not all(np.isfinite(g) and g > 0 for g in gaps)):
+        raise InputError(f"gaps must be positive numbers of stops, got {list(gaps)}")
+    if max_pixels is not None and (isinstance(max_pixels, bool) or not
+                                   isinstance(max_pixels, (int, np.integer)) or max_pixels < 1):
+        raise InputError(f"max_pixels (pixels scored) must be a positive integer, got "
+                         f"{max_pixels!r}")
     series = source if isinstance(source, ExposureSeries) else load_series(source, times,
                                                                             align=align)
     check_brightening(series.images, series.relative_exposures(), series.names,
@@ -99,8 +107,27 @@ def calibrate(source: ExposureSeries | str | os.PathLike, models=None, *, times=
     if not evaluations:
         raise ValueError(f"no model could be fitted; {names[0]}: {skipped[names[0]]}")
     fitted = [n for n in names if n in evaluations]
+    if all(np.isnan(list(evaluations[n]["rmse_darker"].values())).all() for n in fitted):
+        # nothing was scored: a "best" model would be an arbitrary one
+        raise InputError("no model could be scored on held-out pixels: "
+                         + "; ".join(nan_reasons(evaluations[fitted[0]])))
     best = min(fitted, key=lambda n: selection_score(evaluations[n]))
     return Calibration(series, fits, evaluations, best, skipped)
+
+
+def nan_reasons(evaluation: dict) -> list[str]:
+    """One line per gap whose RMSE is nan, saying why (no pair that far apart, or no pixel
+    that passed the scoring filters)."""
+    lines = []
+    for g, n_pairs in evaluation["n_pairs"].items():
+        if not n_pairs:
+            lines.append(f"nan at {g}-stop: no two exposures of this series are {g} stop(s) "
+                         "apart (within 1/4 stop), so that gap cannot be scored; choose "
+                         "--gaps the series has")
+        elif not evaluation["n_values"].get(g):
+            lines.append(f"nan at {g}-stop: {n_pairs} pair(s) are {g} stop(s) apart but no "
+                         "pixel passed --eval-low / --flat-tolerance")
+    return lines
 
 
 def selection_score(evaluation: dict) -> float:

@@ -11,8 +11,10 @@ lowest mean held-out RMSE of the darker target is written (one curve per channel
 from __future__ import annotations
 
 import argparse
+import math
 import shlex
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 from clblur.calibration.evaluate import EVAL_LOW, FLAT_TOLERANCE
@@ -49,7 +51,7 @@ def register(subparsers) -> None:
                         "the exp families, 0.1 for the free curves)")
     p.add_argument("--emor-dir", metavar="DIR",
                    help="folder with invemor.txt (default: $CLBLUR_DATA/crf)")
-    p.add_argument("--gaps", type=float, nargs="+", default=None, metavar="STOPS",
+    p.add_argument("--gaps", type=_positive(float), nargs="+", default=None, metavar="STOPS",
                    help="prediction gaps in stops (default: 1 and 4, or the nearest gaps "
                         "the series has)")
     p.add_argument("--no-refit", action="store_true",
@@ -61,7 +63,7 @@ def register(subparsers) -> None:
     p.add_argument("--flat-tolerance", type=_tolerance, default=FLAT_TOLERANCE, metavar="V",
                    help="secondary column: pixels whose 3x3 neighbourhood spans at most V of "
                         f"full scale in both images; 'none' drops it (default {FLAT_TOLERANCE})")
-    p.add_argument("--eval-pixels", type=int, default=None, metavar="N",
+    p.add_argument("--eval-pixels", type=_positive(int), default=None, metavar="N",
                    help="score a random subset of N held-out pixels (default: all)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
@@ -71,9 +73,25 @@ def _tolerance(text: str) -> float | None:
     if text.lower() == "none":
         return None
     try:
-        return float(text)
+        value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number or 'none', got {text!r}") from None
+        value = math.nan
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"expected a number >= 0 or 'none', got {text!r}")
+    return value
+
+
+def _positive(kind: type) -> Callable[[str], float]:
+    """An argparse type: a finite number of ``kind`` above zero (a gap, a pixel count)."""
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and value > 0):
+            raise argparse.ArgumentTypeError(f"expected a positive {kind.__name__}, got {text!r}")
+        return value
+    return parse
 
 
 def check_outputs(args: argparse.Namespace) -> None:
@@ -101,23 +119,8 @@ def check_outputs(args: argparse.Namespace) -> None:
         refuse_folder_of_inputs(report, inputs, "--report")
 
 
-def nan_reasons(evaluation: dict) -> list[str]:
-    """One line per gap whose RMSE is nan, saying why (no pair that far apart, or no pixel
-    that passed the scoring filters)."""
-    lines = []
-    for g, n_pairs in evaluation["n_pairs"].items():
-        if not n_pairs:
-            lines.append(f"nan at {g}-stop: no two exposures of this series are {g} stop(s) "
-                         "apart (within 1/4 stop), so that gap cannot be scored; choose "
-                         "--gaps the series has")
-        elif not evaluation["n_values"].get(g):
-            lines.append(f"nan at {g}-stop: {n_pairs} pair(s) are {g} stop(s) apart but no "
-                         "pixel passed --eval-low / --flat-tolerance")
-    return lines
-
-
 def run(args: argparse.Namespace) -> int:
-    from clblur.calibration.compare import calibrate
+    from clblur.calibration.compare import calibrate, nan_reasons
     from clblur.responses import save_channel_set
 
     check_outputs(args)
@@ -142,8 +145,8 @@ def run(args: argparse.Namespace) -> int:
     print("held-out RMSE (code values) on all valid pixels, target darker / brighter / both"
           + ("; flat pixels only, darker" if flat else "") + "; AIC")
     # every cell starts with a space: a 16-bit series' errors run to thousands of codes
-    print("model         " + "".join(f"{str(g) + '-stop':>27}" for g in gaps)
-          + ("".join(f"{str(g) + '-stop flat':>13}" for g in gaps) if flat else "")
+    print("model         " + "".join(f" {str(g) + '-stop':>26}" for g in gaps)
+          + ("".join(f" {str(g) + '-stop flat':>12}" for g in gaps) if flat else "")
           + "         AIC")
     for n, e in evaluations.items():
         cells = "".join(f" {e['rmse_darker'][g]:8.2f} {e['rmse_brighter'][g]:8.2f}"
