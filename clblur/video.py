@@ -264,6 +264,10 @@ def blur_video(src: str | os.PathLike, dst: str | os.PathLike, *,
     named_order(order)  # and on a bad layer order
     check_exposure(exposure)
     check_crf(crf, dst, codec)
+    if save_flows_to is not None:  # its files would replace or join the inputs
+        for given, what in ((flow, "the --flow folder"), (src, "the input frames' folder")):
+            if Path(given).is_dir() and Path(save_flows_to).resolve() == Path(given).resolve():
+                raise InputError(f"--save-flows {save_flows_to} is {what}; name a new folder")
     flows = _Flows(flow, save_flows_to)
     source = open_source(src, fps)
     if fps is not None and not isinstance(source, ImageSequenceSource):

@@ -325,6 +325,21 @@ def test_saved_flows_reproduce_the_run(tmp_path):
         np.testing.assert_array_equal(read_image(p), read_image(tmp_path / "b" / p.name))
 
 
+def test_saved_flows_never_rewrite_the_flows_read_or_join_the_input_frames(tmp_path):
+    (tmp_path / "in").mkdir()
+    for i, f in enumerate(moving_frames(3)):
+        write_image(tmp_path / "in" / f"{i:03d}.png", f)
+    blur_video(tmp_path / "in", tmp_path / "a", save_flows_to=tmp_path / "flows",
+               backend="numpy")
+    before = {p.name: p.stat().st_ino for p in (tmp_path / "flows").iterdir()}
+    for save in ("flows", "in"):
+        with pytest.raises(InputError, match=f"--save-flows .*{save}"):
+            blur_video(tmp_path / "in", tmp_path / "b", flow=str(tmp_path / "flows"),
+                       save_flows_to=tmp_path / save, backend="numpy")
+    assert {p.name: p.stat().st_ino for p in (tmp_path / "flows").iterdir()} == before
+    assert not (tmp_path / "b").exists() and len(list((tmp_path / "in").iterdir())) == 3
+
+
 def test_odd_frame_size_and_single_frame(tmp_path):
     src = tmp_path / "odd.mkv"
     write_video(src, [moving_frames(1, h=15, w=21)[0]])
