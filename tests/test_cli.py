@@ -240,3 +240,21 @@ def test_a_per_channel_response_is_checked_against_the_image(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "got 2 per-channel responses; a per-channel document needs one per colour " \
            "channel of the images (1, 3 or 4)" in err and "1 channel" not in err
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--motion=3,0", "--vectors", "blender"], "no --flow was given"),
+    (["--motion=3,0", "--vector-shutter", "-1"], "--vector-shutter applies"),
+    (["--flow", "{flow}", "--vectors", "nuke", "--vector-shutter", "-1"], "positive number"),
+    (["--motion=3,0", "--alpha", "yes"], "--alpha yes"),
+])
+def test_an_option_that_would_be_ignored_is_an_error(tmp_path, scene, capsys, extra, message):
+    # --vectors without a --flow, a shutter without a renderer's convention and --alpha yes
+    # on an RGB image (its blue read as coverage) were taken silently
+    src, _ = scene
+    write_flow(tmp_path / "f.npy", np.zeros((24, 32, 2), np.float32))
+    argv = [a.replace("{flow}", str(tmp_path / "f.npy")) for a in extra]
+    assert run("blur", src, tmp_path / "o.png", *argv, "--backend", "numpy") == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "o.png").exists()

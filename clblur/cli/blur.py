@@ -13,6 +13,7 @@ from clblur.cli.options import (
     blur_options,
     check_device,
     check_response,
+    check_vector_options,
     motion_from_args,
 )
 from clblur.errors import InputError
@@ -55,9 +56,13 @@ def run(args: argparse.Namespace) -> int:
                  suffixes=tuple(IMAGE_FORMATS))
     parse_size(args.memory_budget)
     channels = probe_image(args.input).channels  # the header only: nothing decoded yet
+    if args.alpha == "yes" and channels not in (2, 4):
+        raise InputError(f"--alpha yes: {args.input} has {channels} channel(s); coverage is "
+                         "the last of grey + alpha (2) or RGBA (4)")
     alpha = args.alpha == "yes" or (args.alpha == "auto" and channels in (2, 4))
     check_response(args.response, channels=channels - int(alpha))
     check_device(args)
+    check_vector_options(args, args.flow is not None)
     _check_path(args, alpha)
     if args.depth is not None or alpha or args.path != "straight":
         _blur_whole(args, alpha)  # layered exposure, alpha and paths need the whole image

@@ -11,6 +11,7 @@ from clblur.cli.options import (
     blur_options,
     check_device,
     check_response,
+    check_vector_options,
 )
 from clblur.errors import InputError
 
@@ -62,6 +63,7 @@ def run(args: argparse.Namespace) -> int:
     check_output(args.output, *paths, suffixes=tuple(IMAGE_FORMATS))
     check_response(args.response)
     check_device(args)
+    check_vector_options(args)
     bent = args.path != "straight"
     if bent and args.vectors == "clblur":
         raise InputError(f"--path {args.path} needs a renderer's vector pass: give --vectors "

@@ -7,6 +7,7 @@ module's ``register``.
 from __future__ import annotations
 
 import argparse
+import math
 
 from clblur.blur import BACKENDS
 from clblur.errors import InputError
@@ -15,7 +16,7 @@ from clblur.motion import ANCHORS, EXPOSURES
 __all__ = ["add_backend_options", "add_blur_options", "add_exposure_option",
            "add_memory_option", "add_motion_options", "add_series_options",
            "add_vector_options", "blur_options", "check_device", "check_response",
-           "motion_from_args", "parse_vector"]
+           "check_vector_options", "motion_from_args", "parse_vector"]
 
 
 def parse_vector(text: str, option: str = "--motion") -> tuple[float, float]:
@@ -100,15 +101,34 @@ def add_motion_options(p: argparse.ArgumentParser, required: bool) -> None:
     g.add_argument("--psf", metavar="FILE", help="blur kernel image or .npy (normalised)")
 
 
+VECTOR_SHUTTER = 0.5  # frames: a 180-degree shutter
+
+
 def add_vector_options(p: argparse.ArgumentParser, what: str) -> None:
     """--vectors and --vector-shutter: the convention of the vector files ``what`` names."""
     p.add_argument("--vectors", choices=["clblur", "blender", "nuke"], default="clblur",
                    help=f"convention of {what}: clblur (displacement over the exposure, "
                         "default), blender (Vector pass X,Y,Z,W) or nuke (forward/backward "
                         "u,v); see docs/model.md")
-    p.add_argument("--vector-shutter", type=float, default=0.5, metavar="FRAMES",
-                   help="with --vectors blender|nuke: centred shutter in frames (default 0.5, "
-                        "i.e. 180 degrees)")
+    p.add_argument("--vector-shutter", type=float, default=VECTOR_SHUTTER, metavar="FRAMES",
+                   help="with --vectors blender|nuke: centred shutter in frames (default "
+                        f"{VECTOR_SHUTTER}, i.e. 180 degrees)")
+
+
+def check_vector_options(args: argparse.Namespace, vector_files: bool = True) -> None:
+    """--vectors and --vector-shutter only where they apply: a renderer's convention needs
+    vector files (``vector_files``: the command was given some), a shutter needs that
+    convention; an option that would be ignored is an error, not a silent default."""
+    if args.vectors != "clblur" and not vector_files:
+        raise InputError(f"--vectors {args.vectors} describes a --flow vector pass, and no "
+                         "--flow was given")
+    if args.vector_shutter != VECTOR_SHUTTER:
+        if args.vectors == "clblur":
+            raise InputError("--vector-shutter applies with --vectors blender or nuke (clblur "
+                             "vectors are already the displacement over the exposure)")
+        if not (math.isfinite(args.vector_shutter) and args.vector_shutter > 0):
+            raise InputError(f"--vector-shutter must be a positive number of frames, got "
+                             f"{args.vector_shutter}")
 
 
 PATHS = ("straight", "bent", "curved")
