@@ -174,15 +174,20 @@ def blur_tiled(src, dst, motion, response="exp", *, anchor: str = "center",
     h, w, channels = _check_arrays(src, dst)
     src, dst = as_array_like(src), as_array_like(dst)
     a = anchor_value(anchor)
-    tm = tiled_motion(motion, (h, w))
     budget = parse_size(memory_budget)
+    try:
+        tm = tiled_motion(motion, (h, w))
+        if tm.flow is not None:  # size tiles for the worst halo; each tile then uses its own
+            # a band is mapped, copied and maybe widened to float32: 1/8 of the budget
+            band_bytes = w * 2 * max(np.dtype(tm.flow.dtype).itemsize, 4)
+            halo = global_flow_halo(tm.flow, a, max(budget // (8 * band_bytes), 1))
+        else:
+            halo = fixed_halo(tm.fixed, a)
+    except InputError as e:  # a flow file's fault names the file
+        if not isinstance(motion, (str, os.PathLike)) or str(motion) in str(e):
+            raise
+        raise InputError(f"flow {motion}: {e}") from None
     per_px = window_bytes_per_px(channels, np.dtype(src.dtype).itemsize, tm.flow is not None)
-    if tm.flow is not None:  # size tiles for the worst halo; each tile then uses its own
-        # a band is mapped, copied and maybe widened to float32: keep it to 1/8 of the budget
-        band_bytes = w * 2 * max(np.dtype(tm.flow.dtype).itemsize, 4)
-        halo = global_flow_halo(tm.flow, a, max(budget // (8 * band_bytes), 1))
-    else:
-        halo = fixed_halo(tm.fixed, a)
     if samples is None and max(halo) - 2 > MAX_DEFAULT_LENGTH * max(a, 1.0 - a):
         # the default ceil(|v|) + 1 samples per pixel would run for hours
         raise InputError(f"motion longer than {MAX_DEFAULT_LENGTH} px needs that many samples "

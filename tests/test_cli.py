@@ -258,3 +258,14 @@ def test_an_option_that_would_be_ignored_is_an_error(tmp_path, scene, capsys, ex
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "o.png").exists()
+
+
+@pytest.mark.parametrize("fault", ["nan", "shape"])
+def test_a_bad_flow_file_is_named(tmp_path, scene, capsys, fault):
+    src, _ = scene
+    flow = np.zeros((20, 32, 2) if fault == "shape" else (24, 32, 2), np.float32)
+    flow[3, 3, 0] = np.nan if fault == "nan" else 0.0
+    write_flow(tmp_path / "f.npy", flow)
+    assert run("blur", src, tmp_path / "o.png", "--flow", tmp_path / "f.npy") == 2
+    err = capsys.readouterr().err
+    assert f"flow {tmp_path / 'f.npy'}:" in err and len(err.strip().splitlines()) == 1, err

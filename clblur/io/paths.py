@@ -56,7 +56,7 @@ def resolve_inside(roots: PathLike | Sequence[PathLike], path: PathLike, what: s
     except (OSError, RuntimeError) as e:  # symlink loops, names too long
         raise InputError(f"{what}: cannot resolve {text!r}: {e}") from None
     if not any(full == r or full.is_relative_to(r) for r in resolved_roots):
-        where = " or ".join(str(r) for r in resolved_roots)
+        where = " or ".join(dict.fromkeys(str(r) for r in resolved_roots))  # each once
         raise InputError(f"{what} {text!r} resolves to {full}, outside {where}; paths must "
                          "stay inside that folder")
     return full
