@@ -13,7 +13,12 @@ Conventions
   ``dx``, ``dy``, ``flow``, ``psf``, ``response``, ``anchor``, ``samples``, ``saturation``,
   ``exposure``.
   Empty cells keep the command line's value; ``flow``/``psf``/response-file paths are relative
-  to the manifest's folder.  A row naming a missing image is reported as a failure.
+  to the manifest's folder.
+* Checked before any work (``plan_jobs``; ``InputError``, nothing written): the options, every
+  manifest cell (the error names the manifest, its line and the column), the manifest's CSV
+  itself (a quote left open), that each image has a motion, and that each image, flow file and
+  PSF a row or option names exists (PSFs are read and validated once).  The cells pass the
+  library's own checks (``check_field``), the same ones ``run_job`` and the blur apply.
 * Where paths may point: every path from the manifest, the flow folder or the IN_DIR listing
   is resolved (symlinks followed) and must lie inside its root -- images inside IN_DIR, flows,
   PSFs and response files inside the manifest's folder, IN_DIR or the flow folder, outputs
@@ -32,8 +37,9 @@ Conventions
   the end for images another batch holds, and takes them over if that batch dies.
 * Partial files (``.*.part*``) left by interrupted runs are removed, except those of images
   another live batch holds.
-* A failing image is reported and skipped; the exit code is 0 when every image is finished,
-  1 when any failed (2: bad command line, as for every command).
+* An image that fails while it is processed (a corrupt file, a flow of the wrong shape) is
+  reported and skipped; the exit code is 0 when every image is finished, 1 when any failed
+  (2: bad input found before any work, as for every command).
 """
 
 from __future__ import annotations
@@ -44,6 +50,7 @@ import sys
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import NamedTuple
 
 from clblur.batch_state import (
     Job,
@@ -55,10 +62,12 @@ from clblur.batch_state import (
     response_file,
 )
 from clblur.errors import InputError
-from clblur.io import IMAGE_FORMATS, atomic_write_text, resolve_inside
+from clblur.io import IMAGE_FORMATS, atomic_write_text, read_psf, require_file, resolve_inside
+from clblur.motion import anchor_value, check_exposure, parse_motion, psf, time_weights
+from clblur.pixels import validate_saturation
 
-__all__ = ["IMAGE_SUFFIXES", "MANIFEST_COLUMNS", "list_images", "plan_jobs", "read_manifest",
-           "run_batch", "run_job", "summary"]
+__all__ = ["IMAGE_SUFFIXES", "MANIFEST_COLUMNS", "ManifestRow", "check_field", "check_job",
+           "list_images", "plan_jobs", "read_manifest", "run_batch", "run_job", "summary"]
 
 IMAGE_SUFFIXES = tuple(IMAGE_FORMATS)
 MANIFEST_COLUMNS = ("image", "output", "dx", "dy", "flow", "psf", "response", "anchor",
@@ -68,14 +77,12 @@ MANIFEST_COLUMNS = ("image", "output", "dx", "dy", "flow", "psf", "response", "a
 # --------------------------------------------------------------------------- one job
 def run_job(job: Job) -> Result:
     """Claim, blur one image and write its completion marker; never raises for a bad image."""
-    from clblur.io import read_psf
     from clblur.tiling import blur_file
 
     start = time.perf_counter()
     held = None
     try:
-        if job.problem:
-            raise InputError(job.problem)
+        check_job(job)  # planned jobs passed it already; a job built by hand may not have
         held = claim(job)
         if held is None:
             return Result(job.name, True, status="busy")
@@ -116,72 +123,189 @@ def list_images(in_dir: Path) -> list[Path]:
     return found
 
 
-def read_manifest(path: Path) -> dict[str, dict[str, str]]:
-    """Manifest rows keyed by image name (see module conventions)."""
+class ManifestRow(NamedTuple):
+    """One manifest row: its line in the CSV file and its non-empty cells by column."""
+
+    line: int
+    cells: dict[str, str]
+
+
+def read_manifest(path: Path) -> dict[str, ManifestRow]:
+    """Manifest rows keyed by image name (see module conventions); ``InputError`` for a file
+    that is not a well-formed UTF-8 CSV with the allowed columns."""
     if not path.is_file():
         raise InputError(f"manifest not found: {path}")
+    start = 1  # the line the record being read starts on
     try:
         with path.open(newline="", encoding="utf-8") as f:
-            reader = csv.DictReader(f)
+            reader = csv.DictReader(f, strict=True)  # strict: a quote left open is an error
             columns = [c.strip() for c in reader.fieldnames or []]
             unknown = sorted(set(columns) - set(MANIFEST_COLUMNS))
             if "image" not in columns or unknown:
                 raise InputError(f"manifest {path}: needs an 'image' column and only "
                                  f"{', '.join(MANIFEST_COLUMNS)}; unknown: {', '.join(unknown)}")
-            rows: dict[str, dict[str, str]] = {}
-            for n, row in enumerate(reader, start=2):
+            rows: dict[str, ManifestRow] = {}
+            start = reader.line_num + 1
+            for row in reader:
+                n, start = start, reader.line_num + 1
+                where = f"manifest {path} line {n}"
                 if None in row:
-                    raise InputError(f"manifest {path} line {n}: more cells than columns")
+                    raise InputError(f"{where}: more cells than columns")
+                if any("\n" in v or "\r" in v for v in row.values() if v):
+                    raise InputError(f"{where}: malformed CSV, a cell spans lines (a quote "
+                                     "left open?)")
                 row = {k.strip(): (v or "").strip() for k, v in row.items() if k}
                 if not row.get("image"):
-                    raise InputError(f"manifest {path} line {n}: empty image name")
+                    raise InputError(f"{where}: empty image name")
                 if row["image"] in rows:
-                    raise InputError(f"manifest {path} line {n}: {row['image']} listed twice")
-                rows[row["image"]] = {k: v for k, v in row.items() if v}
-    except (UnicodeDecodeError, csv.Error) as e:
+                    raise InputError(f"{where}: {row['image']} listed twice")
+                rows[row["image"]] = ManifestRow(n, {k: v for k, v in row.items() if v})
+    except UnicodeDecodeError as e:
         raise InputError(f"manifest {path}: not a UTF-8 CSV file ({e})") from None
+    except csv.Error as e:
+        hint = " (a quote left open?)" if "end of data" in str(e) else ""
+        raise InputError(f"manifest {path} line {start}: malformed CSV: {e}{hint}") from None
     return rows
 
 
-def _row_job(job: Job, row: dict[str, str], roots: list[Path], out_dir: Path) -> Job:
-    """Apply one manifest row's overrides.  A path outside its root raises ``InputError``
-    (the batch is refused); a malformed value becomes the job's problem."""
-    where = f"manifest row for {row['image']}"
-    changes: dict = {}
-    if "output" in row:
-        name = row["output"]
-        if Path(name).name != name or name in (".", ".."):
-            raise InputError(f"{where}: output {name!r} must be a file name in OUT_DIR")
-        changes["dst"] = str(resolve_inside(out_dir, name, f"{where}: output"))
-    for key in ("flow", "psf"):
-        if key in row:
-            changes[key] = str(resolve_inside(roots, row[key], f"{where}: {key}"))
-    if "response" in row and response_file(row["response"]) is not None:
-        changes["response"] = str(resolve_inside(roots, row["response"], f"{where}: response"))
+# ---------------------------------------------------------------- what a job may hold
+def _check_response(spec: str) -> None:
+    from clblur.responses import per_channel
+
+    errors = []
+    for channels in (1, 3, 4):  # a per-channel document fits only its own channel count
+        try:
+            per_channel(spec, channels)
+            return
+        except (ValueError, TypeError) as e:
+            errors.append(e)
+    raise errors[0]
+
+
+# field of ``Job`` -> the library's own check of its value (the one the blur applies)
+_CHECKS = {"motion": lambda v: parse_motion(v, (1, 1)),
+           "flow": lambda v: require_file(v, "flow"),
+           "psf": lambda v: psf(read_psf(require_file(v, "PSF"))),
+           "response": _check_response,
+           "anchor": anchor_value,
+           "samples": lambda v: time_weights(v, None),
+           "saturation": validate_saturation,
+           "exposure": check_exposure}
+
+
+def check_field(field: str, value) -> None:
+    """Refuse (``InputError``, one line) a value of the ``Job`` field ``field`` that the blur
+    would refuse: the one check of each field, applied by ``plan_jobs`` to the options and to
+    every manifest cell before any work, and by ``run_job``.  Content read window by window
+    while blurring (the image, a flow's values) is checked then."""
+    if value is None:
+        return
     try:
-        given = [k for k in ("dx", "flow", "psf") if k in row] + \
-            (["dy"] if "dy" in row and "dx" not in row else [])
-        if len(given) > 1 or ("dx" in row) != ("dy" in row):
-            raise ValueError("give dx and dy together, or flow, or psf (one motion)")
-        if "dx" in row:
-            changes.update(motion=(float(row["dx"]), float(row["dy"])), flow=None, psf=None)
-        for key in ("flow", "psf"):
-            if key in row:
-                changes.update(motion=None, **{k: None for k in ("flow", "psf") if k != key})
-        for key, cast in (("response", str), ("anchor", str), ("samples", int),
-                          ("saturation", float), ("exposure", str)):
-            if key in row and key not in changes:
-                changes[key] = cast(row[key])
-        return replace(job, **changes)
-    except ValueError as e:
-        return replace(job, **{k: v for k, v in changes.items() if k == "dst"},
-                       problem=f"{where}: {e}")
+        _CHECKS[field](value)
+    except (ValueError, TypeError) as e:  # InputError too: its message, without a class name
+        raise InputError(" ".join(str(e).split())) from None
+
+
+def check_job(job: Job) -> None:
+    """``check_field`` for every field of ``job``, and exactly one motion."""
+    given = [k for k in ("motion", "flow", "psf") if getattr(job, k) is not None]
+    if len(given) != 1:
+        raise InputError(f"{job.name}: needs exactly one of motion, flow, psf, got "
+                         f"{', '.join(given) or 'none'}")
+    for field in _CHECKS:
+        check_field(field, getattr(job, field))
+
+
+# option of ``clblur batch`` -> the job field it sets (named in errors about the options)
+_OPTIONS = {"motion": "--motion", "flow": "flow", "psf": "--psf", "response": "--response",
+            "anchor": "--anchor", "samples": "--samples", "saturation": "--saturation",
+            "exposure": "--exposure"}
+# manifest column -> how its text becomes the job field's value
+_CASTS = {"anchor": str, "exposure": str, "samples": int, "saturation": float}
+
+
+def _row_job(job: Job, row: ManifestRow, where: str, roots: list[Path], out_dir: Path) -> Job:
+    """Apply one manifest row's cells, each checked (``InputError`` naming ``where``, the row's
+    line, and the column)."""
+    cells = row.cells
+    changes: dict = {}
+
+    def bad(columns: str, message: str) -> InputError:
+        label = "columns" if ", " in columns.split(" (")[0] else "column"
+        return InputError(f"{where} line {row.line}, {label} {columns}: {message}")
+
+    def check(field: str, value, columns: str) -> None:
+        try:
+            check_field(field, value)
+        except InputError as e:
+            raise bad(columns, str(e)) from None
+
+    if "output" in cells:
+        name = cells["output"]
+        if Path(name).name != name or name in (".", ".."):
+            raise bad("output", f"{name!r} must be a file name in OUT_DIR")
+        if Path(name).suffix.lower() not in IMAGE_SUFFIXES:
+            raise bad("output", f"{name!r}: unknown extension; use one of "
+                                f"{', '.join(IMAGE_SUFFIXES)}")
+        try:
+            changes["dst"] = str(resolve_inside(out_dir, name, "output"))
+        except InputError as e:
+            raise bad("output", str(e)) from None
+    forms = [k for k in ("dx", "flow", "psf") if k in cells] + \
+        (["dy"] if "dy" in cells and "dx" not in cells else [])
+    if len(forms) > 1 or ("dx" in cells) != ("dy" in cells):
+        raise bad(", ".join(forms), "give dx and dy together, or flow, or psf (one motion)")
+    if "dx" in cells:
+        try:
+            motion = (float(cells["dx"]), float(cells["dy"]))
+        except ValueError:
+            col = "dy" if _is_float(cells["dx"]) else "dx"
+            raise bad(col, f"must be a number of pixels, got {cells[col]!r}") from None
+        check("motion", motion, f"dx, dy ({cells['dx']}, {cells['dy']})")
+        changes.update(motion=motion, flow=None, psf=None)
+    for key in ("flow", "psf"):
+        if key in cells:
+            try:
+                path = str(resolve_inside(roots, cells[key], key))
+            except InputError as e:
+                raise bad(key, str(e)) from None
+            check(key, path, key)
+            changes.update(motion=None, flow=None, psf=None)
+            changes[key] = path
+    if "response" in cells:
+        spec = cells["response"]
+        if response_file(spec) is not None:
+            try:
+                spec = str(resolve_inside(roots, spec, "response"))
+            except InputError as e:
+                raise bad("response", str(e)) from None
+        check("response", spec, "response")
+        changes["response"] = spec
+    for key, cast in _CASTS.items():
+        if key in cells:
+            try:
+                value = cast(cells[key])
+            except ValueError:
+                kind = "an integer" if cast is int else "a number"
+                raise bad(key, f"must be {kind}, got {cells[key]!r}") from None
+            check(key, value, key)
+            changes[key] = value
+    return replace(job, **changes)
+
+
+def _is_float(text: str) -> bool:
+    try:
+        float(text)
+        return True
+    except ValueError:
+        return False
 
 
 def plan_jobs(in_dir: Path, out_dir: Path, defaults: Job, flow_dir: Path | None = None,
               manifest: Path | None = None) -> list[Job]:
-    """One job per image (and per manifest row naming a missing image); ``InputError`` for
-    a path outside its allowed folder (see the module conventions)."""
+    """One checked job per image in IN_DIR and per manifest row; ``InputError`` for anything
+    wrong that is knowable before reading the images (see the module conventions).  Writes
+    nothing."""
     in_dir, out_dir = Path(in_dir).resolve(), Path(out_dir).resolve()
     if not in_dir.is_dir():
         raise InputError(f"input folder not found: {in_dir}")
@@ -193,29 +317,44 @@ def plan_jobs(in_dir: Path, out_dir: Path, defaults: Job, flow_dir: Path | None 
         if not Path(flow_dir).is_dir():
             raise InputError(f"flow folder not found: {flow_dir}")
         flow_dir = Path(flow_dir).resolve()
+    for field, option in _OPTIONS.items():  # the options: once, not once per image
+        try:
+            check_field(field, getattr(defaults, field))
+        except InputError as e:
+            raise InputError(f"{option}: {e}") from None
     rows = read_manifest(Path(manifest)) if manifest is not None else {}
     roots = [Path(manifest).resolve().parent] if manifest is not None else []
     roots += [in_dir] + ([flow_dir] if flow_dir is not None else [])
     srcs = {p.name: p for p in list_images(in_dir)}
-    for name in sorted(rows):  # a manifest image must be a path inside IN_DIR
+    for name in sorted(rows):  # a manifest image must be an image file inside IN_DIR
+        where = f"manifest {manifest} line {rows[name].line}, column image"
         path = resolve_inside(in_dir, name, f"manifest {manifest}: image")
-        srcs.setdefault(name, path)  # missing ones are reported when run
+        if path.suffix.lower() not in IMAGE_SUFFIXES:
+            raise InputError(f"{where}: {name!r} is not an image file name (expected one of "
+                             f"{', '.join(IMAGE_SUFFIXES)})")
+        srcs.setdefault(name, require_file(path, f"{where}: image"))
     jobs = []
     for name, src in srcs.items():
         job = replace(defaults, src=str(src), dst=str(out_dir / src.name))
-        missing = "no motion given (use --motion, --flow-dir, --psf or the manifest)"
         if flow_dir is not None:
             found = [f for f in (flow_dir / (src.stem + s) for s in (".npy", ".flo"))
                      if f.is_file()]
             if found:
                 flow = resolve_inside(flow_dir, found[0].name, f"flow for {name}")
                 job = replace(job, flow=str(flow))
-            else:
-                missing = f"no flow {src.stem}.npy or .flo in {flow_dir}"
         if name in rows:
-            job = _row_job(job, rows[name], roots, out_dir)
-        if job.problem is None and job.motion is None and job.flow is None and job.psf is None:
-            job = replace(job, problem=missing)
+            job = _row_job(job, rows[name], f"manifest {manifest}", roots, out_dir)
+        if job.motion is None and job.flow is None and job.psf is None:
+            if flow_dir is not None:
+                raise InputError(f"no flow for {name}: {flow_dir / src.stem}.npy or .flo not "
+                                 "found" + (", and its manifest row gives no dx, dy, flow or "
+                                            "psf" if name in rows else ""))
+            if manifest is not None:
+                why = f"its row of {manifest} gives no dx, dy, flow or psf" if name in rows \
+                    else f"{manifest} has no row for it"
+                raise InputError(f"no motion for {name}: {why}, and no --motion, --flow-dir "
+                                 "or --psf is given")
+            raise InputError("no motion given: use --motion, --flow-dir, --psf or --manifest")
         jobs.append(job)
     dsts = [j.dst for j in jobs]
     if len(set(dsts)) != len(dsts):
@@ -225,11 +364,14 @@ def plan_jobs(in_dir: Path, out_dir: Path, defaults: Job, flow_dir: Path | None 
 
 # --------------------------------------------------------------------------- running
 def run_batch(jobs: list[Job], scheduler: str | None = None, progress: bool = True,
-              force: bool = False, wait_s: float = 0.5) -> tuple[list[Result], int]:
+              force: bool = False, wait_s: float = 0.5,
+              client=None) -> tuple[list[Result], int]:
     """Run the unfinished jobs; returns (results of the jobs run, number already finished).
 
-    Jobs another live batch holds are waited for at the end (polling every ``wait_s``), and
-    run here if that batch dies before finishing them."""
+    ``scheduler`` (``clblur.distributed.client_for``) or an open ``distributed.Client``
+    (``client``) runs them on Dask distributed.  Jobs another live batch holds are waited
+    for at the end (polling every ``wait_s``), and run here if that batch dies before
+    finishing them."""
     from tqdm import tqdm
 
     todo = [j for j in jobs if force or not is_finished(j)]
@@ -238,12 +380,17 @@ def run_batch(jobs: list[Job], scheduler: str | None = None, progress: bool = Tr
                file=sys.stderr)
     results: list[Result] = []
     try:
-        if scheduler is None:
+        if client is not None:
+            results = _run_on(client, todo, bar)
+        elif scheduler is not None:
+            from clblur.distributed import client_for
+
+            with client_for(scheduler) as opened:
+                results = _run_on(opened, todo, bar)
+        else:
             for job in todo:
                 results.append(run_job(job))
                 _advance(bar, results[-1])
-        else:
-            results = _run_distributed(todo, scheduler, bar)
         busy = {r.name for r in results if r.status == "busy"}
         results = [r for r in results if r.status != "busy"]
         waiting = [j for j in todo if j.name in busy]
@@ -277,23 +424,21 @@ def _advance(bar, result: Result) -> None:
     bar.update(1)
 
 
-def _run_distributed(todo: list[Job], scheduler: str, bar) -> list[Result]:
+def _run_on(client, todo: list[Job], bar) -> list[Result]:
+    """Run ``todo`` on a ``distributed.Client``."""
     from distributed import as_completed
 
-    from clblur.distributed import client_for
-
     results = []
-    with client_for(scheduler) as client:
-        futures = {client.submit(run_job, job, pure=False, key=f"clblur-{i}-{job.name}"): job
-                   for i, job in enumerate(todo)}
-        for fut in as_completed(futures):
-            try:
-                result = fut.result()
-            except Exception as e:  # the worker died or could not run the task at all
-                result = Result(futures[fut].name, False, error=f"{type(e).__name__}: {e}",
-                                status="failed")
-            results.append(result)
-            _advance(bar, result)
+    futures = {client.submit(run_job, job, pure=False, key=f"clblur-{i}-{job.name}"): job
+               for i, job in enumerate(todo)}
+    for fut in as_completed(futures):
+        try:
+            result = fut.result()
+        except Exception as e:  # the worker died or could not run the task at all
+            result = Result(futures[fut].name, False, error=f"{type(e).__name__}: {e}",
+                            status="failed")
+        results.append(result)
+        _advance(bar, result)
     return results
 
 

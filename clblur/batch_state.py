@@ -48,7 +48,6 @@ class Job:
     backend: str = "auto"
     device: str | None = None
     memory_budget: str | None = None
-    problem: str | None = None  # known before running (e.g. no motion): reported as failed
 
     @property
     def name(self) -> str:
@@ -100,7 +99,7 @@ def job_key(job: Job) -> str:
     import clblur
 
     d = asdict(job)
-    for key in ("backend", "device", "memory_budget", "problem"):  # same pixels either way
+    for key in ("backend", "device", "memory_budget"):  # same pixels either way
         d.pop(key)
     if d["exposure"] == "frames":  # the default before the option existed: the same keys
         d.pop("exposure")

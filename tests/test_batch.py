@@ -117,9 +117,9 @@ def test_manifest_overrides_per_image(folder, capsys):
     np.save(tmp_path / "k.npy", psf)
     rc, text = run_manifest(tmp_path, capsys, "image,dx,dy,psf,response,anchor,output\n"
                                               "im0.png,6,-2,,linear,start,\n"
-                                              "im1.png,,,k.npy,,,renamed.png\n"
-                                              "ghost.png,1,1,,,,\n", "--motion", "3,0")
-    assert rc == 1 and "3 blurred, 0 already finished, 1 failed" in text and "ghost.png" in text
+                                              "im1.png,,,k.npy,,,renamed.png\n",
+                            "--motion", "3,0")
+    assert rc == 0 and "3 blurred, 0 already finished, 0 failed" in text
     out = tmp_path / "out"
     np.testing.assert_array_equal(
         read_image(out / "im0.png"),
@@ -138,10 +138,8 @@ def test_manifest_exposure_column(folder, capsys):
     tmp_path, images = folder
     (tmp_path / "in" / "broken.png").unlink()
     rc, text = run_manifest(tmp_path, capsys, "image,exposure\nim0.png,continuous\n"
-                                              "im1.png,frames\nim2.png,trapezoid\n",
-                            "--motion", "5,2")
-    assert rc == 1 and "2 blurred, 0 already finished, 1 failed" in text
-    assert "exposure must be one of" in text
+                                              "im1.png,frames\n", "--motion", "5,2")
+    assert rc == 0 and "3 blurred, 0 already finished, 0 failed" in text
     out = tmp_path / "out"
     np.testing.assert_array_equal(
         read_image(out / "im0.png"),
@@ -163,16 +161,6 @@ def test_bad_manifest_is_a_usage_error(folder, manifest, match):
     with pytest.raises(ValueError, match=match):
         run_cli(str(tmp_path / "in"), str(tmp_path / "out"), "--manifest",
                 str(tmp_path / "m.csv"))
-
-
-def test_malformed_row_and_missing_motion_fail_only_that_image(folder, capsys):
-    tmp_path, _ = folder
-    (tmp_path / "m.csv").write_text("image,dx,dy\nim0.png,fast,2\nim1.png,4,0\n")
-    rc = run_cli(str(tmp_path / "in"), str(tmp_path / "out"), "--manifest",
-                 str(tmp_path / "m.csv"), "--backend", "numpy", "--quiet")
-    text = capsys.readouterr().out
-    assert rc == 1 and "1 blurred, 0 already finished, 3 failed" in text
-    assert "manifest row for im0.png" in text and "no motion given" in text
 
 
 def test_usage_errors(folder):
@@ -355,3 +343,124 @@ def test_two_concurrent_batches_do_not_duplicate_work(folder):
     blurred = [int(out.split(" blurred")[0].split()[-1]) for out, _ in outs]
     assert sum(blurred) == 9, outs  # each of the 9 images done by exactly one batch
     assert not list((tmp_path / "out" / batch_state.MARKER_DIR).glob("*.lock"))
+
+
+# --------------------------------------------------------------------------- refused up front
+def cli_main(capfd, *argv: str) -> tuple[int, list[str]]:
+    """``clblur ARGV`` through the real entry point: (exit code, stderr lines)."""
+    from clblur.cli import main
+
+    capfd.readouterr()
+    code = main(list(argv))
+    return code, [line for line in capfd.readouterr().err.splitlines() if line.strip()]
+
+
+def assert_refused(capfd, tmp_path, *argv: str, match: tuple[str, ...]) -> None:
+    """Exit 2, one ``clblur batch: error:`` line holding every ``match``, no traceback or
+    exception class name, and OUT_DIR (``tmp_path/out``) never created."""
+    code, lines = cli_main(capfd, "batch", str(tmp_path / "in"), str(tmp_path / "out"),
+                           "--backend", "numpy", "--quiet", *argv)
+    assert code == 2 and len(lines) == 1, lines
+    assert lines[0].startswith("clblur batch: error: "), lines
+    assert "Error:" not in lines[0] and "Traceback" not in lines[0], lines
+    for word in match:
+        assert word in lines[0], (word, lines[0])
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("cells, line, column, words", [
+    ("im0.png,nan,1", 2, "dx, dy", ("NaN",)),
+    ("im0.png,abc,1", 2, "column dx", ("'abc'",)),
+    ("im0.png,1,inf", 2, "dx, dy", ("infinite",)),
+    ("im0.png,,,middle", 2, "column anchor", ("'middle'",)),
+    ("im0.png,,,,-1", 2, "column samples", (">= 1, got -1",)),
+    ("im0.png,,,,2.5", 2, "column samples", ("integer", "'2.5'")),
+    ("im0.png,,,,,0.5", 2, "column saturation", ("got 0.5",)),
+    ("im0.png,,,,,,bogus", 2, "column exposure", ("'bogus'",)),
+    ("im0.png,,,,,,,exp:-1", 2, "column response", ("exp:-1",)),
+    ("im0.png,,,,,,,nope.json", 2, "column response", ("not found",)),
+    ("im0.png,1,2\nim1.png,,,,0", 3, "column samples", ("got 0",)),
+    ("ghost.png,1,1", 2, "column image", ("not found", "ghost.png")),
+    ("notes.txt,1,1", 2, "column image", ("not an image",)),
+    ("im0.png,,,,,,,,missing.npy", 2, "column psf", ("not found",)),
+    ("im0.png,,,,,,,,,missing.npy", 2, "column flow", ("not found",)),
+    ("im0.png,,,,,,,,k_neg.npy", 2, "column psf", ("non-negative",)),
+    ("im0.png,1,1,,,,,,,k_neg.npy", 2, "columns dx, flow", ("one motion",)),
+    ("im0.png,,,,,,,,,,x.txt", 2, "column output", ("extension",)),
+])
+def test_bad_manifest_cells_are_refused_before_any_work(folder, capfd, cells, line, column,
+                                                        words):
+    """Every row's cells pass the same checks as the blur, up front: exit 2, one line naming
+    the manifest, the line and the column; nothing written (the broken image is never read)."""
+    tmp_path, _ = folder
+    np.save(tmp_path / "k_neg.npy", np.array([[0.5, -0.2], [0.3, 0.4]]))
+    manifest = tmp_path / "m.csv"
+    manifest.write_text("image,dx,dy,anchor,samples,saturation,exposure,response,psf,flow,"
+                        f"output\n{cells}\n")
+    assert_refused(capfd, tmp_path, "--motion", "1,0", "--manifest", str(manifest),
+                   match=(str(manifest), f"line {line},", column, *words))
+
+
+@pytest.mark.parametrize("text, line", [
+    ('image,dx,dy\n"im0.png,3,1\n', 2),
+    ('image,dx,dy\nim0.png,1,1\n"im1.png,3,1\nim2.png,1,1\n', 3),
+    ('image,dx,dy\n"im0.png"x,3,1\n', 2),
+    ('image,dx,dy\n"im0.png\nim1.png",3,1\n', 2),
+])
+def test_malformed_csv_is_refused(folder, capfd, text, line):
+    """A quote left open swallows the rest of the file into one cell: refused, not read as
+    an image named ``im0.png,3,1...``."""
+    tmp_path, _ = folder
+    (tmp_path / "m.csv").write_text(text)
+    assert_refused(capfd, tmp_path, "--motion", "1,0", "--manifest", str(tmp_path / "m.csv"),
+                   match=("malformed CSV", f"line {line}:"))
+
+
+@pytest.mark.parametrize("argv, match", [
+    ((), ("no motion given", "--motion")),  # no --motion, --flow-dir, --psf or manifest
+    (("--flow-dir", "{tmp}/nodir"), ("flow folder not found", "nodir")),
+    (("--flow-dir", "{tmp}/some_flows"), ("no flow for broken.png", "broken.npy")),
+    (("--psf", "{tmp}/k_neg.npy"), ("--psf", "k_neg.npy", "non-negative")),
+    (("--motion", "1,0", "--samples", "-1"), ("--samples", "got -1")),
+    (("--motion", "1,0", "--saturation", "0.5"), ("--saturation", "got 0.5")),
+    (("--motion", "1,0", "--scheduler", "bogus"), ("bogus",)),
+])
+def test_motion_flows_and_options_are_checked_once_up_front(folder, capfd, argv, match):
+    """Whole-run problems: exit 2 before OUT_DIR exists, not one failure per image."""
+    if "--scheduler" in argv:
+        pytest.importorskip("distributed")
+    tmp_path, _ = folder
+    np.save(tmp_path / "k_neg.npy", np.array([[0.5, -0.2], [0.3, 0.4]]))
+    (tmp_path / "some_flows").mkdir()
+    write_flow(tmp_path / "some_flows" / "im0.npy", np.zeros((20, 30, 2)))
+    assert_refused(capfd, tmp_path, *(a.format(tmp=tmp_path) for a in argv), match=match)
+
+
+def test_a_manifest_row_without_motion_is_refused(folder, capfd):
+    tmp_path, _ = folder
+    (tmp_path / "m.csv").write_text("image,dx,dy\nim0.png,1,1\n")
+    assert_refused(capfd, tmp_path, "--manifest", str(tmp_path / "m.csv"),
+                   match=("no motion for broken.png", "m.csv has no row"))
+    (tmp_path / "m.csv").write_text("image,dx,dy,samples\nim0.png,1,1,\nbroken.png,,,3\n")
+    assert_refused(capfd, tmp_path, "--manifest", str(tmp_path / "m.csv"),
+                   match=("no motion for broken.png", "its row of", "gives no dx"))
+    (tmp_path / "m.csv").write_text("image,dx,dy\nim0.png,1,1\n")
+    # a flow folder lacking a flow is fine for an image whose row gives its motion
+    (tmp_path / "in" / "broken.png").unlink()
+    (tmp_path / "flows" / "im0.npy").unlink()
+    code, lines = cli_main(capfd, "batch", str(tmp_path / "in"), str(tmp_path / "out"),
+                           "--flow-dir", str(tmp_path / "flows"), "--manifest",
+                           str(tmp_path / "m.csv"), "--backend", "numpy", "--quiet")
+    assert code == 0 and not lines
+
+
+def test_run_job_applies_the_same_checks(folder):
+    """A job built by hand meets the checks ``plan_jobs`` applies, as a failed image."""
+    tmp_path, _ = folder
+    job = batch_state.Job(src=str(tmp_path / "in" / "im0.png"), dst=str(tmp_path / "o.png"),
+                          motion=(1.0, 0.0), samples=0, backend="numpy")
+    result = batch.run_job(job)
+    assert not result.ok and result.error == "samples must be >= 1, got 0"
+    result = batch.run_job(replace(job, motion=None, samples=None))
+    assert not result.ok and "exactly one of motion, flow, psf" in result.error
+    assert not Path(job.dst).exists()
