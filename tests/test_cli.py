@@ -269,3 +269,18 @@ def test_a_bad_flow_file_is_named(tmp_path, scene, capsys, fault):
     assert run("blur", src, tmp_path / "o.png", "--flow", tmp_path / "f.npy") == 2
     err = capsys.readouterr().err
     assert f"flow {tmp_path / 'f.npy'}:" in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_a_library_warning_is_one_line(tmp_path, scene, capsys, monkeypatch):
+    # CLBLUR_DEVICE naming no device falls back to numpy with a warning: one line, named
+    # as the command's, not Python's two (file:line, then the source line)
+    import importlib
+
+    blur_module = importlib.import_module("clblur.blur")  # clblur.blur is the function
+    monkeypatch.setenv("CLBLUR_DEVICE", "9:9")
+    monkeypatch.delenv("CLBLUR_QUIET", raising=False)
+    monkeypatch.setattr(blur_module, "_warned_fallback", False)  # once per process
+    src, _ = scene
+    assert run("blur", src, tmp_path / "o.png", "--motion=2,0") == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("clblur blur: warning: no usable OpenCL"), err

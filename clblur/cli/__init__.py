@@ -11,6 +11,8 @@ Conventions
   ``TypeError`` / file-system errors that library validation raises) becomes one line on
   stderr, ``clblur COMMAND: error: <message>``, and exit code 2.  Command-line syntax errors
   too (one line, no usage block).  Anything else is a bug and keeps its traceback.
+* A library warning (e.g. no usable OpenCL device, the numpy reference used instead) is one
+  line too: ``clblur COMMAND: warning: <message>``.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+import warnings
 
 from clblur.errors import InputError
 
@@ -56,6 +59,13 @@ def one_line(error: BaseException) -> str:
     return text or type(error).__name__
 
 
+def _one_line_warning(command: str):
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        text = " ".join(str(message).split()).removeprefix("clblur: ")
+        print(f"clblur {command}: warning: {text}", file=sys.stderr if file is None else file)
+    return show
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; returns the exit code (0 ok, 1 partial failure, 2 bad input)."""
     try:
@@ -63,7 +73,9 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as e:  # --help, or a syntax error already printed in one line
         return int(e.code or 0) if not isinstance(e.code, str) else 2
     try:
-        return int(args.func(args) or 0)
+        with warnings.catch_warnings():  # a library warning is one line too, named as ours
+            warnings.showwarning = _one_line_warning(args.command)
+            return int(args.func(args) or 0)
     except INPUT_ERRORS as e:
         print(f"clblur {args.command}: error: {one_line(e)}", file=sys.stderr)
         return 2
