@@ -94,7 +94,7 @@ def blur(image: np.ndarray, motion, response="exp", *, anchor: str = "center",
 
 def check_backend(backend: str) -> None:
     if backend not in BACKENDS:
-        raise ValueError(f"unknown backend {backend!r}; use one of {', '.join(BACKENDS)}")
+        raise InputError(f"unknown backend {backend!r}; use one of {', '.join(BACKENDS)}")
 
 
 def resolve_backend(backend: str, device: str | None = None) -> str:

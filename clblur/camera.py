@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from clblur.blur import blur
+from clblur.errors import InputError, InputTypeError
 from clblur.pixels import quantise
 from clblur.responses import Exp, Response, response
 
@@ -66,19 +67,19 @@ class Camera:
                            if isinstance(self.response, (tuple, list))
                            else response(self.response))
         if self.storage not in ("round", "floor"):
-            raise ValueError(f"storage must be 'round' or 'floor', got {self.storage!r}")
+            raise InputError(f"storage must be 'round' or 'floor', got {self.storage!r}")
         if not (math.isfinite(self.code_offset) and abs(self.code_offset) <= 8):
-            raise ValueError(f"code_offset must be within +-8 codes, got {self.code_offset}")
+            raise InputError(f"code_offset must be within +-8 codes, got {self.code_offset}")
         levels = np.atleast_1d(np.asarray(self.black_level, dtype=np.float64))
         if levels.ndim != 1 or not np.all((levels >= 0.0) & (levels < 1.0)):
-            raise ValueError(f"black_level must be in [0, 1) (one, or one per channel), "
+            raise InputError(f"black_level must be in [0, 1) (one, or one per channel), "
                              f"got {self.black_level}")
         for name in ("noise_a", "noise_b", "vignetting"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
-                raise ValueError(f"{name} must be a finite number >= 0, got {v}")
+                raise InputError(f"{name} must be a finite number >= 0, got {v}")
         if self.channel_gains is not None and any(g <= 0 for g in self.channel_gains):
-            raise ValueError(f"channel_gains must be positive, got {self.channel_gains}")
+            raise InputError(f"channel_gains must be positive, got {self.channel_gains}")
 
     def capture(self, radiance: np.ndarray, exposure: float = 1.0, *, motion=None,
                 weights=None, anchor: str = "center", gain: float = 1.0,
@@ -98,14 +99,14 @@ class Camera:
         """
         rad = _check_radiance(radiance)
         if not (math.isfinite(exposure) and exposure > 0 and math.isfinite(gain) and gain > 0):
-            raise ValueError(f"exposure and gain must be positive, got {exposure}, {gain}")
+            raise InputError(f"exposure and gain must be positive, got {exposure}, {gain}")
         if not (math.isfinite(optical_variance) and optical_variance >= 0):
-            raise ValueError(f"optical_variance must be >= 0, got {optical_variance}")
+            raise InputError(f"optical_variance must be >= 0, got {optical_variance}")
         y = rad * (exposure * gain)
         gains = channel_gains if channel_gains is not None else self.channel_gains
         if gains is not None:
             if len(gains) != y.shape[2]:
-                raise ValueError(f"{len(gains)} channel gains for {y.shape[2]} channel(s)")
+                raise InputError(f"{len(gains)} channel gains for {y.shape[2]} channel(s)")
             y = y * np.asarray(gains, dtype=np.float64)
         if motion is not None:
             y = blur(y, motion, "linear", anchor=anchor, weights=weights, backend=backend)
@@ -120,20 +121,20 @@ class Camera:
         clipped = y >= 1.0 if self.full_well else np.zeros(y.shape, bool)
         if self.noise_a > 0 or self.noise_b > 0:
             if rng is None:
-                raise ValueError("a noisy camera needs rng (a numpy Generator)")
+                raise InputError("a noisy camera needs rng (a numpy Generator)")
             y = np.where(clipped, y, _poisson_gaussian(y, self.noise_a, self.noise_b, rng))
         if self.full_well:
             y = np.minimum(y, 1.0)
         y = np.maximum(y, 0.0)
         if isinstance(self.response, tuple):
             if len(self.response) != y.shape[2]:
-                raise ValueError(f"{len(self.response)} responses for {y.shape[2]} channel(s)")
+                raise InputError(f"{len(self.response)} responses for {y.shape[2]} channel(s)")
             v = np.stack([r.forward(y[..., c]) for c, r in enumerate(self.response)], axis=-1)
         else:
             v = self.response.forward(y)
         beta = np.asarray(self.black_level, dtype=np.float64)
         if beta.ndim and beta.size != v.shape[2]:
-            raise ValueError(f"{beta.size} black levels for {v.shape[2]} channel(s)")
+            raise InputError(f"{beta.size} black levels for {v.shape[2]} channel(s)")
         v = beta + (1.0 - beta) * v
         out = self._store(v, dtype)
         return out[..., 0] if np.ndim(radiance) == 2 else out
@@ -165,10 +166,10 @@ def shift_image(y: np.ndarray, sx: float, sy: float) -> np.ndarray:
 
 def _check_radiance(radiance) -> np.ndarray:
     if not isinstance(radiance, np.ndarray) or radiance.ndim not in (2, 3):
-        raise TypeError("radiance must be an H x W or H x W x C numpy array")
+        raise InputTypeError("radiance must be an H x W or H x W x C numpy array")
     rad = np.asarray(radiance, dtype=np.float64)
     if not np.isfinite(rad).all() or (rad < 0).any():
-        raise ValueError("radiance must be finite and >= 0")
+        raise InputError("radiance must be finite and >= 0")
     return rad if rad.ndim == 3 else rad[..., None]
 
 
@@ -202,7 +203,7 @@ def accelerating_weights(n: int, speed_ratio: float) -> np.ndarray:
     (v1^2 - v0^2) s``.
     """
     if n < 2 or not (math.isfinite(speed_ratio) and speed_ratio > 0):
-        raise ValueError(f"need n >= 2 and a positive speed ratio, got {n}, {speed_ratio}")
+        raise InputError(f"need n >= 2 and a positive speed ratio, got {n}, {speed_ratio}")
     s = np.linspace(0.0, 1.0, n)
     w = 1.0 / np.sqrt(1.0 + (speed_ratio ** 2 - 1.0) * s)
     return w / w.sum()

@@ -28,6 +28,7 @@ import dask.array as da
 import numpy as np
 
 from clblur.blur import blur_plan, check_backend
+from clblur.errors import InputError, InputTypeError
 from clblur.halo import fixed_halo, flow_halo, halo_for_reach, tiled_motion
 from clblur.motion import PSF, Uniform, anchor_value
 from clblur.request import make_plan
@@ -49,9 +50,9 @@ def blur(array, motion, response="exp", *, anchor: str = "center", samples: int 
     motion, a PSF or ``max_displacement``), chunks narrower than it are merged.
     """
     if not isinstance(array, da.Array):
-        raise TypeError(f"array must be a dask array, got {type(array).__name__}")
+        raise InputTypeError(f"array must be a dask array, got {type(array).__name__}")
     if array.ndim not in (2, 3):
-        raise ValueError(f"image must be H x W or H x W x C, got shape {array.shape}")
+        raise InputError(f"image must be H x W or H x W x C, got shape {array.shape}")
     check_backend(backend)
     h, w = array.shape[:2]
     a = anchor_value(anchor)
@@ -59,7 +60,7 @@ def blur(array, motion, response="exp", *, anchor: str = "center", samples: int 
     if isinstance(motion, da.Array) and motion.ndim == 3:
         flow = motion
         if motion.shape != (h, w, 2):
-            raise ValueError(f"flow field has shape {motion.shape}, expected ({h}, {w}, 2) to "
+            raise InputError(f"flow field has shape {motion.shape}, expected ({h}, {w}, 2) to "
                              "match the image")
         fixed = None
     else:
@@ -116,10 +117,10 @@ def _flow_depth(max_displacement, anchor: float) -> tuple[int, int]:
     """The (rows, cols) halo of every chunk from the caller's bound on the vectors."""
     amax = np.abs(np.asarray(max_displacement, dtype=np.float64))
     if amax.shape != (2,):
-        raise ValueError(f"max_displacement must be (max |dx|, max |dy|), got "
+        raise InputError(f"max_displacement must be (max |dx|, max |dy|), got "
                          f"{max_displacement!r}")
     if not np.isfinite(amax).all():
-        raise ValueError("flow field contains NaN or infinite values")
+        raise InputError("flow field contains NaN or infinite values")
     f = max(anchor, 1.0 - anchor)
     return halo_for_reach(amax[1] * f), halo_for_reach(amax[0] * f)
 

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from clblur.errors import InputError, InputTypeError
 from clblur.io import read_flow, resolve_inside, write_flow
 from clblur.pixels import quantise
 
@@ -46,7 +47,7 @@ def grey8(image: np.ndarray) -> np.ndarray:
     elif img.dtype.kind == "f":
         img = quantise(img, np.uint8)
     elif img.dtype != np.uint8:
-        raise TypeError(f"unsupported frame dtype {img.dtype}")
+        raise InputTypeError(f"unsupported frame dtype {img.dtype}")
     if img.ndim == 3:
         img = cv2.cvtColor(np.ascontiguousarray(img[..., :3]), cv2.COLOR_RGB2GRAY)
     return np.ascontiguousarray(img)  # DIS rejects strided views (crops)
@@ -59,7 +60,7 @@ class FlowEstimator:
         import cv2
 
         if method not in METHODS:
-            raise ValueError(f"unknown flow method {method!r}; use {', '.join(METHODS)} or a "
+            raise InputError(f"unknown flow method {method!r}; use {', '.join(METHODS)} or a "
                              "folder of precomputed flows")
         self.method = method
         self._dis = (cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
@@ -70,7 +71,7 @@ class FlowEstimator:
 
         a, b = grey8(src), grey8(dst)
         if a.shape != b.shape:
-            raise ValueError(f"frames differ in size: {a.shape} and {b.shape}")
+            raise InputError(f"frames differ in size: {a.shape} and {b.shape}")
         if self._dis is not None:
             h, w = a.shape
             grow = (max(DIS_MIN_SIDE - h, 0), max(DIS_MIN_SIDE - w, 0))
@@ -100,9 +101,9 @@ class FlowFolder:
     def __init__(self, folder: str | os.PathLike):
         self.path = Path(folder)
         if not self.path.is_dir():
-            raise ValueError(f"flow folder not found: {folder}")
+            raise InputError(f"flow folder not found: {folder}")
         if not any(self.path.glob("forward_*")) and not any(self.path.glob("backward_*")):
-            raise ValueError(f"{folder} holds no forward_NNNNNN/backward_NNNNNN .flo or .npy "
+            raise InputError(f"{folder} holds no forward_NNNNNN/backward_NNNNNN .flo or .npy "
                              "flow files")
 
     def get(self, direction: str, index: int, shape: tuple[int, int]) -> np.ndarray | None:
@@ -112,7 +113,7 @@ class FlowFolder:
         # a flow in the folder must be a file in the folder, not a symlink leading out of it
         flow = read_flow(resolve_inside(self.path, p.name, f"flow folder {self.path}: file"))
         if flow.shape[:2] != tuple(shape):
-            raise ValueError(f"{p.name} has size {flow.shape[:2]}, the frame {tuple(shape)}")
+            raise InputError(f"{p.name} has size {flow.shape[:2]}, the frame {tuple(shape)}")
         return flow
 
 

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from clblur.errors import InputError
+from clblur.errors import InputError, InputTypeError
 from clblur.io import as_array_like, open_flow
 from clblur.motion import PSF, Field, Uniform, psf
 from clblur.request import make_plan
@@ -58,7 +58,7 @@ def tiled_motion(motion, shape: tuple[int, int]) -> TiledMotion:
             raise InputError(f"flow field has shape {tuple(motion.shape)}, expected "
                              f"({h}, {w}, 2) to match the image")
         if np.dtype(motion.dtype).kind not in "fiu":
-            raise TypeError(f"flow field must be numeric, got dtype {motion.dtype}")
+            raise InputTypeError(f"flow field must be numeric, got dtype {motion.dtype}")
         return TiledMotion(flow=as_array_like(motion))
     raise InputError(f"motion has shape {tuple(motion.shape)}; expected (2,), (H, W, 2) or a "
                      "2-D PSF")

@@ -87,6 +87,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
+from clblur.errors import InputError
 from clblur.halo import reach
 from clblur.layer_planes import (
     SPLIT_PRIOR,
@@ -403,7 +404,7 @@ def plan_order(plan: BlurPlan) -> tuple[np.ndarray, np.ndarray, str] | None:
     if plan.depth is None or isinstance(plan.motion, (Uniform, PSF)):
         return None  # one displacement for every pixel: nothing moves relative to anything
     if plan.extent is not None:
-        raise ValueError("a depth ordering needs the whole image; it cannot run on tiles")
+        raise InputError("a depth ordering needs the whole image; it cannot run on tiles")
     assert isinstance(plan.motion, Field)
     return plan.motion.flow, plan.depth, "speed" if plan.speed_order else "depth"
 

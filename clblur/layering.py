@@ -13,6 +13,8 @@ import math
 
 import numpy as np
 
+from clblur.errors import InputError
+
 __all__ = ["DEPTH_TAU", "GAP_FRACTION", "MAX_LAYERS", "NAMED_ORDERS", "departure_order",
            "depth_components", "layer_labels", "layer_of_components", "median_keys",
            "named_order", "order_components", "rank_components", "sliver_targets", "speed_order"]
@@ -53,7 +55,7 @@ def named_order(name: str, v: np.ndarray | None = None) -> np.ndarray | None:
     """The ordering ``name`` (one of ``NAMED_ORDERS``, checked) computed from the vectors
     ``v``: :func:`speed_order` or :func:`departure_order`; None without ``v``."""
     if name not in NAMED_ORDERS:
-        raise ValueError(f"unknown depth ordering {name!r}; use an H x W array or one of "
+        raise InputError(f"unknown depth ordering {name!r}; use an H x W array or one of "
                          f"{', '.join(map(repr, NAMED_ORDERS))}")
     if v is None:
         return None
@@ -83,7 +85,7 @@ def layer_labels(order: np.ndarray, max_layers: int = MAX_LAYERS,
         cut = gaps > GAP_FRACTION * (vals[-1] - vals[0]) if gaps.size else gaps > 0
         return _cut(gaps, cut, max_layers)[inverse.reshape(order.shape)]
     if rule != "depth":
-        raise ValueError(f"unknown layering rule {rule!r}; use 'depth' or 'speed'")
+        raise InputError(f"unknown layering rule {rule!r}; use 'depth' or 'speed'")
     if order.ndim == 1:  # a row of pixels
         return layer_labels(order[None], max_layers, rule)[0]
     comp, n = depth_components(order)
@@ -107,7 +109,7 @@ def _inverse_depth(depth: np.ndarray) -> np.ndarray:
     """``1 / z`` (0 for +inf, the sky); refuses NaN, -inf and z <= 0 with a one-line error."""
     z = np.asarray(depth, np.float64)
     if np.isnan(z).any() or (z <= 0).any():
-        raise ValueError("float depth must be > 0 (distance, smaller = nearer) or +inf (sky); "
+        raise InputError("float depth must be > 0 (distance, smaller = nearer) or +inf (sky); "
                          f"got {int(np.isnan(z).sum())} NaN and {int((z <= 0).sum())} value(s) "
                          "<= 0 (pass integer layer IDs for a rank order)")
     with np.errstate(divide="ignore"):

@@ -31,6 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from clblur.errors import InputError, InputTypeError
+
 __all__ = ["ANCHORS", "FLOW_LIMIT", "PSF", "EXPOSURES", "Field", "Uniform", "anchor_value",
            "check_flow", "check_exposure", "curved_terms", "flow_error", "parse_motion", "psf",
            "sample_counts",
@@ -76,14 +78,14 @@ Motion = Uniform | Field | PSF
 
 def anchor_value(anchor: str) -> float:
     if anchor not in ANCHORS:
-        raise ValueError(f"unknown anchor {anchor!r}; use one of {', '.join(ANCHORS)}")
+        raise InputError(f"unknown anchor {anchor!r}; use one of {', '.join(ANCHORS)}")
     return ANCHORS[anchor]
 
 
 def _finite_vector(values: np.ndarray, what: str) -> None:
     bad = ~np.isfinite(values)
     if bad.any():
-        raise ValueError(f"{what} contains {int(bad.sum())} NaN or infinite value(s)")
+        raise InputError(f"{what} contains {int(bad.sum())} NaN or infinite value(s)")
 
 
 def flow_error(nonfinite: int, beyond: int) -> str:
@@ -108,7 +110,7 @@ def check_flow(flow: np.ndarray) -> None:
     beyond = 0 if flow.dtype == np.float16 else (  # finite halves never exceed 65504
         int(np.count_nonzero(np.abs(np.where(finite, flow, 0)) > FLOW_LIMIT)))
     if nonfinite or beyond:
-        raise ValueError(flow_error(nonfinite, beyond))
+        raise InputError(flow_error(nonfinite, beyond))
 
 
 def parse_motion(motion, shape: tuple[int, int], check: bool = True) -> Motion:
@@ -128,8 +130,8 @@ def parse_motion(motion, shape: tuple[int, int], check: bool = True) -> Motion:
     arr = np.asarray(motion)
     if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number)
                                    or arr.dtype == np.bool_):
-        raise TypeError("motion must be (dx, dy), an H x W x 2 flow array or a 2-D PSF, "
-                        f"got {type(motion).__name__}")
+        raise InputTypeError("motion must be (dx, dy), an H x W x 2 flow array or a 2-D PSF, "
+                             f"got {type(motion).__name__}")
     if arr.shape == (2,):
         _finite_vector(arr.astype(np.float64), "motion vector")
         v = arr.astype(np.float32)
@@ -137,7 +139,7 @@ def parse_motion(motion, shape: tuple[int, int], check: bool = True) -> Motion:
     if arr.ndim == 3:
         h, w = shape
         if arr.shape != (h, w, 2):
-            raise ValueError(f"flow field has shape {arr.shape}, expected ({h}, {w}, 2) to "
+            raise InputError(f"flow field has shape {arr.shape}, expected ({h}, {w}, 2) to "
                              f"match the image")
         dtype = np.float16 if arr.dtype == np.float16 else np.float32
         flow = np.ascontiguousarray(arr, dtype=dtype)
@@ -146,20 +148,20 @@ def parse_motion(motion, shape: tuple[int, int], check: bool = True) -> Motion:
         return Field(flow)
     if arr.ndim == 2:
         return psf(arr)
-    raise ValueError(f"motion has shape {arr.shape}; expected (2,), (H, W, 2) or a 2-D PSF")
+    raise InputError(f"motion has shape {arr.shape}; expected (2,), (H, W, 2) or a 2-D PSF")
 
 
 def psf(kernel: np.ndarray) -> PSF:
     """Validate and normalise a PSF kernel to unit sum."""
     k = np.asarray(kernel, dtype=np.float64)
     if k.ndim != 2 or k.size == 0:
-        raise ValueError(f"PSF must be a non-empty 2-D array, got shape {k.shape}")
+        raise InputError(f"PSF must be a non-empty 2-D array, got shape {k.shape}")
     _finite_vector(k, "PSF")
     if (k < 0).any():
-        raise ValueError("PSF weights must be non-negative")
+        raise InputError("PSF weights must be non-negative")
     total = k.sum()
     if total <= 0:
-        raise ValueError("PSF weights sum to zero")
+        raise InputError("PSF weights sum to zero")
     return PSF(k / total)
 
 
@@ -195,28 +197,26 @@ def time_weights(samples: int | None, weights: Sequence[float] | None) -> tuple[
     """Validate ``samples``/``weights``; return (N or None for per-pixel default, weights)."""
     if samples is not None:
         if isinstance(samples, bool) or not isinstance(samples, (int, np.integer)):
-            raise TypeError(f"samples must be an integer, got {samples!r}")
+            raise InputTypeError(f"samples must be an integer, got {samples!r}")
         if samples < 1:
-            raise ValueError(f"samples must be >= 1, got {samples}")
+            raise InputError(f"samples must be >= 1, got {samples}")
         samples = int(samples)
     if weights is None:
         return samples, None
     w = np.asarray(weights, dtype=np.float64).ravel()
     if w.size == 0:
-        raise ValueError("weights must not be empty")
+        raise InputError("weights must not be empty")
     _finite_vector(w, "time weights")
     if (w < 0).any() or w.sum() <= 0:
-        raise ValueError("time weights must be non-negative with a positive sum")
+        raise InputError("time weights must be non-negative with a positive sum")
     if samples is not None and samples != w.size:
-        raise ValueError(f"got {w.size} time weights for samples={samples}")
+        raise InputError(f"got {w.size} time weights for samples={samples}")
     return w.size, w / w.sum()
 
 
 def check_exposure(exposure, weights=None) -> str:
     """``exposure`` if it is one of ``EXPOSURES`` and, when ``continuous``, given without time
     weights (which would replace its weights); else a one-line ``InputError``."""
-    from clblur.errors import InputError
-
     if not isinstance(exposure, str) or exposure not in EXPOSURES:
         raise InputError(f"exposure must be one of {', '.join(EXPOSURES)}, got {exposure!r}")
     if exposure == "continuous" and weights is not None:

@@ -30,6 +30,7 @@ import math
 
 import numpy as np
 
+from clblur.errors import InputError, InputTypeError
 from clblur.responses import Response
 
 __all__ = ["SUPPORTED_DTYPES", "clip_level", "code_step", "full_scale_exposure", "imax",
@@ -107,9 +108,9 @@ def validate_saturation(saturation: float) -> float:
     try:
         s = float(saturation)
     except (TypeError, ValueError):
-        raise TypeError(f"saturation must be a number, got {saturation!r}") from None
+        raise InputTypeError(f"saturation must be a number, got {saturation!r}") from None
     if not math.isfinite(s) or s < 1.0:
-        raise ValueError(f"saturation must be a finite number >= 1 (a clipped pixel is at "
+        raise InputError(f"saturation must be a finite number >= 1 (a clipped pixel is at "
                          f"least as bright as full scale), got {saturation}")
     return s
 

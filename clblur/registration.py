@@ -65,6 +65,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from clblur.errors import InputError
 from clblur.pixels import imax
 
 __all__ = ["MIN_NCC", "MIN_OVERLAP", "MIN_PIXELS", "TIE_NCC", "TURN_PX", "Registration",
@@ -272,7 +273,7 @@ def pair_shift(longer: np.ndarray, shorter: np.ndarray) -> tuple[tuple[int, int]
     a, ma = _plane(longer)
     b, mb = _plane(shorter)
     if a.shape != b.shape:
-        raise ValueError(f"images differ in size: {a.shape} and {b.shape}")
+        raise InputError(f"images differ in size: {a.shape} and {b.shape}")
     return _plane_shift(a, ma, b, mb)
 
 
@@ -456,7 +457,7 @@ def align_series(images: list[np.ndarray], exposures, turns: bool = True) -> Reg
         a, ma = b, mb
         b, mb = _plane(images[order[k]])
         if a.shape != b.shape:
-            raise ValueError(f"images differ in size: {a.shape} and {b.shape}")
+            raise InputError(f"images differ in size: {a.shape} and {b.shape}")
         found = _plane_shift(a, ma, b, mb)
         if found is None:
             unregistered.append(int(order[k]))
@@ -480,7 +481,7 @@ def align_series(images: list[np.ndarray], exposures, turns: bool = True) -> Reg
     hi = np.array([h, w]) - np.maximum(shifts.max(axis=0), 0)
     need = min(MIN_OVERLAP, h, w)
     if shifts.any() and np.any(hi - lo < need):
-        raise ValueError(f"exposure series: the images overlap by less than {need} px after "
+        raise InputError(f"exposure series: the images overlap by less than {need} px after "
                          f"registration (shifts {shifts.tolist()}); are they of one scene?")
     window = (slice(int(lo[0]), int(hi[0])), slice(int(lo[1]), int(hi[1])))
     return Registration(shifts, window, int(order[n // 2]), tuple(sorted(unregistered)))
@@ -511,7 +512,7 @@ def _turned(links: list[np.ndarray], order: np.ndarray, unregistered: list[int],
     y0, y1, x0, x1 = _chain_window(maps, shape)
     need = (min(MIN_OVERLAP, h), min(MIN_OVERLAP, w))
     if y1 - y0 + 1 < need[0] or x1 - x0 + 1 < need[1]:
-        raise ValueError(f"exposure series: the images overlap by less than {need[0]} x "
+        raise InputError(f"exposure series: the images overlap by less than {need[0]} x "
                          f"{need[1]} px after registration; are they of one scene?")
     window = (slice(y0, y1 + 1), slice(x0, x1 + 1))
     return Registration(shifts, window, int(order[n // 2]), tuple(sorted(unregistered)), maps,

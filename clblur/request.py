@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from clblur.errors import InputError, InputTypeError
 from clblur.motion import (
     FLOW_LIMIT,
     PSF,
@@ -87,16 +88,16 @@ class BlurPlan:
 def check_image(image) -> np.ndarray:
     """Return ``image`` as an H x W x C array, or raise a clear error."""
     if not isinstance(image, np.ndarray):
-        raise TypeError(f"image must be a numpy array, got {type(image).__name__}")
+        raise InputTypeError(f"image must be a numpy array, got {type(image).__name__}")
     if image.dtype not in [np.dtype(d) for d in SUPPORTED_DTYPES]:
-        raise TypeError(f"unsupported image dtype {image.dtype}; use uint8, uint16, float32 "
-                        "or float64")
+        raise InputTypeError(f"unsupported image dtype {image.dtype}; use uint8, uint16, float32 "
+                             "or float64")
     if image.ndim not in (2, 3):
-        raise ValueError(f"image must be H x W or H x W x C, got shape {image.shape}")
+        raise InputError(f"image must be H x W or H x W x C, got shape {image.shape}")
     if image.size == 0:
-        raise ValueError(f"image is empty (shape {image.shape})")
+        raise InputError(f"image is empty (shape {image.shape})")
     if image.dtype.kind == "f" and not np.isfinite(image).all():
-        raise ValueError("image contains NaN or infinite values")
+        raise InputError("image contains NaN or infinite values")
     return image if image.ndim == 3 else image[..., None]
 
 
@@ -122,16 +123,16 @@ def make_plan(image, motion, response="exp", *, anchor: str = "center",
     parsed = parse_motion(motion, (h, w), check=check_flow)
     if exposure == "continuous":
         if isinstance(parsed, PSF):
-            raise ValueError("exposure='continuous' applies to motion vectors; a PSF carries "
+            raise InputError("exposure='continuous' applies to motion vectors; a PSF carries "
                              "its own weights")
         if isinstance(parsed, Uniform) and n is None:  # one count for every pixel
             n = int(sample_counts(np.float32(parsed.dx), np.float32(parsed.dy)))
         if n is not None:  # one count: the weights say it all (ends stays False)
             wts = trapezoid_weights(n)
     if not isinstance(alpha, (bool, np.bool_)):
-        raise TypeError(f"alpha must be True or False, got {alpha!r}")
+        raise InputTypeError(f"alpha must be True or False, got {alpha!r}")
     if alpha and c < 2:
-        raise ValueError("alpha=True needs an image with at least 2 channels (colour + alpha), "
+        raise InputError("alpha=True needs an image with at least 2 channels (colour + alpha), "
                          f"got {c}")
     return BlurPlan(image=img, squeeze=np.ndim(image) == 2, motion=parsed,
                     responses=tuple(per_channel(response, c)), anchor=a,
@@ -187,10 +188,10 @@ def _check_background(background, image: np.ndarray, depth) -> np.ndarray | None
     if background is None:
         return None
     if depth is None:
-        raise ValueError("a background plate is only used with a depth ordering (depth=...)")
+        raise InputError("a background plate is only used with a depth ordering (depth=...)")
     if not isinstance(background, np.ndarray) or background.shape != image.shape \
             or background.dtype != image.dtype:
-        raise ValueError("background must be an array with the image's shape and dtype "
+        raise InputError("background must be an array with the image's shape and dtype "
                          f"({image.shape}, {image.dtype})")
     return check_image(background)
 
@@ -220,12 +221,12 @@ def check_depth(depth, shape: tuple[int, int], speed: bool = False) -> np.ndarra
         return None
     d = np.asarray(depth)
     if d.dtype == object or not np.issubdtype(d.dtype, np.number):
-        raise TypeError("depth must be a numeric H x W array, 'speed' or 'departure', got "
-                        f"{depth!r:.40}")
+        raise InputTypeError("depth must be a numeric H x W array, 'speed' or 'departure', got "
+                             f"{depth!r:.40}")
     if d.ndim == 3 and d.shape[2] == 1:
         d = d[..., 0]
     if d.shape != tuple(shape):
-        raise ValueError(f"depth has shape {d.shape}, expected {tuple(shape)} to match the "
+        raise InputError(f"depth has shape {d.shape}, expected {tuple(shape)} to match the "
                          "image")
     if np.issubdtype(d.dtype, np.integer):
         return d.astype(np.int64)
@@ -240,10 +241,10 @@ def check_depth(depth, shape: tuple[int, int], speed: bool = False) -> np.ndarra
     # distance is positive: both are refused in one line rather than guessed at
     bad = np.isnan(d) | (d == -np.inf)
     if bad.any():
-        raise ValueError(f"depth contains {int(bad.sum())} NaN or -inf value(s); use +inf for "
+        raise InputError(f"depth contains {int(bad.sum())} NaN or -inf value(s); use +inf for "
                          "the sky")
     if (d <= 0).any():
-        raise ValueError(f"depth contains {int((d <= 0).sum())} value(s) <= 0; a float depth "
+        raise InputError(f"depth contains {int((d <= 0).sum())} value(s) <= 0; a float depth "
                          "is a distance (> 0, smaller = nearer); pass integer layer IDs for a "
                          "rank order")
     return d
@@ -254,5 +255,5 @@ def _region(region, shape) -> dict:
         return {}
     r0, c0, fh, fw = (int(v) for v in region)
     if r0 < 0 or c0 < 0 or r0 + shape[0] > fh or c0 + shape[1] > fw:
-        raise ValueError(f"window {shape} at ({r0}, {c0}) does not fit a {fh} x {fw} image")
+        raise InputError(f"window {shape} at ({r0}, {c0}) does not fit a {fh} x {fw} image")
     return {"origin": (r0, c0), "extent": (fh, fw)}

@@ -36,6 +36,8 @@ import os
 
 import numpy as np
 
+from clblur.errors import InputError
+
 __all__ = ["CONVENTIONS", "blender_displacements", "to_blender", "nuke_displacements",
            "to_nuke", "exposure_flow", "half_vectors", "from_blender", "from_nuke",
            "blur_bent", "read_vectors", "load_flow"]
@@ -46,16 +48,16 @@ CONVENTIONS = ("clblur", "blender", "nuke")
 def _field(a, what: str, channels: int) -> np.ndarray:
     f = np.asarray(a, np.float32)
     if f.ndim != 3 or f.shape[2] != channels:
-        raise ValueError(f"{what} has shape {f.shape}, expected H x W x {channels}")
+        raise InputError(f"{what} has shape {f.shape}, expected H x W x {channels}")
     if not np.isfinite(f).all():
-        raise ValueError(f"{what} contains NaN or infinite values")
+        raise InputError(f"{what} contains NaN or infinite values")
     return f
 
 
 def _shutter(shutter: float) -> float:
     s = float(shutter)
     if not np.isfinite(s) or s <= 0:
-        raise ValueError(f"shutter must be a positive fraction of the frame interval, got "
+        raise InputError(f"shutter must be a positive fraction of the frame interval, got "
                          f"{shutter}")
     return s
 
@@ -81,7 +83,7 @@ def nuke_displacements(forward: np.ndarray | None = None, backward: np.ndarray |
     """Nuke ``forward`` / ``backward`` (u, v) layers -> ``(d_prev, d_next)``; a missing one
     mirrors the other."""
     if forward is None and backward is None:
-        raise ValueError("need the forward or the backward vectors (or both)")
+        raise InputError("need the forward or the backward vectors (or both)")
     flip = np.float32(-1.0 if y_up else 1.0)
     d_next = d_prev = None
     if forward is not None:
@@ -95,7 +97,7 @@ def nuke_displacements(forward: np.ndarray | None = None, backward: np.ndarray |
     if d_next is None:
         d_next = d_prev.copy()
     if d_prev.shape != d_next.shape:
-        raise ValueError(f"forward and backward vectors differ in shape: {d_next.shape} and "
+        raise InputError(f"forward and backward vectors differ in shape: {d_next.shape} and "
                          f"{d_prev.shape}")
     return d_prev, d_next
 
@@ -173,13 +175,13 @@ def read_vectors(path: str | os.PathLike, convention: str,
     from clblur.io.paths import require_file
 
     if convention not in ("blender", "nuke"):
-        raise ValueError(f"unknown vector convention {convention!r}; use blender or nuke")
+        raise InputError(f"unknown vector convention {convention!r}; use blender or nuke")
     path = require_file(path, "vector")
     if path.suffix.lower() == ".npy":
         try:
             a = np.load(path, allow_pickle=False)
         except Exception as e:
-            raise ValueError(f"cannot read vectors {path}: {e}") from None
+            raise InputError(f"cannot read vectors {path}: {e}") from None
         if convention == "blender":
             return {"pass": _field(a, f"Blender vector pass {path}", 4)}
         if a.ndim == 3 and a.shape[2] == 4:
@@ -191,7 +193,7 @@ def read_vectors(path: str | os.PathLike, convention: str,
     if layer is not None:  # one view layer of a multilayer file: <layer>.Vector.X/Y/Z/W
         names = [f"{layer}.Vector.{c}" for c in "XYZW"]
         if convention != "blender" or not all(n in chans for n in names):
-            raise ValueError(f"{path} has no Blender vector pass {layer}.Vector.X/Y/Z/W "
+            raise InputError(f"{path} has no Blender vector pass {layer}.Vector.X/Y/Z/W "
                              f"(a named layer is a Blender view layer); channels: "
                              f"{', '.join(chans)}")
         return {"pass": np.stack([chans[n] for n in names], axis=-1)}
@@ -201,14 +203,14 @@ def read_vectors(path: str | os.PathLike, convention: str,
             names = [pre + c for c in "XYZW"] if pre else list("RGBA")
             if all(n in chans for n in names):
                 return {"pass": np.stack([chans[n] for n in names], axis=-1)}
-        raise ValueError(f"{path} has no Blender vector pass (Vector.X/Y/Z/W or RGBA); "
+        raise InputError(f"{path} has no Blender vector pass (Vector.X/Y/Z/W or RGBA); "
                          f"channels: {', '.join(chans)}")
     out = {}
     for layer in ("forward", "backward"):
         if f"{layer}.u" in chans and f"{layer}.v" in chans:
             out[layer] = np.stack([chans[f"{layer}.u"], chans[f"{layer}.v"]], axis=-1)
     if not out:
-        raise ValueError(f"{path} has no Nuke forward.u/v or backward.u/v channels; channels: "
+        raise InputError(f"{path} has no Nuke forward.u/v or backward.u/v channels; channels: "
                          f"{', '.join(chans)}")
     return out
 
@@ -221,14 +223,14 @@ def load_flow(path: str | os.PathLike, convention: str = "clblur",
     the two halves ``(first, second)`` of the bent path instead.  ``layer``: a Blender view
     layer of a multilayer EXR (:func:`read_vectors`)."""
     if convention not in CONVENTIONS:
-        raise ValueError(f"unknown vector convention {convention!r}; use one of "
+        raise InputError(f"unknown vector convention {convention!r}; use one of "
                          f"{', '.join(CONVENTIONS)}")
     if convention == "clblur":
         if layer is not None:
-            raise ValueError(f"{path}:{layer}: a layer names a renderer's vector pass; give "
+            raise InputError(f"{path}:{layer}: a layer names a renderer's vector pass; give "
                              "--vectors blender (clblur flows are flow.x / flow.y)")
         if bent:
-            raise ValueError("a bent path needs a renderer's vector pass (blender or nuke): "
+            raise InputError("a bent path needs a renderer's vector pass (blender or nuke): "
                              "a clblur flow is one straight vector per pixel")
         from clblur.io import read_flow
 

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from clblur.errors import InputError
 from clblur.motion import Field, flow_error, sample_counts
 from clblur.opencl import half_float, quantisation, response_pack, taps
 from clblur.opencl.constants import FIELD_LANES, IN_F32, IN_KINDS, LANES, OUT_F32, OUT_KINDS
@@ -400,4 +401,4 @@ def check_flow(rt: Runtime, field: FieldInput) -> None:
     counts = np.zeros(2, np.int32)
     pyopencl_module().enqueue_copy(rt.queue, counts, field.bad, is_blocking=True)
     if counts.any():
-        raise ValueError(flow_error(int(counts[0]), int(counts[1])))
+        raise InputError(flow_error(int(counts[0]), int(counts[1])))

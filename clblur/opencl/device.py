@@ -24,6 +24,7 @@ from importlib import resources
 
 import numpy as np
 
+from clblur.errors import InputTypeError
 from clblur.opencl.constants import BOX_RING_CPU, BOX_RING_GPU, build_defines
 from clblur.opencl.program import Program, kernel_source
 
@@ -52,7 +53,7 @@ def pyopencl_module():
 def _selector(device: str | None) -> str:
     sel = device if device is not None else os.environ.get(ENV_DEVICE, "")
     if not isinstance(sel, str):
-        raise TypeError(f"OpenCL device selector must be a string, got {sel!r}")
+        raise InputTypeError(f"OpenCL device selector must be a string, got {sel!r}")
     return sel.strip()
 
 

@@ -20,6 +20,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from clblur.errors import InputError, InputTypeError
+
 if TYPE_CHECKING:
     from clblur.responses.kernel_curves import Table
 
@@ -102,9 +104,9 @@ def _positive_finite(name: str, value: float, key: str | None = None) -> float:
     try:
         value = float(value)
     except (TypeError, ValueError):
-        raise TypeError(f"{name} must be a number, got {value!r}") from None
+        raise InputTypeError(f"{name} must be a number, got {value!r}") from None
     if not math.isfinite(value) or value <= 0:
-        raise ValueError(f"{name} must be a positive finite number, got {value}")
+        raise InputError(f"{name} must be a positive finite number, got {value}")
     if key is not None:
         _in_range(name, value, key)
     return value
@@ -113,7 +115,7 @@ def _positive_finite(name: str, value: float, key: str | None = None) -> float:
 def _in_range(name: str, value: float, key: str) -> float:
     lo, hi = RANGES[key]
     if not (math.isfinite(value) and lo <= value <= hi):
-        raise ValueError(f"{name} must be within [{lo:g}, {hi:g}], got {value:g}")
+        raise InputError(f"{name} must be within [{lo:g}, {hi:g}], got {value:g}")
     return float(value)
 
 

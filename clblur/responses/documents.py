@@ -2,7 +2,7 @@
 
 A spec is ``linear``, ``exp``, ``exp:K``, ``gamma:G``, ``srgb``, a response JSON path, a JSON
 document or a ``Response``.  Parameters outside ``RANGES`` are rejected with a one-line
-``ValueError``.  ``per_channel`` gives one device-ready response per image channel.
+``clblur.errors.InputError``.  ``per_channel`` gives one device-ready response per image channel.
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ import os
 from collections.abc import Sequence
 from pathlib import Path
 
+from clblur.errors import InputError, InputTypeError
 from clblur.responses.base import FORMAT_VERSION, KIND_CODES, RANGES, Response
 from clblur.responses.emor import Emor
 from clblur.responses.families import (
@@ -46,11 +47,11 @@ def _check_keys(doc: dict) -> None:
     if doc.get("kind") == CHANNEL_SET_KIND:
         unknown = sorted(set(doc) - _CHANNEL_SET_KEYS)
         if unknown:
-            raise ValueError(f"per-channel response document has unknown key(s) {unknown}")
+            raise InputError(f"per-channel response document has unknown key(s) {unknown}")
         return
     unknown = sorted(set(doc) - _DOCUMENT_KEYS)
     if unknown:
-        raise ValueError(f"response document has unknown key(s) {unknown}; a family's "
+        raise InputError(f"response document has unknown key(s) {unknown}; a family's "
                          "parameters go under 'params', e.g. {\"kind\": \"gamma\", "
                          "\"params\": {\"gamma\": 2.2}}")
 
@@ -63,7 +64,7 @@ def for_device(r: Response) -> Response:
 def from_dict(doc: dict) -> Response:
     """Build a response from its JSON document (see ``Response.to_dict``)."""
     if not isinstance(doc, dict) or "kind" not in doc:
-        raise ValueError("response document must be a JSON object with a 'kind' key")
+        raise InputError("response document must be a JSON object with a 'kind' key")
     _check_keys(doc)
     kind, params = doc["kind"], dict(doc.get("params") or {})
     if kind == "table":
@@ -75,12 +76,12 @@ def from_dict(doc: dict) -> Response:
                 return MonotoneSpline(meta["knots"], meta["log_increments"], extra)
             return Table(params["exposure"], params["value"], params.get("meta"))
         except KeyError as e:
-            raise ValueError(f"table response document lacks {e.args[0]!r}") from None
+            raise InputError(f"table response document lacks {e.args[0]!r}") from None
     if kind == CHANNEL_SET_KIND:
-        raise ValueError("this document holds one response per channel; use it where "
+        raise InputError("this document holds one response per channel; use it where "
                          "per-channel responses are accepted (clblur.blur, clblur blur)")
     if kind not in FAMILY_CLASSES:
-        raise ValueError(f"unknown response kind {kind!r}; known: "
+        raise InputError(f"unknown response kind {kind!r}; known: "
                          f"{', '.join(sorted({*KIND_CODES, *FAMILY_CLASSES}))}")
     if kind in ("polynomial", "emor", "exp-shape"):
         for key in ("coefficients", "warp"):
@@ -89,7 +90,7 @@ def from_dict(doc: dict) -> Response:
     try:
         return FAMILY_CLASSES[kind](**params)
     except TypeError as e:
-        raise ValueError(f"bad parameters for {kind} response: {e}") from None
+        raise InputError(f"bad parameters for {kind} response: {e}") from None
 
 
 def load_response(path: str | os.PathLike) -> Response:
@@ -97,9 +98,9 @@ def load_response(path: str | os.PathLike) -> Response:
     try:
         doc = json.loads(Path(path).read_text())
     except FileNotFoundError:
-        raise ValueError(f"response file not found: {path}") from None
+        raise InputError(f"response file not found: {path}") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:
-        raise ValueError(f"cannot read response file {path}: {e}") from None
+        raise InputError(f"cannot read response file {path}: {e}") from None
     return from_dict(doc)
 
 
@@ -111,7 +112,7 @@ def response(spec: str | Response | dict) -> Response:
     if isinstance(spec, dict):
         return from_dict(spec)
     if not isinstance(spec, str):
-        raise TypeError(f"response must be a name, a JSON path or a Response, got {spec!r}")
+        raise InputTypeError(f"response must be a name, a JSON path or a Response, got {spec!r}")
     name, _, arg = spec.partition(":")
     if name in ("linear", "srgb") and not arg:
         return _BY_KIND[name]()
@@ -123,20 +124,20 @@ def response(spec: str | Response | dict) -> Response:
         if not arg:
             if name == "exp":
                 return Exp()
-            raise ValueError(f"response spec {spec!r}: gamma response needs an exponent, "
+            raise InputError(f"response spec {spec!r}: gamma response needs an exponent, "
                              f"expected {expected}, e.g. gamma:2.2")
         try:
             value = float(arg)
         except ValueError:
-            raise ValueError(f"response spec {spec!r}: {name} {what} must be a number, "
+            raise InputError(f"response spec {spec!r}: {name} {what} must be a number, "
                              f"expected {expected}") from None
         try:
             return Exp(value) if name == "exp" else Gamma(value)
         except ValueError as e:
-            raise ValueError(f"response spec {spec!r}: {e}") from None
+            raise InputError(f"response spec {spec!r}: {e}") from None
     if spec.endswith(".json") or os.path.sep in spec or os.path.exists(spec):
         return load_response(spec)
-    raise ValueError(f"unknown response {spec!r}; use linear, exp, exp:K, gamma:G, srgb "
+    raise InputError(f"unknown response {spec!r}; use linear, exp, exp:K, gamma:G, srgb "
                      "or a response JSON file")
 
 
@@ -164,13 +165,13 @@ def _channel_set(spec) -> list[Response] | None:
         try:
             doc = json.loads(Path(spec).read_text())
         except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:
-            raise ValueError(f"cannot read response file {spec}: {e}") from None
+            raise InputError(f"cannot read response file {spec}: {e}") from None
     if not (isinstance(doc, dict) and doc.get("kind") == CHANNEL_SET_KIND):
         return None
     _check_keys(doc)
     channels = doc.get("channels")
     if not isinstance(channels, list) or not channels:
-        raise ValueError("per-channel response document needs a non-empty 'channels' list")
+        raise InputError("per-channel response document needs a non-empty 'channels' list")
     return [from_dict(d) for d in channels]
 
 
@@ -184,7 +185,7 @@ def per_channel(spec, channels: int) -> list[Response]:
             spec = found
     if isinstance(spec, (list, tuple)):
         if len(spec) != channels:
-            raise ValueError(f"got {len(spec)} per-channel responses for an image with "
+            raise InputError(f"got {len(spec)} per-channel responses for an image with "
                              f"{channels} channel(s)")
         return [for_device(response(s)) for s in spec]
     r = for_device(response(spec))

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from clblur.errors import InputError
 from clblur.responses.base import Parametric, _strictly_increasing
 
 __all__ = ["Emor", "EmorBasis"]
@@ -38,7 +39,7 @@ class EmorBasis:
         if folder is None:
             root = data_dir()
             if root is None:
-                raise ValueError("EMoR basis not found: pass emor_dir= (--emor-dir) or set "
+                raise InputError("EMoR basis not found: pass emor_dir= (--emor-dir) or set "
                                  "CLBLUR_DATA to a folder holding crf/emor.txt")
             folder = root / "crf"
         path = Path(folder) / "emor.txt"
@@ -46,7 +47,7 @@ class EmorBasis:
         if cached is not None:
             return cached
         if not path.is_file():
-            raise ValueError(f"EMoR basis file not found: {path}")
+            raise InputError(f"EMoR basis file not found: {path}")
         blocks, current = {}, None
         for line in path.read_text().splitlines():
             if "=" in line:
@@ -58,9 +59,9 @@ class EmorBasis:
             grid, mean = np.array(blocks["E"]), np.array(blocks["f0"])
             comps = np.array([blocks[f"h({m})"] for m in range(1, 26)])
         except (KeyError, ValueError) as e:
-            raise ValueError(f"{path}: missing or ragged block ({e})") from None
+            raise InputError(f"{path}: missing or ragged block ({e})") from None
         if grid.size != mean.size or comps.shape[1] != grid.size:
-            raise ValueError(f"{path}: blocks of different lengths")
+            raise InputError(f"{path}: blocks of different lengths")
         _EMOR_CACHE[str(path)] = basis = cls(grid, mean, comps)
         return basis
 
@@ -84,7 +85,7 @@ class Emor(Parametric):
     def __post_init__(self):
         c = tuple(float(t) for t in self.coefficients)
         if not 1 <= len(c) <= 25 or not all(math.isfinite(t) for t in c):
-            raise ValueError(f"EMoR response needs 1..25 finite coefficients, got {c}")
+            raise InputError(f"EMoR response needs 1..25 finite coefficients, got {c}")
         object.__setattr__(self, "coefficients", c)
 
     @property

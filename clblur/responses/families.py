@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from clblur.errors import InputError
 from clblur.responses.base import (
     Parametric,
     Response,
@@ -172,7 +173,7 @@ class ExpShape(_Sampled):
         object.__setattr__(self, "rho", _in_range("exp-shape rho", float(self.rho), "rho"))
         warp = tuple(float(c) for c in self.warp)
         if not all(math.isfinite(c) for c in warp):
-            raise ValueError(f"exp-shape warp coefficients must be finite, got {warp}")
+            raise InputError(f"exp-shape warp coefficients must be finite, got {warp}")
         object.__setattr__(self, "warp", warp)
 
     def vector(self) -> np.ndarray:
@@ -361,7 +362,7 @@ class Polynomial(_Sampled):
     def __post_init__(self):
         c = tuple(float(t) for t in self.coefficients)
         if not 2 <= len(c) <= 13 or not all(math.isfinite(t) for t in c):
-            raise ValueError("polynomial response needs 2..13 finite coefficients "
+            raise InputError("polynomial response needs 2..13 finite coefficients "
                              f"(c_0 first), got {c}")
         object.__setattr__(self, "coefficients", c)
 
@@ -401,12 +402,12 @@ class MonotoneSpline(Table):
         u = np.asarray(knots, dtype=np.float64).ravel()
         th = np.asarray(log_increments, dtype=np.float64).ravel()
         if u.size < 3 or th.size != u.size - 1:
-            raise ValueError(f"monotone spline needs K + 1 >= 3 knots and K log increments, got "
+            raise InputError(f"monotone spline needs K + 1 >= 3 knots and K log increments, got "
                              f"{u.size} and {th.size}")
         if not (np.all(np.isfinite(u)) and np.all(np.isfinite(th))):
-            raise ValueError("monotone spline parameters must be finite")
+            raise InputError("monotone spline parameters must be finite")
         if u[0] != 0.0 or u[-1] != 1.0 or np.any(np.diff(u) <= 0):
-            raise ValueError("monotone spline knots must increase strictly from 0 to 1")
+            raise InputError("monotone spline knots must increase strictly from 0 to 1")
         total = float(np.log(np.sum(np.exp(th - th.max()))) + th.max())
         if abs(total) > 1e-12:  # x_K = 1 (the exposure unit); a saved curve already has it
             th = th - total

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from clblur.errors import InputError
 from clblur.responses.base import (
     Parametric,
     Response,
@@ -126,15 +127,15 @@ class Table(Response):
         x = np.asarray(exposure, dtype=np.float64).ravel()
         v = np.asarray(value, dtype=np.float64).ravel()
         if x.size != v.size or x.size < 2:
-            raise ValueError("table response needs equally long exposure and value lists "
+            raise InputError("table response needs equally long exposure and value lists "
                              f"with at least 2 samples, got {x.size} and {v.size}")
         if not (np.all(np.isfinite(x)) and np.all(np.isfinite(v))):
-            raise ValueError("table response samples must be finite")
+            raise InputError("table response samples must be finite")
         if np.any(np.diff(x) <= 0) or np.any(np.diff(v) <= 0):
-            raise ValueError("table response must be strictly increasing in both exposure "
+            raise InputError("table response must be strictly increasing in both exposure "
                              "and value")
         if x[0] < 0 or v[0] < 0 or v[-1] > 1:
-            raise ValueError("table response needs exposure >= 0 and values within [0, 1]")
+            raise InputError("table response needs exposure >= 0 and values within [0, 1]")
         self.exposure, self.value, self.meta = x, v, dict(meta or {})
 
     def forward(self, x):
