@@ -65,6 +65,7 @@ from clblur.errors import InputError
 from clblur.io import IMAGE_FORMATS, atomic_write_text, read_psf, require_file, resolve_inside
 from clblur.motion import anchor_value, check_exposure, parse_motion, psf, time_weights
 from clblur.pixels import validate_saturation
+from clblur.responses import check_spec
 
 __all__ = ["IMAGE_SUFFIXES", "MANIFEST_COLUMNS", "ManifestRow", "check_field", "check_job",
            "list_images", "plan_jobs", "read_manifest", "run_batch", "run_job", "summary"]
@@ -169,24 +170,11 @@ def read_manifest(path: Path) -> dict[str, ManifestRow]:
 
 
 # ---------------------------------------------------------------- what a job may hold
-def _check_response(spec: str) -> None:
-    from clblur.responses import per_channel
-
-    errors = []
-    for channels in (1, 3, 4):  # a per-channel document fits only its own channel count
-        try:
-            per_channel(spec, channels)
-            return
-        except (ValueError, TypeError) as e:
-            errors.append(e)
-    raise errors[0]
-
-
 # field of ``Job`` -> the library's own check of its value (the one the blur applies)
 _CHECKS = {"motion": lambda v: parse_motion(v, (1, 1)),
            "flow": lambda v: require_file(v, "flow"),
            "psf": lambda v: psf(read_psf(require_file(v, "PSF"))),
-           "response": _check_response,
+           "response": check_spec,
            "anchor": anchor_value,
            "samples": lambda v: time_weights(v, None),
            "saturation": validate_saturation,

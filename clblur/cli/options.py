@@ -175,23 +175,13 @@ def check_device(args: argparse.Namespace) -> None:
 
 def check_response(spec: str, option: str = "--response", channels: int | None = None) -> None:
     """Parse a response spec before any work, naming the option in the message.
-    ``channels``: the image's colour channels where known (a per-channel document must have
-    as many curves), else any count an image may have."""
-    from clblur.responses import per_channel
+    ``channels``: the image's colour channels where known (``clblur.responses.check_spec``)."""
+    from clblur.responses import check_spec
 
-    errors = []
-    # a per-channel document fits only its own channel count
-    for count in (1, 3, 4) if channels is None else (channels,):
-        try:
-            per_channel(spec, count)
-            return
-        except (ValueError, TypeError) as e:
-            errors.append(" ".join(str(e).split()))
-    text = errors[0]
-    if len(set(errors)) > 1:  # only the count failed, and the image is not known yet
-        text = (errors[0].split(" for an image")[0] + "; a per-channel document needs one "
-                "per colour channel of the images (1, 3 or 4)")
-    raise InputError(text if spec in text else f"{option} {spec}: {text}")
+    try:
+        check_spec(spec, channels)
+    except InputError as e:
+        raise InputError(str(e) if spec in str(e) else f"{option} {spec}: {e}") from None
 
 
 def blur_options(args: argparse.Namespace) -> dict:

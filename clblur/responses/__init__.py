@@ -31,6 +31,7 @@ from clblur.responses.documents import (
     CHANNEL_SET_KIND,
     FAMILY_CLASSES,
     channel_set_to_dict,
+    check_spec,
     for_device,
     from_dict,
     load_response,
@@ -54,4 +55,4 @@ __all__ = ["Response", "Linear", "Exp", "Gamma", "SRGB", "Table", "ExpOffset", "
            "ExpShape", "Polynomial", "Emor", "EmorBasis", "MonotoneSpline", "KIND_CODES",
            "RANGES", "FAMILY_CLASSES", "response", "from_dict", "load_response", "per_channel",
            "for_device", "default_knots", "warp_basis", "channel_set_to_dict", "save_channel_set",
-           "CHANNEL_SET_KIND", "Parametric", "FORMAT_VERSION"]
+           "CHANNEL_SET_KIND", "Parametric", "FORMAT_VERSION", "check_spec"]

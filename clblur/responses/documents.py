@@ -25,7 +25,8 @@ from clblur.responses.families import (
 from clblur.responses.kernel_curves import SRGB, Exp, Gamma, Linear, Table
 
 __all__ = ["FAMILY_CLASSES", "CHANNEL_SET_KIND", "for_device", "from_dict", "load_response",
-           "response", "channel_set_to_dict", "save_channel_set", "per_channel"]
+           "response", "channel_set_to_dict", "save_channel_set", "per_channel",
+           "check_spec"]
 
 
 _BY_KIND = {"linear": Linear, "exp": Exp, "gamma": Gamma, "srgb": SRGB}
@@ -190,3 +191,21 @@ def per_channel(spec, channels: int) -> list[Response]:
         return [for_device(response(s)) for s in spec]
     r = for_device(response(spec))
     return [r] * channels
+
+
+def check_spec(spec, channels: int | None = None) -> None:
+    """Refuse (``InputError``, one line) a response spec that no image could take, before any
+    work: ``channels`` is the image's colour channel count where known, else any count an
+    image may have (1, 3 or 4; a per-channel document fits only its own)."""
+    errors = []
+    for count in (1, 3, 4) if channels is None else (channels,):
+        try:
+            per_channel(spec, count)
+            return
+        except (ValueError, TypeError) as e:
+            errors.append(" ".join(str(e).split()))
+    text = errors[0]
+    if len(set(errors)) > 1:  # only the count failed, and the image is not known yet
+        text = (errors[0].split(" for an image")[0] + "; a per-channel document needs one "
+                "per colour channel of the images (1, 3 or 4)")
+    raise InputError(text)
