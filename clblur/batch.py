@@ -143,8 +143,10 @@ def read_manifest(path: Path) -> dict[str, ManifestRow]:
             columns = [c.strip() for c in reader.fieldnames or []]
             unknown = sorted(set(columns) - set(MANIFEST_COLUMNS))
             if "image" not in columns or unknown:
+                found = f"unknown: {', '.join(unknown)}" if unknown else (
+                    f"columns found: {', '.join(columns)}" if columns else "the file is empty")
                 raise InputError(f"manifest {path}: needs an 'image' column and only "
-                                 f"{', '.join(MANIFEST_COLUMNS)}; unknown: {', '.join(unknown)}")
+                                 f"{', '.join(MANIFEST_COLUMNS)}; {found}")
             rows: dict[str, ManifestRow] = {}
             start = reader.line_num + 1
             for row in reader:

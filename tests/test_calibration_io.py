@@ -217,6 +217,10 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
     code = main(["calibrate", str(tmp_path / "s"), "--times", str(tmp_path / "t.txt"),
                  "-o", str(tmp_path / "t.txt")])
     assert code == 2 and "refusing to overwrite" in capsys.readouterr().err
+    code = main(["calibrate", str(tmp_path / "s"), "--times", str(tmp_path / "t.txt"),
+                 "-o", str(tmp_path / "curve.png")])  # JSON in a .png
+    assert code == 2 and "name a .json file" in capsys.readouterr().err
+    assert not (tmp_path / "curve.png").exists()
 
 
 @pytest.mark.parametrize("option", [("--gaps", "100"), ("--gaps", "nan"),

@@ -110,6 +110,9 @@ def check_outputs(args: argparse.Namespace) -> None:
     else:
         inputs = []
     refuse_overwrite(args.output, *inputs)
+    if Path(args.output).suffix.lower() != ".json":  # after the overwrite checks: those first
+        raise InputError(f"-o {args.output}: the response is written as JSON; name a .json "
+                         "file")
     if args.report is not None:
         report = Path(args.report)
         if report.exists() and not report.is_dir():
