@@ -382,6 +382,20 @@ def _finish(acc: np.ndarray, plan: BlurPlan, images: Sequence[np.ndarray], alone
     return out
 
 
+def _with_coverage(image) -> np.ndarray:
+    """A layer's image with its coverage last: grey (H x W, or one channel) and RGB have
+    none and cover every pixel (full scale appended); 2 and 4 channels carry their own."""
+    from clblur.pixels import imax
+
+    image = np.asarray(image)
+    if image.ndim == 2:
+        image = image[..., None]
+    if image.ndim != 3 or image.shape[2] not in (1, 3):
+        return image
+    full = imax(image.dtype) if image.dtype.kind == "u" else 1.0
+    return np.concatenate([image, np.full(image.shape[:2] + (1,), full, image.dtype)], axis=2)
+
+
 def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "center",
                 samples: int | None = None, weights=None, overscan: int = 0,
                 curved: bool = False, backend: str = "auto", saturation: float = 1.0,
@@ -393,7 +407,9 @@ def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "cente
     ----------
     layers : front to back, ``(image, motion)`` per layer (module Conventions): ``image``
         H x W x (C + 1) colour and coverage (straight alpha for integer dtypes, premultiplied
-        for float), ``motion`` H x W x 2 vectors or a bent path ``(first, second)``.
+        for float): grey + alpha (2 channels) or RGBA (4); a grey (H x W or 1 channel) or RGB
+        layer has no alpha and is opaque (full coverage appended).  ``motion`` H x W x 2
+        vectors or a bent path ``(first, second)``.
     response, samples, weights, saturation, backend, device, exposure : as ``clblur.blur``
         (a renderer's vectors are exposure chords: ``exposure="continuous"`` integrates them
         as a real shutter does).
@@ -440,7 +456,8 @@ def blur_layers(layers: Sequence[tuple], response="exp", *, anchor: str = "cente
     if bent and anchor != "center":
         raise InputError(f"anchor={anchor!r} applies to a straight path; a bent path is "
                          "anchored at its bend (the frame time)")
-    first_image = np.asarray(layers[0][0])
+    layers = [(_with_coverage(image), motion) for image, motion in layers]
+    first_image = layers[0][0]
     shape, dtype = first_image.shape, first_image.dtype
     for i, (image, _) in enumerate(layers):
         if np.shape(image) != shape or np.asarray(image).dtype != dtype:

@@ -84,6 +84,37 @@ def test_layers_and_errors(tmp_path):
         exr.read_channels(tmp_path / "junk.exr")
 
 
+def test_a_blender_file_with_vector_and_normal_passes_reads_its_combined_layer(tmp_path):
+    # ViewLayer.Vector.Y (and Normal.Y) were taken for luminance layers: "several colour
+    # layers", so a standard Blender multilayer file could not be read or blurred
+    rng = np.random.default_rng(0)
+    rgba = rng.uniform(0, 1, (6, 7, 4)).astype(np.float32)
+    vp = rng.normal(0, 2, (6, 7, 4)).astype(np.float32)
+    chans = {f"ViewLayer.Combined.{c}": rgba[..., i] for i, c in enumerate("RGBA")}
+    chans |= {f"ViewLayer.Vector.{c}": vp[..., i] for i, c in enumerate("XYZW")}
+    chans |= {f"ViewLayer.Normal.{c}": vp[..., i] for i, c in enumerate("XYZ")}
+    chans["ViewLayer.Depth.Z"] = np.ones((6, 7), np.float32)
+    exr.write_channels(tmp_path / "bl.exr", chans)
+    np.testing.assert_array_equal(exr.read_image(tmp_path / "bl.exr"), rgba)
+    assert main(["blur", str(tmp_path / "bl.exr"), str(tmp_path / "o.exr"), "--flow",
+                 str(tmp_path / "bl.exr"), "--vectors", "blender", "--response", "linear",
+                 "--backend", "numpy"]) == 0
+    assert read_image(tmp_path / "o.exr").shape == (6, 7, 4)
+
+
+def test_grey_and_alpha_round_trip_and_blur(tmp_path):
+    # read_image returned H x W x 2 for a Y, A file that write_image then refused, so a
+    # blur of one ran and failed at the write
+    ya = np.random.default_rng(1).uniform(0, 1, (6, 7, 2)).astype(np.float32)
+    ya[..., 0] *= ya[..., 1]  # premultiplied
+    exr.write_image(tmp_path / "ya.exr", ya)
+    np.testing.assert_array_equal(exr.read_image(tmp_path / "ya.exr"), ya)
+    assert main(["blur", str(tmp_path / "ya.exr"), str(tmp_path / "o.exr"), "--motion=3,0",
+                 "--response", "linear", "--backend", "numpy"]) == 0
+    np.testing.assert_allclose(read_image(tmp_path / "o.exr"),
+                               clblur.blur(ya, (3, 0), "linear", alpha=True, backend="numpy"))
+
+
 def test_cli_blender_vector_pass_gives_the_clblur_flow_blur(tmp_path, rendered, capsys):
     """`clblur blur IN.exr OUT.exr --flow vectors.exr --vectors blender` equals blurring with
     the renderer's own clblur flow; a file without a vector pass is a one-line error, exit 2."""

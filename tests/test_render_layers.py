@@ -399,3 +399,15 @@ def test_continuous_exposure_of_a_render(opencl):
     with pytest.raises(InputError, match="not both"):
         clblur.blur_layers(layers, "srgb", backend="numpy", exposure="continuous",
                            weights=[1, 1])
+
+
+def test_a_layer_without_alpha_is_opaque_in_python_as_on_the_command_line(rng):
+    # an RGB layer had its blue read as coverage (README: a layer without alpha is opaque)
+    rgb = rng.integers(0, 256, (20, 24, 3)).astype(np.uint8)
+    flow = np.zeros((20, 24, 2), np.float32)
+    flow[..., 0] = 3.0
+    rgba = np.dstack([rgb, np.full((20, 24), 255, np.uint8)])
+    for image, full in ((rgb, rgba), (rgb[..., 0], rgba[..., [0, 3]])):
+        np.testing.assert_array_equal(
+            clblur.blur_layers([(image, flow)], "srgb", backend="numpy"),
+            clblur.blur(full, flow, "srgb", alpha=True, backend="numpy"))

@@ -42,17 +42,6 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _opaque(image):
-    """``image`` with a full-coverage alpha channel appended."""
-    import numpy as np
-
-    from clblur.pixels import imax
-
-    image = image.reshape(image.shape[:2] + (-1,))
-    full = imax(image.dtype) if image.dtype.kind == "u" else 1.0
-    return np.concatenate([image, np.full(image.shape[:2] + (1,), full, image.dtype)], axis=2)
-
-
 def run(args: argparse.Namespace) -> int:
     import clblur
     from clblur.io import IMAGE_FORMATS, check_output, read_image, write_image
@@ -77,9 +66,7 @@ def run(args: argparse.Namespace) -> int:
             from clblur.io import exr
 
             image = exr.read_image(image_file, image_layer)
-        if image.ndim == 2 or image.shape[2] in (1, 3):
-            image = _opaque(image)  # grey or RGB: a layer that covers every pixel
-        elif image.shape[2] not in (2, 4):
+        if image.ndim == 3 and image.shape[2] not in (1, 2, 3, 4):
             raise InputError(f"layer {image_path}: expected grey or RGB, with or without "
                              f"alpha, got {image.shape[2]} channels")
         vector_file, vector_layer = exr_part(vector_path)

@@ -9,9 +9,11 @@ Conventions
 * Pixel values are linear (scene-referred) float32, as EXR stores them; blur them with the
   ``linear`` response (``clblur blur --response linear``), which passes values above 1
   through untouched.  float16 channels are read as float32; ``half=True`` writes float16.
-* Colour channels: ``R, G, B`` (and ``A``), or ``Y`` for one channel, optionally under a layer
-  prefix (``"beauty"`` -> ``beauty.R``; Blender multilayer files use ``"RenderLayer.Combined"``).
-  ``read_image`` returns H x W x C (C = 1 (as H x W), 3 or 4) in R, G, B, A order.
+* Colour channels: ``R, G, B`` (and ``A``), or ``Y`` (and ``A``) for one channel, optionally
+  under a layer prefix (``"beauty"`` -> ``beauty.R``; Blender multilayer files use
+  ``"RenderLayer.Combined"``); a ``Y`` beside ``X`` or ``Z`` is a vector or normal pass, not
+  luminance.  ``read_image`` returns H x W x C (C = 1 (as H x W), 2, 3 or 4) in R, G, B, A
+  order, and ``write_image`` takes the same.
 * Alpha is stored as given; clblur treats RGBA as premultiplied (coverage-weighted linear
   colour), the EXR convention.
 * Depth: a ``Z`` channel (``depth.Z``, Blender's ``<layer>.Depth.Z`` are found too); smaller
@@ -137,7 +139,9 @@ def find_channels(names, layer: str | None = None) -> tuple[str, list[str]]:
         p = f"{prefix}." if prefix else ""
         if all(p + c in names for c in "RGB"):
             return [p + c for c in _COLOUR if p + c in names]
-        if p + "Y" in names:
+        # Y is luminance unless X or Z sit beside it: Blender's Vector (X, Y, Z, W) and
+        # Normal (X, Y, Z) passes are not colour
+        if p + "Y" in names and not any(p + c in names for c in "XZ"):
             return [p + "Y"] + ([p + "A"] if p + "A" in names else [])
         return None
 
@@ -169,7 +173,8 @@ def read_image(path: str | os.PathLike, layer: str | None = None) -> np.ndarray:
 
 def write_image(path: str | os.PathLike, image: np.ndarray, *, half: bool = False,
                 extra: dict[str, np.ndarray] | None = None) -> None:
-    """Write an H x W (``Y``), H x W x 3 (``RGB``) or H x W x 4 (``RGBA``) image, plus
+    """Write an H x W (``Y``), H x W x 2 (``Y``, ``A``), H x W x 3 (``RGB``) or H x W x 4
+    (``RGBA``) image (what ``read_image`` returns), plus
     ``extra`` named channels (depth ``Z``, ``flow.x``/``flow.y``, vector passes, IDs).
 
     Integer images are written as normalised values (code / Imax), i.e. the stored code
@@ -183,12 +188,13 @@ def write_image(path: str | os.PathLike, image: np.ndarray, *, half: bool = Fals
     if img.ndim == 2:
         names = ["Y"]
         planes = [img]
-    elif img.ndim == 3 and img.shape[2] in (1, 3, 4):
-        names = {1: ["Y"], 3: ["R", "G", "B"], 4: ["R", "G", "B", "A"]}[img.shape[2]]
+    elif img.ndim == 3 and img.shape[2] in (1, 2, 3, 4):
+        names = {1: ["Y"], 2: ["Y", "A"], 3: ["R", "G", "B"], 4: ["R", "G", "B", "A"]}[
+            img.shape[2]]
         planes = [img[..., c] for c in range(img.shape[2])]
     else:
         raise InputError(f"cannot write an image of shape {img.shape} to EXR; expected "
-                         "H x W, H x W x 3 or H x W x 4")
+                         "H x W, H x W x 2 (Y, A), H x W x 3 or H x W x 4")
     channels = dict(zip(names, planes, strict=True))
     for k, v in (extra or {}).items():
         if k in channels:
