@@ -230,6 +230,19 @@ def _row_job(job: Job, row: ManifestRow, where: str, roots: list[Path], out_dir:
         except InputError as e:
             raise bad(columns, str(e)) from None
 
+    def pixels(column: str) -> float:
+        try:
+            return float(cells[column])
+        except ValueError:
+            raise bad(column, f"must be a number of pixels, got {cells[column]!r}") from None
+
+    def inside(folders, column: str) -> str:
+        """The column's path resolved inside ``folders`` (``resolve_inside``)."""
+        try:
+            return str(resolve_inside(folders, cells[column], column))
+        except InputError as e:
+            raise bad(column, str(e)) from None
+
     if "output" in cells:
         name = cells["output"]
         if Path(name).name != name or name in (".", ".."):
@@ -237,38 +250,25 @@ def _row_job(job: Job, row: ManifestRow, where: str, roots: list[Path], out_dir:
         if Path(name).suffix.lower() not in IMAGE_SUFFIXES:
             raise bad("output", f"{name!r}: unknown extension; use one of "
                                 f"{', '.join(IMAGE_SUFFIXES)}")
-        try:
-            changes["dst"] = str(resolve_inside(out_dir, name, "output"))
-        except InputError as e:
-            raise bad("output", str(e)) from None
+        changes["dst"] = inside(out_dir, "output")
     forms = [k for k in ("dx", "flow", "psf") if k in cells] + \
         (["dy"] if "dy" in cells and "dx" not in cells else [])
     if len(forms) > 1 or ("dx" in cells) != ("dy" in cells):
         raise bad(", ".join(forms), "give dx and dy together, or flow, or psf (one motion)")
     if "dx" in cells:
-        try:
-            motion = (float(cells["dx"]), float(cells["dy"]))
-        except ValueError:
-            col = "dy" if _is_float(cells["dx"]) else "dx"
-            raise bad(col, f"must be a number of pixels, got {cells[col]!r}") from None
+        motion = (pixels("dx"), pixels("dy"))
         check("motion", motion, f"dx, dy ({cells['dx']}, {cells['dy']})")
         changes.update(motion=motion, flow=None, psf=None)
     for key in ("flow", "psf"):
         if key in cells:
-            try:
-                path = str(resolve_inside(roots, cells[key], key))
-            except InputError as e:
-                raise bad(key, str(e)) from None
+            path = inside(roots, key)
             check(key, path, key)
             changes.update(motion=None, flow=None, psf=None)
             changes[key] = path
     if "response" in cells:
         spec = cells["response"]
         if response_file(spec) is not None:
-            try:
-                spec = str(resolve_inside(roots, spec, "response"))
-            except InputError as e:
-                raise bad("response", str(e)) from None
+            spec = inside(roots, "response")
         check("response", spec, "response")
         changes["response"] = spec
     for key, cast in _CASTS.items():
@@ -281,14 +281,6 @@ def _row_job(job: Job, row: ManifestRow, where: str, roots: list[Path], out_dir:
             check(key, value, key)
             changes[key] = value
     return replace(job, **changes)
-
-
-def _is_float(text: str) -> bool:
-    try:
-        float(text)
-        return True
-    except ValueError:
-        return False
 
 
 def plan_jobs(in_dir: Path, out_dir: Path, defaults: Job, flow_dir: Path | None = None,
