@@ -39,6 +39,7 @@ from clblur.io import (
     check_decodable,
     check_output,
     create_tiff,
+    describe_size,
     is_tiff,
     open_image,
     write_image,
@@ -263,8 +264,8 @@ def blur_file(src: str | os.PathLike, dst: str | os.PathLike, motion, *, respons
     if whole > budget:  # refused before anything is decoded
         raise InputError(
             f"{src} and {dst} are held whole ({header.width} x {header.height} x "
-            f"{header.channels}: {whole / 2**20:.0f} MiB), more than the memory budget "
-            f"({budget / 2**20:.0f} MiB); raise --memory-budget, or use TIFF input and output, "
+            f"{header.channels}: {describe_size(whole)}), more than the memory budget "
+            f"({describe_size(budget)}); raise --memory-budget, or use TIFF input and output, "
             "which are read and written window by window (convert with e.g. "
             "`vips tiffsave IN OUT.tif --tile --bigtiff`)")
     image = open_image(src)

@@ -454,7 +454,7 @@ def option_cases() -> list[Case]:
         blur(g, m, "--saturation", "0.5", match="saturation"),
         blur(g, m, "--memory-budget", "0", match="memory budget"),
         blur(g, m, "--memory-budget", "lots", match="memory budget"),
-        blur(g, m, "--memory-budget", "100", match="memory budget"),
+        blur(g, m, "--memory-budget", "100", match="memory budget (100 B)"),
         blur(g, m, "--anchor", "middle", match="anchor"),
         blur(g, m, "--exposure", "trapezoid", match="exposure"),
         blur(g, "--psf", "{in}/psf.npy", "--exposure", "continuous", match="PSF"),

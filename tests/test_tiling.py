@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 import clblur
 from clblur import halo, io, tiling
-from clblur.io import MappedRaster, read_image, write_flow, write_image
+from clblur.io import MappedRaster, describe_size, read_image, write_flow, write_image
 from clblur.tiling import blur_file, blur_tiled, choose_tile
 
 
@@ -228,6 +228,14 @@ def test_opencl_tiled_equals_untiled(opencl, rng):
                                             ("1.5GiB", 3 * 2**29), (4096, 4096)])
 def test_memory_budget_sizes(text, expected):
     assert tiling.parse_size(text) == expected
+
+
+@pytest.mark.parametrize("nbytes, text", [(100, "100 B"), (5 * 2**10, "5.0 KiB"),
+                                           (300 * 2**10, "300 KiB"), (512 * 2**20, "512 MiB"),
+                                           (int(1.5 * 2**30), "1.5 GiB")])
+def test_sizes_in_messages_keep_their_figures(nbytes, text):
+    # a budget below 1 MiB used to print as "0 MiB"
+    assert describe_size(nbytes) == text
 
 
 @pytest.mark.parametrize("bad", ["lots", "-1G", 0, True])

@@ -23,6 +23,7 @@ from clblur.io.flows import FLO_MAGIC, open_flow, read_depth, read_flow, read_ps
 from clblur.io.images import (
     IMAGE_FORMATS,
     check_decodable,
+    describe_size,
     image_format,
     light_channels,
     probe_image,
@@ -49,7 +50,7 @@ from clblur.io.raster import (
 
 __all__ = ["FLO_MAGIC", "IMAGE_FORMATS", "MappedRaster", "OrientedRaster", "TiffWindows",
            "as_array_like", "atomic_write", "atomic_write_text", "check_decodable",
-           "check_output", "create_tiff", "data_dir", "gopro_frames",
+           "check_output", "create_tiff", "data_dir", "describe_size", "gopro_frames",
            "image_format", "is_tiff", "light_channels", "open_flow", "open_image", "probe_image",
            "read_flow", "read_depth", "read_image", "read_psf", "refuse_overwrite",
            "require_file", "resolve_inside", "tmp_beside", "write_flow", "write_image"]

@@ -208,6 +208,16 @@ def probe_image(path: str | os.PathLike) -> ImageHeader:
     return header
 
 
+def describe_size(nbytes: int | float) -> str:
+    """``nbytes`` for a message, in the binary unit that keeps two significant figures: a
+    small memory budget must not read as "0 MiB"."""
+    for unit, scale in (("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
+        if nbytes >= scale:
+            value = nbytes / scale
+            return f"{value:.{1 if value < 10 else 0}f} {unit}"
+    return f"{int(nbytes)} B"
+
+
 def check_decodable(path: str | os.PathLike, max_bytes: int | None = None) -> ImageHeader:
     """Probe ``path`` and refuse it when its decoded size is too large to hold in memory."""
     header = probe_image(path)
@@ -217,9 +227,9 @@ def check_decodable(path: str | os.PathLike, max_bytes: int | None = None) -> Im
                          f"than the {MAX_DECODE_PIXELS} a whole-image decoder accepts "
                          "(decompression bomb?); if it is real, " + TILED_TIFF_HINT)
     if max_bytes is not None and header.nbytes > max_bytes:
-        raise InputError(f"image {path} decodes to {header.nbytes / 2**20:.0f} MiB "
+        raise InputError(f"image {path} decodes to {describe_size(header.nbytes)} "
                          f"({header.width} x {header.height} x {header.channels}), more than "
-                         f"the memory budget allows ({max_bytes / 2**20:.0f} MiB for a "
+                         f"the memory budget allows ({describe_size(max_bytes)} for a "
                          f"{image_format(path).upper()}, which is decoded whole); "
                          f"raise --memory-budget or {TILED_TIFF_HINT}")
     return header

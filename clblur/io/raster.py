@@ -26,6 +26,7 @@ from clblur.io.images import (
     _orient,
     _tiff_orientation,
     check_decodable,
+    describe_size,
     image_format,
     read_image,
     tiff_log,
@@ -275,7 +276,7 @@ def open_image(path: str | os.PathLike, max_bytes: int | None = None):
     except Exception:  # a layout read by segments cannot serve (planar, ...): read it whole
         if max_bytes is not None and header.nbytes > max_bytes:
             raise InputError(f"{path} cannot be read window by window and decodes to "
-                             f"{header.nbytes / 2**20:.0f} MiB, more than the memory budget; "
+                             f"{describe_size(header.nbytes)}, more than the memory budget; "
                              "save it as an uncompressed or tiled TIFF") from None
         return read_image(path)
 
