@@ -224,11 +224,14 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("option", [("--gaps", "100"), ("--gaps", "nan"),
-                                    ("--eval-pixels", "0"), ("--eval-pixels", "-3")])
+                                    ("--eval-pixels", "0"), ("--eval-pixels", "-3"),
+                                    ("--fit-low", "nan"), ("--eval-low", "1.5"),
+                                    ("--flat-tolerance", "-0.1")])
 def test_cli_refuses_to_name_a_best_model_it_could_not_score(tmp_path, capsys, option):
     # a gap the series does not have left every score nan, and the first model was
     # written as "best" (exit 0); a gap or pixel count that is no number of the kind
-    # asked for failed deep inside numpy
+    # asked for failed deep inside numpy; a fraction of full scale outside [0, 1) was
+    # refused by every model in turn, each message naming no option
     images, _ = ramp_stack(4, shape=(40, 60))
     write_folder(tmp_path / "s", images)
     (tmp_path / "t.txt").write_text("\n".join(f"1/{2**i}" for i in range(4)))

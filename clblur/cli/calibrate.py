@@ -46,50 +46,53 @@ def register(subparsers) -> None:
                    help="calibration patches per channel (default 1000)")
     p.add_argument("--patch", type=int, default=3, help="patch size, odd (default 3)")
     p.add_argument("--seed", type=int, default=0, help="sampling seed (default 0)")
-    p.add_argument("--fit-low", type=float, default=None, metavar="V",
+    p.add_argument("--fit-low", type=_number(float, 0, 1), default=None, metavar="V",
                    help="fit values above V of full scale (default: per family, 0.02 for "
                         "the exp families, 0.1 for the free curves)")
     p.add_argument("--emor-dir", metavar="DIR",
                    help="folder with invemor.txt (default: $CLBLUR_DATA/crf)")
-    p.add_argument("--gaps", type=_positive(float), nargs="+", default=None, metavar="STOPS",
+    p.add_argument("--gaps", type=_number(float, 0, low_open=True), nargs="+", default=None,
+                   metavar="STOPS",
                    help="prediction gaps in stops (default: 1 and 4, or the nearest gaps "
                         "the series has)")
     p.add_argument("--no-refit", action="store_true",
                    help="evaluate the full fit instead of refitting without each target "
                         "exposure (faster, slightly optimistic)")
-    p.add_argument("--eval-low", type=float, default=EVAL_LOW, metavar="V",
+    p.add_argument("--eval-low", type=_number(float, 0, 1), default=EVAL_LOW, metavar="V",
                    help="scored values must exceed V of full scale in both images "
                         f"(default {EVAL_LOW:.4f}: codes 3..252 of 255 are valid)")
-    p.add_argument("--flat-tolerance", type=_tolerance, default=FLAT_TOLERANCE, metavar="V",
+    p.add_argument("--flat-tolerance", type=_number(float, 0, none=True),
+                   default=FLAT_TOLERANCE, metavar="V",
                    help="secondary column: pixels whose 3x3 neighbourhood spans at most V of "
                         f"full scale in both images; 'none' drops it (default {FLAT_TOLERANCE})")
-    p.add_argument("--eval-pixels", type=_positive(int), default=None, metavar="N",
+    p.add_argument("--eval-pixels", type=_number(int, 0, low_open=True), default=None,
+                   metavar="N",
                    help="score a random subset of N held-out pixels (default: all)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
 
 
-def _tolerance(text: str) -> float | None:
-    if text.lower() == "none":
-        return None
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value >= 0):
-        raise argparse.ArgumentTypeError(f"expected a number >= 0 or 'none', got {text!r}")
-    return value
+def _number(kind: type, low: float, high: float = math.inf, *, low_open: bool = False,
+            none: bool = False) -> Callable[[str], float | None]:
+    """An argparse type: a finite ``kind`` in ``[low, high)`` (``(low, high)`` with
+    ``low_open``); with ``none``, the word 'none' gives None."""
+    left = "(" if low_open else "["
+    wanted = (f"a {kind.__name__} above {low:g}" if low_open and high == math.inf else
+              f"a {kind.__name__} >= {low:g}" if high == math.inf else
+              f"a {kind.__name__} in {left}{low:g}, {high:g})")
+    or_none = " or 'none'" if none else ""
 
-
-def _positive(kind: type) -> Callable[[str], float]:
-    """An argparse type: a finite number of ``kind`` above zero (a gap, a pixel count)."""
     def parse(text: str):
+        if none and text.lower() == "none":
+            return None
         try:
             value = kind(text)
         except ValueError:
             value = math.nan
-        if not (math.isfinite(value) and value > 0):
-            raise argparse.ArgumentTypeError(f"expected a positive {kind.__name__}, got {text!r}")
+        if not (math.isfinite(value) and (value > low if low_open else value >= low)
+                and value < high):
+            raise argparse.ArgumentTypeError(
+                f"expected {wanted}{or_none}, got {text!r}")
         return value
     return parse
 
