@@ -243,7 +243,7 @@ def _progress(total: int, enabled: bool):
 
 
 # --------------------------------------------------------------------------- files
-def blur_file(src: str | os.PathLike, dst: str | os.PathLike, motion, *, response="exp",
+def blur_file(src: str | os.PathLike, dst: str | os.PathLike, motion, response="exp", *,
               anchor: str = "center", samples: int | None = None, weights=None,
               backend: str = "auto", saturation: float = 1.0, device: str | None = None,
               memory_budget: int | None = None, progress: bool = False,

@@ -181,6 +181,10 @@ def test_blur_file_compressed_tiff_and_png(rng, tmp_path):
     blur_file(tmp_path / "p.png", tmp_path / "p_out.tif", (2.0, 5.0), backend="numpy", tile=12)
     np.testing.assert_array_equal(read_image(tmp_path / "z_out.png"), ref)
     np.testing.assert_array_equal(read_image(tmp_path / "p_out.tif"), ref)
+    # the response is the fourth argument, as in clblur.blur and blur_tiled
+    blur_file(tmp_path / "p.png", tmp_path / "s_out.png", (2.0, 5.0), "srgb", backend="numpy")
+    np.testing.assert_array_equal(read_image(tmp_path / "s_out.png"),
+                                  clblur.blur(img, (2.0, 5.0), "srgb", backend="numpy"))
 
 
 def test_blur_file_turns_a_sideways_tiff_window_by_window(rng, tmp_path):
