@@ -79,6 +79,9 @@ def blur(image: np.ndarray, motion, response="exp", *, anchor: str = "center",
 
         if depth is not None or alpha or background is not None:
             raise InputError("depth, alpha and background take numpy arrays, not device arrays")
+        if backend == "numpy":
+            raise InputError("a device array (pyopencl.array.Array) is blurred by OpenCL; "
+                             "backend='numpy' takes a numpy array")
 
         return opencl.blur_array(image, motion, response, anchor=anchor, samples=samples,
                                  weights=weights, saturation=saturation, device=device,

@@ -27,6 +27,7 @@ from test_opencl import (
     smooth_flow,
 )
 
+from clblur.errors import InputError
 from clblur.opencl.constants import build_defines
 from clblur.opencl.program import KERNEL_FILES, kernel_signatures, kernel_source
 from clblur.request import make_plan
@@ -275,6 +276,28 @@ def test_device_arrays_in_and_out(opencl, rng):
     bad[1, 1, 0] = np.nan
     with pytest.raises(ValueError, match="1 NaN or infinite"):
         clblur.blur(cla.to_device(rt.queue, img), cla.to_device(rt.queue, bad))
+
+
+@pytest.mark.opencl
+@pytest.mark.parametrize("dtype", [np.uint8, np.float32])
+def test_device_arrays_take_every_option_of_blur(opencl, rng, dtype):
+    # a device flow was planned as the motion (0, 0): a continuous exposure then took one
+    # sample and returned the input unblurred; a float image dropped the exposure
+    import pyopencl.array as cla
+
+    import clblur
+
+    rt = opencl.runtime(None)
+    img = random_image(rng, dtype, 3)
+    flow = smooth_flow(rng)
+    for exposure in ("frames", "continuous"):
+        want = clblur.blur(img, flow, "srgb", exposure=exposure, backend="opencl")
+        got = clblur.blur(cla.to_device(rt.queue, img), cla.to_device(rt.queue, flow), "srgb",
+                          exposure=exposure).get()
+        np.testing.assert_array_equal(got, want)
+    assert not np.array_equal(want, clblur.blur(img, flow, "srgb", backend="opencl"))
+    with pytest.raises(InputError, match="device array"):
+        clblur.blur(cla.to_device(rt.queue, img), (3.0, 1.0), backend="numpy")
 
 
 @pytest.mark.opencl
