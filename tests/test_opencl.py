@@ -230,7 +230,7 @@ def test_psf(opencl, rng):
 @pytest.mark.parametrize("dtype", DTYPES, ids=lambda d: np.dtype(d).name)
 def test_saturation_above_one(opencl, rng, dtype):
     img = random_image(rng, dtype, 3, saturated=0.3)
-    for resp in ("exp", "linear", "gamma:2.2"):
+    for resp in ("exp", "linear", "gamma:2.2", "srgb"):
         for motion in (smooth_flow(rng), (6.0, 0.0), (2.5, 3.5)):
             assert_matches_reference(opencl, make_plan(img, motion, resp, saturation=2.5))
 

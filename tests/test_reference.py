@@ -178,6 +178,21 @@ def test_saturation_policy():
         blur(img, (6, 0), saturation=0.5)
 
 
+@pytest.mark.parametrize("resp", ["srgb", "gamma:2.2", "exp"])
+def test_a_float_image_stays_within_full_scale_under_a_bounded_response(resp):
+    # a full-scale float pixel given saturation 3 came back at 1.61 (srgb) and 1.65
+    # (gamma 2.2), even unmoved, where the same uint8 image stays at 255
+    codes = np.full((6, 20, 3), 128, np.uint8)
+    codes[:, 8:11] = 255
+    img = codes.astype(np.float32) / 255
+    np.testing.assert_allclose(blur(img, (0, 0), resp, saturation=3.0), img, atol=1e-6)
+    out = blur(img, (6, 0), resp, saturation=3.0)
+    assert out.max() <= 1.0 and out[:, 8:11].min() >= 1.0 - 1e-6
+    if resp != "exp":  # a finite I^-1(1): full scale is the same exposure in every dtype
+        blurred = blur(codes, (6, 0), resp, saturation=3.0)
+        assert np.abs(out * 255 - blurred).max() <= 0.5 + 1e-4
+
+
 def test_sample_counts_exact_near_integers():
     for n in (1, 2, 5, 17, 100):
         for eps in (0.0, 1e-4, -1e-4, 3e-7, -3e-7):

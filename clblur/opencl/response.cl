@@ -44,9 +44,9 @@ static float forward_response(float x, __constant const float *resp, __global co
     case KIND_EXP:
         return -expm1(-p * x);
     case KIND_GAMMA:
-        return powr(fmax(x, 0.0f), p);
+        return powr(clamp(x, 0.0f, 1.0f), p);  /* bounded: full scale at x >= 1 */
     case KIND_SRGB: {
-        float xc = fmax(x, 0.0f);
+        float xc = clamp(x, 0.0f, 1.0f);
         /* knee at the exact image of the value knee 0.04045, as clblur.responses.SRGB */
         return xc <= 0.04045f / 12.92f ? 12.92f * xc : 1.055f * powr(xc, 1.0f / 2.4f) - 0.055f;
     }

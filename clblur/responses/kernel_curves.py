@@ -6,7 +6,9 @@
 Conventions
 -----------
 Exposure ``x >= 0`` in arbitrary units; values ``v`` normalised to [0, 1] (code / Imax).
-``Linear`` is unbounded (scene-linear floats pass through); the others clip ``v`` to [0, 1].
+``Linear`` is unbounded (scene-linear floats pass through); the others clip ``v`` to [0, 1]:
+an exposure past full scale (a saturated pixel given ``saturation > 1``) reads 1, so float
+outputs stay in [0, 1] as integer ones do.
 """
 
 from __future__ import annotations
@@ -82,7 +84,8 @@ class Gamma(Parametric):
                                                            "gamma"))
 
     def forward(self, x):
-        return np.power(np.maximum(np.asarray(x, dtype=np.float64), 0.0), 1.0 / self.gamma)
+        # bounded: an exposure past full scale reads full scale (a float output too)
+        return np.power(np.clip(np.asarray(x, dtype=np.float64), 0.0, 1.0), 1.0 / self.gamma)
 
     def inverse(self, v):
         return np.power(np.maximum(np.asarray(v, dtype=np.float64), 0.0), self.gamma)
@@ -105,7 +108,7 @@ class SRGB(Response):
     knee = 0.04045 / 12.92
 
     def forward(self, x):
-        x = np.maximum(np.asarray(x, dtype=np.float64), 0.0)
+        x = np.clip(np.asarray(x, dtype=np.float64), 0.0, 1.0)  # bounded, as Gamma
         return np.where(x <= self.knee, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
     def inverse(self, v):
