@@ -25,7 +25,7 @@ from clblur.motion import (
     trapezoid_weights,
 )
 from clblur.pixels import SUPPORTED_DTYPES, validate_saturation
-from clblur.responses import Response, per_channel
+from clblur.responses import Linear, Response, per_channel
 
 __all__ = ["BlurPlan", "bound_far_flow", "check_depth", "check_image", "make_plan", "retime"]
 
@@ -134,8 +134,12 @@ def make_plan(image, motion, response="exp", *, anchor: str = "center",
     if alpha and c < 2:
         raise InputError("alpha=True needs an image with at least 2 channels (colour + alpha), "
                          f"got {c}")
+    # coverage never passes through a response: one per colour channel (a calibrated RGB
+    # set fits an RGBA image), and the identity stands in the coverage channel's place
+    responses = (per_channel(response, c - 1, "colour channel(s) and alpha, which takes none")
+                 + [Linear()] if alpha else per_channel(response, c))
     return BlurPlan(image=img, squeeze=np.ndim(image) == 2, motion=parsed,
-                    responses=tuple(per_channel(response, c)), anchor=a,
+                    responses=tuple(responses), anchor=a,
                     samples=n, weights=wts, saturation=validate_saturation(saturation),
                     alpha=bool(alpha), speed_order=_is_speed(depth),
                     depth=check_depth(_named(depth, parsed), (h, w), speed=_is_speed(depth)),

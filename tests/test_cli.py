@@ -6,7 +6,9 @@ import sys
 import numpy as np
 import pytest
 
+import clblur
 from clblur.cli import main
+from clblur.errors import InputError
 from clblur.io import read_image, write_flow, write_image
 
 
@@ -240,6 +242,30 @@ def test_a_per_channel_response_is_checked_against_the_image(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "got 2 per-channel responses; a per-channel document needs one per colour " \
            "channel of the images (1, 3 or 4)" in err and "1 channel" not in err
+
+
+def test_a_calibrated_colour_set_blurs_an_rgba_image(tmp_path, capsys, rng):
+    """Coverage takes no response, so the three curves of a calibrated RGB camera serve an
+    RGBA image; it was refused unless a fourth (ignored) curve was added, while clblur
+    blur's own check of the document had passed it."""
+    import json
+
+    from clblur.responses import SRGB, Exp, Gamma
+
+    img = rng.integers(0, 256, (12, 16, 4), dtype=np.uint8)
+    write_image(tmp_path / "rgba.png", img)
+    curves = [SRGB(), Gamma(2.2), Exp()]
+    doc = tmp_path / "rgb.json"
+    doc.write_text(json.dumps({"kind": "per-channel", "channels": [c.to_dict() for c in curves]}))
+    assert main(["blur", str(tmp_path / "rgba.png"), str(tmp_path / "o.png"), "--motion=3,1",
+                 "--response", str(doc), "--backend", "numpy"]) == 0
+    out = read_image(tmp_path / "o.png")
+    for c, curve in enumerate(curves):  # each colour channel through its own curve
+        one = clblur.blur(img, (3, 1), curve, alpha=True, backend="numpy")
+        np.testing.assert_array_equal(out[..., c], one[..., c])
+        np.testing.assert_array_equal(out[..., 3], one[..., 3])
+    with pytest.raises(InputError, match="3 colour channel"):
+        clblur.blur(img, (3, 1), [*curves, Exp()], alpha=True)
 
 
 @pytest.mark.parametrize("extra, message", [

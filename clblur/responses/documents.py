@@ -176,10 +176,10 @@ def _channel_set(spec) -> list[Response] | None:
     return [from_dict(d) for d in channels]
 
 
-def per_channel(spec, channels: int) -> list[Response]:
+def per_channel(spec, channels: int, kind: str = "channel(s)") -> list[Response]:
     """One response per channel: a single spec is shared, a sequence must match ``channels``;
     a per-channel document (``kind: per-channel``, e.g. from ``clblur calibrate``) acts as the
-    sequence it holds."""
+    sequence it holds.  ``kind`` names the channels counted, for the message."""
     if not isinstance(spec, (list, tuple, Response)):
         found = _channel_set(spec)
         if found is not None:
@@ -187,7 +187,7 @@ def per_channel(spec, channels: int) -> list[Response]:
     if isinstance(spec, (list, tuple)):
         if len(spec) != channels:
             raise InputError(f"got {len(spec)} per-channel responses for an image with "
-                             f"{channels} channel(s)")
+                             f"{channels} {kind}")
         return [for_device(response(s)) for s in spec]
     r = for_device(response(spec))
     return [r] * channels
