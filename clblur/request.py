@@ -121,6 +121,10 @@ def make_plan(image, motion, response="exp", *, anchor: str = "center",
     if n is not None and isinstance(motion, np.ndarray) and motion.ndim == 3:
         motion = bound_far_flow(motion, n, a, where.get("extent", (h, w)))
     parsed = parse_motion(motion, (h, w), check=check_flow)
+    if isinstance(parsed, PSF) and (samples is not None or weights is not None):
+        # a PSF's taps are its samples and their weights: the options would be dropped
+        raise InputError("samples and weights apply to motion vectors; a PSF carries its own "
+                         "taps and weights")
     if exposure == "continuous":
         if isinstance(parsed, PSF):
             raise InputError("exposure='continuous' applies to motion vectors; a PSF carries "
