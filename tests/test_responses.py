@@ -86,6 +86,7 @@ def test_json_round_trip(tmp_path, r):
     back = clblur.load_response(path)
     assert back == r
     assert response(str(path)) == r
+    assert response(path) == r  # a pathlib.Path too, as every other path clblur takes
     v = np.linspace(0, 0.99, 17)
     np.testing.assert_array_equal(back.inverse(v), r.inverse(v))
 

@@ -105,13 +105,16 @@ def load_response(path: str | os.PathLike) -> Response:
     return from_dict(doc)
 
 
-def response(spec: str | Response | dict) -> Response:
+def response(spec: str | os.PathLike | Response | dict) -> Response:
     """Parse a response spec: ``linear``, ``exp``, ``exp:K``, ``gamma:2.2``, ``srgb``,
-    a path to a response JSON file, a JSON document, or a ``Response`` (returned as is)."""
+    a path (``str`` or ``os.PathLike``) to a response JSON file, a JSON document, or a
+    ``Response`` (returned as is)."""
     if isinstance(spec, Response):
         return spec
     if isinstance(spec, dict):
         return from_dict(spec)
+    if isinstance(spec, os.PathLike):
+        return load_response(spec)
     if not isinstance(spec, str):
         raise InputTypeError(f"response must be a name, a JSON path or a Response, got {spec!r}")
     name, _, arg = spec.partition(":")
