@@ -23,6 +23,8 @@ from pathlib import Path
 
 from distributed import WorkerPlugin
 
+from clblur.errors import InputError
+
 __all__ = ["PoclCachePerWorker", "client_for", "parse_scheduler"]
 
 
@@ -37,10 +39,10 @@ def parse_scheduler(text: str) -> tuple[str, int | None]:
         except ValueError:
             n = 0
         if n < 1:
-            raise ValueError(f"--scheduler local:N needs a positive worker count, got {text!r}")
+            raise InputError(f"--scheduler local:N needs a positive worker count, got {text!r}")
         return "local", n
     if not text:
-        raise ValueError("--scheduler needs 'local', 'local:N' or a scheduler address")
+        raise InputError("--scheduler needs 'local', 'local:N' or a scheduler address")
     return text, None
 
 
@@ -78,7 +80,7 @@ def client_for(scheduler: str, timeout: str = "20s") -> Iterator[object]:
     try:
         client = Client(where, timeout=timeout)
     except OSError as e:
-        raise ValueError(f"cannot reach the Dask scheduler at {where}: {e}") from None
+        raise InputError(f"cannot reach the Dask scheduler at {where}: {e}") from None
     try:
         client.register_plugin(PoclCachePerWorker())
         yield client

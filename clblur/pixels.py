@@ -49,7 +49,7 @@ def imax(dtype: np.dtype) -> float:
         return 65535.0
     if dtype in (np.float32, np.float64):
         return 1.0
-    raise TypeError(f"unsupported image dtype {dtype}; use uint8, uint16, float32 or float64")
+    raise InputTypeError(f"unsupported image dtype {dtype}; use uint8, uint16, float32 or float64")
 
 
 def code_step(dtype: np.dtype) -> float:

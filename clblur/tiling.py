@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from clblur.blur import blur_plan, resolve_backend
-from clblur.errors import InputError
+from clblur.errors import InputError, InputTypeError
 from clblur.halo import fixed_halo, flow_halo, global_flow_halo, tiled_motion
 from clblur.io import (
     IMAGE_FORMATS,
@@ -89,7 +89,7 @@ def parse_size(size: int | str | None) -> int:
     elif isinstance(size, (int, float, np.integer)) and not isinstance(size, bool):
         value = float(size)
     else:
-        raise TypeError(f"memory budget must be bytes or a size like '2G', got {size!r}")
+        raise InputTypeError(f"memory budget must be bytes or a size like '2G', got {size!r}")
     if not math.isfinite(value) or value <= 0:
         raise InputError(f"memory budget must be positive, got {size!r}")
     return int(value)
@@ -128,7 +128,7 @@ def _tile_shape(tile) -> tuple[int, int]:
     try:
         th, tw = (int(t) for t in tile)
     except (TypeError, ValueError):
-        raise TypeError(f"tile must be an int or (rows, cols), got {tile!r}") from None
+        raise InputTypeError(f"tile must be an int or (rows, cols), got {tile!r}") from None
     if th < 1 or tw < 1:
         raise InputError(f"tile must be at least 1 x 1, got {tile!r}")
     return th, tw
@@ -148,7 +148,7 @@ class TiledRun:
 def _check_arrays(src, dst) -> tuple[int, int, int]:
     for name, a in (("source", src), ("destination", dst)):
         if not hasattr(a, "shape") or not hasattr(a, "dtype"):
-            raise TypeError(f"{name} must be an array-like with shape and dtype, "
+            raise InputTypeError(f"{name} must be an array-like with shape and dtype, "
                             f"got {type(a).__name__}")
     if len(src.shape) not in (2, 3):
         raise InputError(f"image must be H x W or H x W x C, got shape {tuple(src.shape)}")

@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from clblur.blur import blur, resolve_backend
-from clblur.errors import InputError
+from clblur.errors import InputError, InputTypeError
 from clblur.flow import FlowEstimator, FlowFolder, save_flows
 from clblur.io import refuse_overwrite
 from clblur.io.video import (
@@ -71,9 +71,9 @@ def shutter_fraction(shutter: float) -> float:
     try:
         s = float(shutter)
     except (TypeError, ValueError):
-        raise TypeError(f"shutter must be an angle in degrees, got {shutter!r}") from None
+        raise InputTypeError(f"shutter must be an angle in degrees, got {shutter!r}") from None
     if not np.isfinite(s) or s < 0 or s > 360:
-        raise ValueError(f"shutter angle must be within 0..360 degrees, got {shutter}")
+        raise InputError(f"shutter angle must be within 0..360 degrees, got {shutter}")
     return s / 360.0
 
 
@@ -82,9 +82,9 @@ def _check_flow(flow, shape: tuple[int, int], what: str) -> np.ndarray | None:
         return None
     f = np.asarray(flow, dtype=np.float32)
     if f.shape != (*shape, 2):
-        raise ValueError(f"{what} flow has shape {f.shape}, expected {(*shape, 2)}")
+        raise InputError(f"{what} flow has shape {f.shape}, expected {(*shape, 2)}")
     if not np.isfinite(f).all():
-        raise ValueError(f"{what} flow contains NaN or infinite values")
+        raise InputError(f"{what} flow contains NaN or infinite values")
     return f
 
 
@@ -233,7 +233,7 @@ class _Flows:
             fwd = self.folder.get("forward", a.index, shape)
             bwd = self.folder.get("backward", b.index, shape)
             if fwd is None and bwd is None:  # one may be mirrored, but not both missing
-                raise ValueError(f"{self.folder.path} has neither forward_{a.index:06d} nor "
+                raise InputError(f"{self.folder.path} has neither forward_{a.index:06d} nor "
                                  f"backward_{b.index:06d}: no motion known between frames "
                                  f"{a.index} and {b.index}")
             return fwd, bwd
@@ -272,7 +272,7 @@ def blur_video(src: str | os.PathLike, dst: str | os.PathLike, *,
     source = open_source(src, fps)
     if fps is not None and not isinstance(source, ImageSequenceSource):
         source.close()
-        raise ValueError("fps only applies to image-sequence input; a video keeps its own rate")
+        raise InputError("fps only applies to image-sequence input; a video keeps its own rate")
     result = VideoResult(Path(dst), 0, source.fps, "none")
     sink, pending_audio = None, []
     timer = result.seconds

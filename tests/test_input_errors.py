@@ -163,6 +163,24 @@ def test_other_public_modules():
     _raises(lambda: from_blender(np.zeros((H, W, 3), np.float32)), False)
 
 
+def test_calibration_bad_input(tmp_path):
+    # the calibration package raised plain ValueError / TypeError: `except InputError`
+    # missed them
+    from clblur.calibration import ExposureSeries, calibrate, fit
+    from clblur.calibration.series import parse_time
+
+    ramp = np.linspace(20, 230, H * W * 3).reshape(H, W, 3).astype(np.uint8)
+    series = ExposureSeries.create([ramp // 2, ramp], [0.5, 1.0])
+    _raises(lambda: fit(series, "gamma"), False)
+    _raises(lambda: fit([ramp, ramp], "exp"), True)
+    _raises(lambda: ExposureSeries.create([ramp], [1.0]), False)
+    _raises(lambda: ExposureSeries.create([ramp, ramp], [1.0, 1.0]), False)
+    _raises(lambda: ExposureSeries.create([ramp, ramp[:4]], [0.5, 1.0]), False)
+    _raises(lambda: calibrate(tmp_path / "missing", [0.5, 1.0]), False)
+    _raises(lambda: parse_time("fast"), False)
+    _raises(lambda: parse_time([1.0]), True)
+
+
 def test_dask_blur_bad_input():
     da = pytest.importorskip("dask.array")
     from clblur import dask_array

@@ -82,7 +82,7 @@ def calibrate(source: ExposureSeries | str | os.PathLike, models=None, *, times=
     names = list(dict.fromkeys(models)) if models else available_models(emor_dir)
     unknown = [m for m in names if m not in MODELS]
     if unknown:
-        raise ValueError(f"unknown response model(s) {unknown}; choose from {', '.join(MODELS)}")
+        raise InputError(f"unknown response model(s) {unknown}; choose from {', '.join(MODELS)}")
     if gaps is None:
         gaps = series_gaps(series)
     low = VALID_LOW if fit_low is None else min(fit_low, VALID_LOW)
@@ -105,7 +105,7 @@ def calibrate(source: ExposureSeries | str | os.PathLike, models=None, *, times=
             fits.pop(name, None)
             skipped[name] = str(e)
     if not evaluations:
-        raise ValueError(f"no model could be fitted; {names[0]}: {skipped[names[0]]}")
+        raise InputError(f"no model could be fitted; {names[0]}: {skipped[names[0]]}")
     fitted = [n for n in names if n in evaluations]
     if all(np.isnan(list(evaluations[n]["rmse_darker"].values())).all() for n in fitted):
         # nothing was scored: a "best" model would be an arbitrary one

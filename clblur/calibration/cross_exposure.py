@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from clblur.calibration.forward_families import FamilyFit
+from clblur.errors import InputError, InputTypeError
 from clblur.responses import (
     Gamma,
     MonotoneSpline,
@@ -60,15 +61,15 @@ class SplineFamily:
     def fit(self, samples, tau, *, full_scale, refine_times=False, knots: int = 64,
             smoothness: float = 0.3, max_gap: float = 4.5, **opts) -> FamilyFit:
         if opts:
-            raise TypeError(f"unknown option(s) for the spline model: {sorted(opts)}")
+            raise InputTypeError(f"unknown option(s) for the spline model: {sorted(opts)}")
         if not isinstance(knots, (int, np.integer)) or not 4 <= knots <= 256:
-            raise ValueError(f"spline knots must be an integer in 4..256, got {knots!r}")
+            raise InputError(f"spline knots must be an integer in 4..256, got {knots!r}")
         if not smoothness >= 0:
-            raise ValueError(f"smoothness must be >= 0, got {smoothness!r}")
+            raise InputError(f"smoothness must be >= 0, got {smoothness!r}")
         src, mean, ratio, count = pooled_pairs(samples.values, samples.valid, tau, max_gap,
                                                full_scale)
         if src.size < knots:
-            raise ValueError("too few pixel pairs valid in two exposures for the spline model "
+            raise InputError("too few pixel pairs valid in two exposures for the spline model "
                              f"({src.size} pools for {knots} knots)")
         u = default_knots(int(knots))
         theta = fit_cross_exposure(u, src, mean, ratio, np.sqrt(count) * full_scale,

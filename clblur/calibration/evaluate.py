@@ -28,6 +28,7 @@ from tqdm import tqdm
 
 from clblur.calibration.fitting import ResponseFit, fit, transfer
 from clblur.calibration.series import ExposureSeries
+from clblur.errors import InputError
 
 __all__ = ["DEFAULT_GAPS", "DIRECTIONS", "EVAL_HIGH", "EVAL_LOW", "FLAT_TOLERANCE",
            "GAP_TOLERANCE", "evaluate", "series_gaps"]
@@ -110,9 +111,9 @@ def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=DEFAULT_GAPS,
         high = EVAL_HIGH * series.white_level
     gaps = tuple(float(g) for g in gaps)
     if not gaps or any(g <= 0 for g in gaps):
-        raise ValueError(f"gaps must be positive numbers of stops, got {gaps}")
+        raise InputError(f"gaps must be positive numbers of stops, got {gaps}")
     if not 0.0 <= low < high <= 1.0:
-        raise ValueError(f"valid range needs 0 <= low < high <= 1, got {low}, {high}")
+        raise InputError(f"valid range needs 0 <= low < high <= 1, got {low}, {high}")
     stops = np.log2(series.relative_exposures())
     n, ch = len(series.images), series.channels
     # Leaving an exposure out of a 2-image series leaves nothing to fit: score the full fit

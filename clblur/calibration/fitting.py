@@ -28,6 +28,7 @@ from clblur.calibration.inverse_families import with_toe
 from clblur.calibration.models import FAMILIES, MODELS, FamilyFit
 from clblur.calibration.sampling import VALID_HIGH, VALID_LOW, SampleSet, Sampling, sample_series
 from clblur.calibration.series import ExposureSeries
+from clblur.errors import InputError, InputTypeError
 from clblur.responses import Exp, Response
 
 __all__ = ["LIKELIHOOD_LOW", "ResponseFit", "fit", "fit_radiances", "forward_residuals",
@@ -72,10 +73,10 @@ class ResponseFit:
         full = imax(img.dtype)
         chans = img[..., None] if img.ndim == 2 else img
         if chans.shape[-1] != len(self.responses):
-            raise ValueError(f"image has {chans.shape[-1]} channel(s), the fit has "
+            raise InputError(f"image has {chans.shape[-1]} channel(s), the fit has "
                              f"{len(self.responses)}")
         if not (np.isfinite(t_i) and np.isfinite(t_j) and t_i > 0 and t_j > 0):
-            raise ValueError(f"exposures must be positive and finite, got {t_i}, {t_j}")
+            raise InputError(f"exposures must be positive and finite, got {t_i}, {t_j}")
         out = np.empty(chans.shape, dtype=np.float64)
         for c, resp in enumerate(self.responses):
             out[..., c] = transfer(resp, chans[..., c] / full, t_j / t_i) * full
@@ -117,10 +118,10 @@ def fit(series: ExposureSeries, model: str, *, shared: bool = False, n_samples: 
     with ``refine_times`` also ``relative_exposures`` (per curve, longest = 1).
     """
     if not isinstance(series, ExposureSeries):
-        raise TypeError(f"series must be an ExposureSeries (see load_series), got "
+        raise InputTypeError(f"series must be an ExposureSeries (see load_series), got "
                         f"{type(series).__name__}")
     if model not in FAMILIES:
-        raise ValueError(f"unknown response model {model!r}; choose from {', '.join(MODELS)}")
+        raise InputError(f"unknown response model {model!r}; choose from {', '.join(MODELS)}")
     family = FAMILIES[model]
     if low is None:
         low = family.default_low
@@ -133,7 +134,7 @@ def fit(series: ExposureSeries, model: str, *, shared: bool = False, n_samples: 
     tau = series.relative_exposures()
     if getattr(family, "uses_pixels", False):  # random single pixels, their own valid range
         if not sampling.pixels:
-            raise ValueError(f"the {model} model needs random pixel samples (sample_series "
+            raise InputError(f"the {model} model needs random pixel samples (sample_series "
                              "with n_pixels > 0)")
         pixels = sampling.pixels
         if series.white_level < 1.0:
@@ -195,7 +196,7 @@ def _on_paper_axis(series: ExposureSeries, f: FamilyFit, channels: list[int]) ->
                                for c in channels])
     radiance = radiance[np.isfinite(radiance)]
     if radiance.size == 0:
-        raise ValueError("cannot place k on the normalised axis: no pixel is validly exposed")
+        raise InputError("cannot place k on the normalised axis: no pixel is validly exposed")
     k = float(np.median(radiance))
     t = series.exposures
     by_fn = {}

@@ -22,6 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import least_squares
 
+from clblur.errors import InputError, InputTypeError
 from clblur.responses import (
     Emor,
     EmorBasis,
@@ -85,7 +86,7 @@ def time_deviation_basis(log_tau: np.ndarray) -> np.ndarray:
     """
     n = log_tau.size
     if n < 3:
-        raise ValueError("refine_times needs at least 3 exposures")
+        raise InputError("refine_times needs at least 3 exposures")
     fixed = np.stack([np.ones(n), log_tau - log_tau.mean()], axis=1)
     q, _ = np.linalg.qr(fixed, mode="complete")
     return q[:, 2:]
@@ -128,7 +129,7 @@ class ForwardFamily:
     def fit(self, samples, tau: np.ndarray, *, full_scale: float, refine_times: bool = False,
             **opts) -> FamilyFit:
         if opts:
-            raise TypeError(f"unknown option(s) for the {self.name} model: {sorted(opts)}")
+            raise InputTypeError(f"unknown option(s) for the {self.name} model: {sorted(opts)}")
         theta, log_e, log_tau = _joint_forward_fit(self, samples, tau, full_scale, refine_times)
         return FamilyFit(self.export(theta), self.named(theta),
                          len(self.theta0) + _n_time_params(tau, refine_times), np.exp(log_tau))
@@ -288,9 +289,9 @@ class EmorFamily:
     def fit(self, samples, tau, *, full_scale, refine_times=False, components: int = 5,
             emor_dir=None, **opts) -> FamilyFit:
         if opts:
-            raise TypeError(f"unknown option(s) for the emor model: {sorted(opts)}")
+            raise InputTypeError(f"unknown option(s) for the emor model: {sorted(opts)}")
         if not isinstance(components, (int, np.integer)) or not 1 <= components <= 25:
-            raise ValueError(f"EMoR components must be an integer in 1..25, got {components!r}")
+            raise InputError(f"EMoR components must be an integer in 1..25, got {components!r}")
         curve = _EmorCurve(EmorBasis.load(emor_dir), int(components),
                            None if emor_dir is None else str(emor_dir))
         theta, _, log_tau = _joint_forward_fit(curve, samples, tau, full_scale, refine_times)

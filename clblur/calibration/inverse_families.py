@@ -28,6 +28,7 @@ from clblur.calibration.forward_families import (
     _table,
     time_deviation_basis,
 )
+from clblur.errors import InputError, InputTypeError
 from clblur.responses import (
     Gamma,
     Polynomial,
@@ -73,15 +74,15 @@ class PolynomialFamily:
     def fit(self, samples, tau, *, full_scale, refine_times=False, order: int = 6,
             iterations: int = 30, **opts) -> FamilyFit:
         if opts:
-            raise TypeError(f"unknown option(s) for the polynomial model: {sorted(opts)}")
+            raise InputTypeError(f"unknown option(s) for the polynomial model: {sorted(opts)}")
         if not isinstance(order, (int, np.integer)) or not 1 <= order <= 12:
-            raise ValueError(f"polynomial order must be an integer in 1..12, got {order!r}")
+            raise InputError(f"polynomial order must be an integer in 1..12, got {order!r}")
         sorted_idx, pairs = _consecutive_pairs(samples, tau)
         ratios = tau[sorted_idx[:-1]] / tau[sorted_idx[1:]]
         nominal = ratios.copy()
         basis = time_deviation_basis(np.log(tau[sorted_idx])) if refine_times else None
         if sum(a.size for a, _ in pairs) <= order:
-            raise ValueError("too few samples valid in neighbouring exposures for the "
+            raise InputError("too few samples valid in neighbouring exposures for the "
                              f"polynomial model of order {order}")
         powers = np.arange(1, order + 1)
         coef = None
@@ -266,17 +267,17 @@ class NonparametricFamily:
     def fit(self, samples, tau, *, full_scale, refine_times=False, smoothness: float = 30.0,
             levels: int | None = None, time_sigma: float = TIME_SIGMA, **opts) -> FamilyFit:
         if opts:
-            raise TypeError(f"unknown option(s) for the nonparametric model: {sorted(opts)}")
+            raise InputTypeError(f"unknown option(s) for the nonparametric model: {sorted(opts)}")
         if not smoothness > 0:
-            raise ValueError(f"smoothness must be positive, got {smoothness!r}")
+            raise InputError(f"smoothness must be positive, got {smoothness!r}")
         if not time_sigma > 0:
-            raise ValueError(f"time_sigma must be positive, got {time_sigma!r}")
+            raise InputError(f"time_sigma must be positive, got {time_sigma!r}")
         if levels is not None:
             n_lev = int(levels)
         else:  # one level per code value for uint8, 1024 bins for deeper or float images
             n_lev = min(int(full_scale) + 1, 1024) if full_scale > 1 else 256
         if n_lev < 16:
-            raise ValueError(f"levels must be at least 16, got {levels!r}")
+            raise InputError(f"levels must be at least 16, got {levels!r}")
         v, ok = samples.values, samples.valid
         n_s, n_e = v.shape
         basis = time_deviation_basis(np.log(tau)) if refine_times else np.zeros((n_e, 0))

@@ -25,6 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from clblur.errors import InputError
+
 __all__ = ["MONOTONE_TOLERANCE", "N_PIXELS", "VALID_HIGH", "VALID_LOW", "SampleSet", "Sampling",
            "sample_series", "valid_mask"]
 
@@ -91,12 +93,12 @@ class Sampling:
     def with_range(self, low: float, high: float) -> Sampling:
         """Same patches (and footprint), validity re-judged; only narrower ranges make sense."""
         if low < self.low or high > self.high:
-            raise ValueError(f"valid range ({low}, {high}) is wider than the sampling's "
+            raise InputError(f"valid range ({low}, {high}) is wider than the sampling's "
                              f"({self.low}, {self.high}); resample instead")
         sets = [s.with_range(low, high) for s in self.per_channel]
         empty = [i for i, s in enumerate(sets) if len(s) == 0]
         if empty:
-            raise ValueError(f"channel(s) {empty} keep no sample valid in two exposures within "
+            raise InputError(f"channel(s) {empty} keep no sample valid in two exposures within "
                              f"({low}, {high})")
         return Sampling(sets, self.footprint, self.patch, low, high, self.pixels)
 
@@ -108,7 +110,7 @@ class Sampling:
         # what is missing instead (a small image's few patches, all valid in two exposures)
         empty = [i for i, c in enumerate(sets) if len(c) == 0]
         if empty or (pix is not None and any(len(c) == 0 for c in pix)):
-            raise ValueError(f"without exposure {index} (held out), channel(s) {empty or '*'} "
+            raise InputError(f"without exposure {index} (held out), channel(s) {empty or '*'} "
                              "keep no sample valid in two exposures: too few usable pixels "
                              "to fit and evaluate a response")
         return Sampling(sets, self.footprint, self.patch, self.low, self.high, pix)
@@ -170,11 +172,11 @@ def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float =
     if high is None:
         high = VALID_HIGH * series.white_level
     if not isinstance(n_samples, (int, np.integer)) or n_samples < 8:
-        raise ValueError(f"n_samples must be an integer >= 8, got {n_samples!r}")
+        raise InputError(f"n_samples must be an integer >= 8, got {n_samples!r}")
     if not isinstance(patch, (int, np.integer)) or patch < 1 or patch % 2 == 0:
-        raise ValueError(f"patch must be an odd positive integer, got {patch!r}")
+        raise InputError(f"patch must be an odd positive integer, got {patch!r}")
     if not 0.0 <= low < high <= 1.0:
-        raise ValueError(f"valid range needs 0 <= low < high <= 1, got {low}, {high}")
+        raise InputError(f"valid range needs 0 <= low < high <= 1, got {low}, {high}")
     rng = np.random.default_rng(seed)
     tau_order = np.argsort(series.relative_exposures())
     # One channel of one image at a time: a stack of float copies of the whole series (and
@@ -183,7 +185,7 @@ def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float =
     n, (h, w), channels = len(images), series.shape, series.channels
     r = patch // 2
     if h <= 2 * r or w <= 2 * r:
-        raise ValueError(f"images of {h} x {w} are too small for {patch} x {patch} patches")
+        raise InputError(f"images of {h} x {w} are too small for {patch} x {patch} patches")
     footprint = np.zeros((h, w), dtype=bool)
     # pixels that do not show one static scene (clblur.calibration.ghosts) are no samples
     moving = series.moving
@@ -233,17 +235,17 @@ def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float =
 
         check_brightening(series.images, series.relative_exposures(), series.names,
                           series.white_level)
-        raise ValueError("no usable calibration samples: the images do not brighten with "
+        raise InputError("no usable calibration samples: the images do not brighten with "
                          f"their exposure times ({falling} of {seen} patches valid in two "
                          "exposures get darker with a longer one); check the times (their "
                          "order, their units)")
     if not sets or sum(len(s) for s in sets) < 8:
-        raise ValueError("no usable calibration samples: every pixel is saturated (>= "
+        raise InputError("no usable calibration samples: every pixel is saturated (>= "
                          f"{high:g} of full scale) or under-exposed (<= {low:g}) in all but at "
                          "most one exposure")
     if len(sets) < channels:
         missing = sorted(set(range(channels)) - {int(s.channel[0]) for s in sets})
-        raise ValueError(f"channel(s) {missing} have no usable samples (saturated or "
+        raise InputError(f"channel(s) {missing} have no usable samples (saturated or "
                          "under-exposed everywhere)")
     pixels = _random_pixels(images, fs, footprint, n_pixels, rng, tau_order,
                             monotone_tolerance, moving)
@@ -259,7 +261,7 @@ def _random_pixels(images: list[np.ndarray], full_scale: float, footprint: np.nd
     moving: no response curve predicts it, and in a least-squares fit a few such values
     bend the curve)."""
     if not isinstance(n_pixels, (int, np.integer)) or n_pixels < 0:
-        raise ValueError(f"n_pixels must be a non-negative integer, got {n_pixels!r}")
+        raise InputError(f"n_pixels must be a non-negative integer, got {n_pixels!r}")
     free = np.flatnonzero(~(footprint | moving).ravel())
     # at most half the free pixels: the other half is left for held-out scoring
     idx = np.sort(rng.choice(free, min(int(n_pixels), free.size // 2), replace=False))

@@ -33,6 +33,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from clblur.errors import InputError, InputTypeError
 from clblur.io import light_channels, read_image, require_file, resolve_inside
 from clblur.manifest import Exposure, Manifest, load_manifest
 from clblur.pixels import imax, series_clip_level
@@ -80,7 +81,7 @@ def check_brightening(images: list[np.ndarray], exposures, names: list[str],
             continue
         up = np.count_nonzero(both & (long_ > short)) / n
         if up < 0.5:
-            raise ValueError(
+            raise InputError(
                 f"{names[b]} is not brighter than {names[a]} although its exposure is "
                 f"{x[b] / x[a]:.3g}x as long: only {100 * up:.0f} % of the pixels both expose "
                 "well brighten; check the times (their order, a repeated frame)")
@@ -95,7 +96,7 @@ def photometric_exposure(times, f_numbers=None) -> np.ndarray:
     if f_numbers is None or all(f is None for f in f_numbers):
         return t
     if any(f is None for f in f_numbers) or len(f_numbers) != t.size:
-        raise ValueError("give an F-number for every image or for none")
+        raise InputError("give an F-number for every image or for none")
     return t / np.asarray(f_numbers, dtype=np.float64) ** 2
 
 
@@ -114,29 +115,29 @@ class ExposureSeries:
         """Validate arrays already in memory (shapes, dtypes, times) and build a series."""
         images = [_as_hwc(np.asarray(im), i) for i, im in enumerate(images)]
         if len(images) < 2:
-            raise ValueError(f"an exposure series needs at least 2 images, got {len(images)}")
+            raise InputError(f"an exposure series needs at least 2 images, got {len(images)}")
         t = _check_times(exposures, len(images))
         fn = None
         if f_numbers is not None and any(f is not None for f in f_numbers):
             photometric_exposure(t, f_numbers)  # every image has one, or it raises
             fn = np.asarray(f_numbers, dtype=np.float64)
             if not np.all(np.isfinite(fn)) or np.any(fn <= 0):
-                raise ValueError(f"F-numbers must be positive and finite, got {fn.tolist()}")
+                raise InputError(f"F-numbers must be positive and finite, got {fn.tolist()}")
         names = list(names) if names is not None else [f"image{i}" for i in range(len(images))]
         first = images[0]
         for name, im in zip(names, images, strict=True):
             if im.shape != first.shape:
-                raise ValueError(f"images of different sizes: {names[0]} is {first.shape}, "
+                raise InputError(f"images of different sizes: {names[0]} is {first.shape}, "
                                  f"{name} is {im.shape}")
             if im.dtype != first.dtype:
-                raise ValueError(f"images of different dtypes: {names[0]} is {first.dtype}, "
+                raise InputError(f"images of different dtypes: {names[0]} is {first.dtype}, "
                                  f"{name} is {im.dtype}")
         key = t if fn is None else t / fn**2
         order = np.argsort(key)
         dup = np.flatnonzero(np.isclose(np.diff(key[order]), 0.0, rtol=1e-9, atol=0.0))
         if dup.size:
             a, b = order[dup[0]], order[dup[0] + 1]
-            raise ValueError(f"duplicate exposures: {names[a]} and {names[b]} both have "
+            raise InputError(f"duplicate exposures: {names[a]} and {names[b]} both have "
                              f"exposure {t[a]:g}" + ("" if fn is None else f" at f/{fn[a]:g}"))
         return cls(images, t, fn, names)
 
@@ -223,42 +224,41 @@ class ExposureSeries:
 
 def _as_hwc(im: np.ndarray, index: int) -> np.ndarray:
     if im.dtype not in (np.uint8, np.uint16, np.float32, np.float64):
-        raise TypeError(f"image {index}: unsupported dtype {im.dtype}")
+        raise InputTypeError(f"image {index}: unsupported dtype {im.dtype}")
     if im.ndim == 2:
         return im[:, :, None]
     if im.ndim != 3:
-        raise ValueError(f"image {index}: expected H x W or H x W x C, got shape {im.shape}")
+        raise InputError(f"image {index}: expected H x W or H x W x C, got shape {im.shape}")
     return im[:, :, :3] if im.shape[2] == 4 else im  # alpha carries no exposure
 
 
 def _check_times(times, n: int) -> np.ndarray:
     if times is None:
-        raise ValueError("exposure times are missing")
+        raise InputError("exposure times are missing")
     t = np.asarray([parse_time(v) for v in times], dtype=np.float64)
     if t.size != n:
-        raise ValueError(f"got {t.size} exposure times for {n} images")
+        raise InputError(f"got {t.size} exposure times for {n} images")
     bad = np.flatnonzero(~np.isfinite(t) | (t <= 0))
     if bad.size:
-        raise ValueError(f"exposure times must be positive and finite; entry {bad[0]} is "
+        raise InputError(f"exposure times must be positive and finite; entry {bad[0]} is "
                          f"{t[bad[0]]}")
     return t
 
 
 def parse_time(value) -> float:
     """A time as a number or a string such as ``0.25``, ``1/1024`` or ``1/60s``."""
-    if isinstance(value, (bool, np.bool_)):
-        raise TypeError(f"exposure time must be a number or a string, got {value!r}")
+    if isinstance(value, (bool, np.bool_)) or not isinstance(
+            value, (str, int, float, np.floating, np.integer)):
+        raise InputTypeError(f"exposure time must be a number or a string, got {value!r}")
     try:
-        if isinstance(value, (int, float, np.floating, np.integer)):
-            return float(value)
         if not isinstance(value, str):
-            raise TypeError(f"exposure time must be a number or a string, got {value!r}")
+            return float(value)
         text = value.strip().removesuffix("s").strip()
         return float(Fraction(text))
     except OverflowError:  # a number too large for a float: no exposure time
-        raise ValueError(f"exposure time {str(value)[:40]!r} is out of range") from None
+        raise InputError(f"exposure time {str(value)[:40]!r} is out of range") from None
     except (ValueError, ZeroDivisionError):
-        raise ValueError(f"cannot read exposure time {value!r}; use e.g. 0.5 or 1/1024") from None
+        raise InputError(f"cannot read exposure time {value!r}; use e.g. 0.5 or 1/1024") from None
 
 
 class TimeRow(NamedTuple):
@@ -281,14 +281,14 @@ def _time_or_stops(token: str) -> tuple[float, bool]:
         try:
             stops = float(token[:-len(_STOPS)])
         except ValueError:
-            raise ValueError(f"cannot read stop offset {token!r}; use e.g. -2EV, 0EV, +1.5EV") \
+            raise InputError(f"cannot read stop offset {token!r}; use e.g. -2EV, 0EV, +1.5EV") \
                 from None
         if not math.isfinite(stops) or abs(stops) > 60:
-            raise ValueError(f"stop offset {token!r} is out of range")
+            raise InputError(f"stop offset {token!r} is out of range")
         return 2.0 ** stops, True
     t = parse_time(token)
     if not t > 0:  # a bracket listed as 0, -2, +2 is a list of stops, not of times
-        raise ValueError(f"exposure time {token!r} is not positive; if the file lists stop "
+        raise InputError(f"exposure time {token!r} is not positive; if the file lists stop "
                          "offsets, write them with their unit (e.g. -2EV, 0EV, +2EV)")
     return t, False
 
@@ -302,16 +302,16 @@ def _hdrshop_row(parts: list[str]) -> TimeRow:
     try:
         inv, f, db, filters = parse_time(inverse), float(f_stop), float(gain), float(nd)
     except ValueError:
-        raise ValueError(f"expected numbers after the name, got {' '.join(parts[1:])!r}") \
+        raise InputError(f"expected numbers after the name, got {' '.join(parts[1:])!r}") \
             from None
     if not (inv > 0 and math.isfinite(1.0 / inv)):
-        raise ValueError(f"1/shutter_speed {inverse!r} is not a positive number")
+        raise InputError(f"1/shutter_speed {inverse!r} is not a positive number")
     if not (f > 0 and math.isfinite(f)):
-        raise ValueError(f"f/stop {f_stop!r} is not a positive number")
+        raise InputError(f"f/stop {f_stop!r} is not a positive number")
     if not math.isfinite(db):
-        raise ValueError(f"gain {gain!r} dB is not a number")
+        raise InputError(f"gain {gain!r} dB is not a number")
     if filters != 0:
-        raise ValueError(f"ND_filters is {nd!r}: their attenuation is not stated by the "
+        raise InputError(f"ND_filters is {nd!r}: their attenuation is not stated by the "
                          "format; give the filtered images' effective times instead")
     return TimeRow(name, 10.0 ** (db / 20.0) / inv, f)
 
@@ -330,7 +330,7 @@ def read_times_file(path: str | os.PathLike) -> list[TimeRow]:
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError:
-        raise ValueError(f"times file {path} is not a text file") from None
+        raise InputError(f"times file {path} is not a text file") from None
     lines = [(n, line.split("#", 1)[0].split()) for n, line in enumerate(text.splitlines(), 1)]
     lines = [(n, parts) for n, parts in lines if parts]
     hdrshop = any(len(parts) == 5 for _, parts in lines)
@@ -338,26 +338,26 @@ def read_times_file(path: str | os.PathLike) -> list[TimeRow]:
         count = int(lines[0][1][0])  # HDRShop's first line: how many images follow
         lines = lines[1:]
         if count != len(lines):
-            raise ValueError(f"{path}: the image list announces {count} images and lists "
+            raise InputError(f"{path}: the image list announces {count} images and lists "
                              f"{len(lines)}")
     rows, stops = [], set()
     for lineno, parts in lines:
         try:
             if hdrshop:
                 if len(parts) != 5:
-                    raise ValueError("expected an HDRShop image list line 'NAME 1/SHUTTER "
+                    raise InputError("expected an HDRShop image list line 'NAME 1/SHUTTER "
                                      f"FSTOP GAIN_DB ND' like the others, got {' '.join(parts)!r}")
                 rows.append(_hdrshop_row(parts))
                 continue
             if len(parts) > 2:
-                raise ValueError(f"expected 'TIME' or 'NAME TIME', got {' '.join(parts)!r}")
+                raise InputError(f"expected 'TIME' or 'NAME TIME', got {' '.join(parts)!r}")
             t, is_stops = _time_or_stops(parts[-1])
             stops.add(is_stops)
             rows.append(TimeRow(parts[0] if len(parts) == 2 else None, t))
         except ValueError as e:
-            raise ValueError(f"{path}:{lineno}: {e}") from None
+            raise InputError(f"{path}:{lineno}: {e}") from None
     if len(stops) > 1:
-        raise ValueError(f"times file {path} mixes times and stop offsets (EV); use one kind")
+        raise InputError(f"times file {path} mixes times and stop offsets (EV); use one kind")
     return rows
 
 
@@ -412,10 +412,10 @@ def load_series(source: str | os.PathLike, times=None, align: bool = True) -> Ex
     source = Path(source)
     if source.is_file():
         if times is not None:
-            raise ValueError("times are given by the manifest; do not pass --times with one")
+            raise InputError("times are given by the manifest; do not pass --times with one")
         m = load_manifest(source)
         if m.kind != "exposure-series":
-            raise ValueError(f"manifest {source} is of kind {m.kind!r}, expected "
+            raise InputError(f"manifest {source} is of kind {m.kind!r}, expected "
                              "'exposure-series'")
     else:
         m = folder_series(source, times)
@@ -450,25 +450,25 @@ def folder_series(source: str | os.PathLike, times=None) -> Manifest:
     at that ISO)."""
     source = Path(source)
     if not source.is_dir():
-        raise ValueError(f"exposure series not found: {source} (give a manifest or a folder)")
+        raise InputError(f"exposure series not found: {source} (give a manifest or a folder)")
     # every image listed must lie in the folder (a symlink leading out of it is refused)
     files = series_files(source)
     for p in files:
         resolve_inside(source, p.name, f"exposure series {source}: image")
     if not files:
-        raise ValueError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in folder {source}")
+        raise InputError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in folder {source}")
     f_numbers = [None] * len(files)
     if times is None:
         found = [exif_exposure(p) for p in files]
         missing = [p.name for p, (t, _) in zip(files, found, strict=True) if t is None]
         if missing:
-            raise ValueError(f"exposure times missing: no times file given and no EXIF "
+            raise InputError(f"exposure times missing: no times file given and no EXIF "
                              f"ExposureTime in {', '.join(missing[:3])}"
                              + (" ..." if len(missing) > 3 else ""))
         bad = [f"{p.name} ({t:g})" for p, (t, _) in zip(files, found, strict=True)
                if not (math.isfinite(t) and t > 0)]
         if bad:
-            raise ValueError(f"EXIF ExposureTime is not a positive time in {', '.join(bad[:3])}"
+            raise InputError(f"EXIF ExposureTime is not a positive time in {', '.join(bad[:3])}"
                              "; give a times file (--times)")
         times = [t for t, _ in found]
         # Auto-ISO brackets (phones) change the gain as well as the time: the exposure that
@@ -487,34 +487,34 @@ def folder_series(source: str | os.PathLike, times=None) -> Manifest:
             by_name = {row.name: row for row in rows}
             if len(by_name) != len(rows):
                 twice = sorted(n for n, k in Counter(row.name for row in rows).items() if k > 1)
-                raise ValueError(f"times file {times_path} names {', '.join(twice[:3])} "
+                raise InputError(f"times file {times_path} names {', '.join(twice[:3])} "
                                  "more than once")
             by_name = _match_converted(by_name, files)
             missing = sorted(set(by_name) - {p.name for p in files})
             if missing:
-                raise ValueError(f"times file names images not in {source}: {missing[:3]}")
+                raise InputError(f"times file names images not in {source}: {missing[:3]}")
             # An image without a time is refused, not dropped: a forgotten line would
             # otherwise calibrate on a silently smaller series.
             untimed = [p.name for p in files if p.name not in by_name]
             if untimed:
-                raise ValueError(f"times file {times_path} gives no time for "
+                raise InputError(f"times file {times_path} gives no time for "
                                  f"{', '.join(untimed[:3])}" + (" ..." if len(untimed) > 3
                                                                  else "")
                                  + f" in {source}; name every image of the folder")
             rows = [by_name[p.name] for p in files]
         elif any(row.name is not None for row in rows):
-            raise ValueError(f"times file {times_path}: name every image or none")
+            raise InputError(f"times file {times_path}: name every image or none")
         elif len(rows) != len(files):
-            raise ValueError(f"times file {times_path} lists {len(rows)} times for "
+            raise InputError(f"times file {times_path} lists {len(rows)} times for "
                              f"{len(files)} images in {source}")
         times = [row.time for row in rows]
         if any(row.f_number is not None for row in rows):
             f_numbers = [row.f_number for row in rows]
     times = list(times)
     if len(times) != len(files):
-        raise ValueError(f"{len(times)} exposure times for {len(files)} images in {source}")
+        raise InputError(f"{len(times)} exposure times for {len(files)} images in {source}")
     if not all(isinstance(t, (int, float, np.number)) and not isinstance(t, bool)
                and math.isfinite(t) and t > 0 for t in times):
-        raise ValueError(f"exposure times must be positive numbers, got {times[:4]}")
+        raise InputError(f"exposure times must be positive numbers, got {times[:4]}")
     return Manifest("exposure-series", source, images=tuple(
         Exposure(p, t, f) for p, t, f in zip(files, times, f_numbers, strict=True)))

@@ -130,6 +130,6 @@ def data_dir(required: bool = False) -> Path | None:
         if c.is_dir():
             return c
     if required:
-        raise ValueError("measured data not found: set CLBLUR_DATA to the shared data folder "
+        raise InputError("measured data not found: set CLBLUR_DATA to the shared data folder "
                          "(see ../shared/data/README.md)")
     return None

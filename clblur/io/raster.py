@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clblur.errors import InputError
+from clblur.errors import InputError, InputTypeError
 from clblur.io.images import (
     _decoder_error,
     _orient,
@@ -44,7 +44,7 @@ def _window(key, shape: tuple[int, ...]) -> tuple[list[tuple[int, int]], list[in
     only: slices of step 1 or integers on the first two axes."""
     key = key if isinstance(key, tuple) else (key,)
     if Ellipsis in key[:2]:
-        raise TypeError("a raster window takes row and column slices, not Ellipsis")
+        raise InputTypeError("a raster window takes row and column slices, not Ellipsis")
     key = key + (slice(None),) * max(0, 2 - len(key))
     spans, squeeze = [], []
     for axis, k in enumerate(key[:2]):
@@ -56,7 +56,7 @@ def _window(key, shape: tuple[int, ...]) -> tuple[list[tuple[int, int]], list[in
             k = slice(k, k + 1)
         start, stop, step = k.indices(shape[axis])
         if step != 1:
-            raise TypeError("a raster window has step 1")
+            raise InputTypeError("a raster window has step 1")
         spans.append((start, max(start, stop)))
     return spans, squeeze, key[2:]
 
@@ -117,7 +117,7 @@ class OrientedRaster:
 
     def __init__(self, base, orientation: int):
         if orientation not in self._TURN:
-            raise ValueError(f"orientation must be 2..8, got {orientation!r}")
+            raise InputError(f"orientation must be 2..8, got {orientation!r}")
         self.base, self.orientation = base, orientation
         self.dtype = np.dtype(base.dtype)
         shape = tuple(int(s) for s in base.shape)
@@ -165,7 +165,7 @@ class TiffWindows:
             self.counts = np.asarray(page.databytecounts, np.int64)
         if page.planarconfig != 1 or len(shape) not in (2, 3) \
                 or self.offsets.size != self.grid[0] * self.grid[1]:
-            raise ValueError("not a single-plane strip or tile TIFF")  # open_image reads whole
+            raise InputError("not a single-plane strip or tile TIFF")  # open_image reads whole
         self.shape = shape
 
     @property

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clblur.errors import InputError
+from clblur.errors import InputError, InputTypeError
 from clblur.io.atomic import tmp_beside
 from clblur.io.images import read_image, write_image
 from clblur.io.paths import resolve_inside
@@ -240,7 +240,7 @@ class ImageSequenceSink:
         self.path = Path(folder)
         if not self.path.exists():
             if not self.path.parent.exists():
-                raise ValueError(f"output folder's parent does not exist: {self.path.parent}")
+                raise InputError(f"output folder's parent does not exist: {self.path.parent}")
             self.path.mkdir()
         self.written = 0
 
@@ -250,7 +250,7 @@ class ImageSequenceSink:
         self.written += 1
 
     def copy_audio(self, packet) -> None:  # pragma: no cover - never called (no audio)
-        raise ValueError("an image sequence cannot hold audio")
+        raise InputError("an image sequence cannot hold audio")
 
     def close(self, keep: bool = True) -> None:
         pass
@@ -282,10 +282,10 @@ class VideoFileSink:
         self.path = Path(path)
         suffix = self.path.suffix.lower()
         if suffix not in VIDEO_CODECS:
-            raise ValueError(f"unknown video container {suffix!r} for {path}; use one of "
+            raise InputError(f"unknown video container {suffix!r} for {path}; use one of "
                              f"{', '.join(VIDEO_CODECS)} or a folder for an image sequence")
         if not self.path.parent.exists():
-            raise ValueError(f"output folder does not exist: {self.path.parent}")
+            raise InputError(f"output folder does not exist: {self.path.parent}")
         codec = codec or VIDEO_CODECS[suffix]
         check_crf(crf, self.path, codec)
         self.tmp = tmp_beside(self.path)
@@ -305,7 +305,7 @@ class VideoFileSink:
         try:
             stream = self.container.add_stream(codec, rate=fps)
         except (av.FFmpegError, ValueError) as e:
-            raise ValueError(f"cannot encode with codec {codec!r}: {e}") from None
+            raise InputError(f"cannot encode with codec {codec!r}: {e}") from None
         stream.width, stream.height = width, height
         stream.pix_fmt = _pixel_format(codec, width, height)
         if codec in ("libx264", "libx265", "libvpx-vp9"):
@@ -315,7 +315,7 @@ class VideoFileSink:
             try:
                 self.audio = self.container.add_stream_from_template(audio_template)
             except (av.FFmpegError, ValueError) as e:
-                raise ValueError(f"cannot copy the input's {audio_template.codec_context.name}"
+                raise InputError(f"cannot copy the input's {audio_template.codec_context.name}"
                                  f" audio into {self.path.suffix}: {e}; pick another "
                                  "container (.mkv takes most codecs)") from None
 
@@ -353,7 +353,7 @@ def _pixel_format(codec: str, width: int, height: int) -> str:
         return "yuv420p"
     if codec in ("libx264", "libx265", "libvpx-vp9"):
         return "yuv444p"  # 4:2:0 needs even sizes; these codecs also take full chroma
-    raise ValueError(f"codec {codec} needs an even frame size, got {width} x {height}; "
+    raise InputError(f"codec {codec} needs an even frame size, got {width} x {height}; "
                      "write .mp4/.mkv (libx264) or an image folder instead")
 
 
@@ -366,7 +366,7 @@ def _to_rgb24(image: np.ndarray) -> np.ndarray:
         return np.rint(image / 257.0).astype(np.uint8)
     if image.dtype.kind == "f":  # normalised float frames (TIFF sequences)
         return quantise(image, np.uint8)
-    raise TypeError(f"cannot encode {image.dtype} frames as video")
+    raise InputTypeError(f"cannot encode {image.dtype} frames as video")
 
 
 def open_sink(path: str | os.PathLike, fps: Fraction, width: int, height: int,

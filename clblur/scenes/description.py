@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from clblur.errors import InputError
+
 __all__ = ["Texture", "wave_texture", "flat_texture", "Disc", "Rect", "MaskShape", "star_mask",
            "SceneObject", "Background", "Scene", "frame_displacements", "example_scenes"]
 
@@ -200,7 +202,7 @@ def frame_displacements(scene: Scene, shutter: float) -> tuple[np.ndarray, np.nd
     ``P(1/s) - P(0)``.  Feed them to ``clblur.vectors.to_blender`` / ``to_nuke`` to build a
     renderer's vector pass."""
     if not 0 < shutter <= 1:
-        raise ValueError(f"shutter must be a fraction of the frame in (0, 1], got {shutter}")
+        raise InputError(f"shutter must be a fraction of the frame in (0, 1], got {shutter}")
     h, w = scene.height, scene.width
     span = 1.0 / shutter
     yc, xc = np.mgrid[0:h, 0:w].astype(np.float64)

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from clblur.errors import InputError
 from clblur.pixels import imax, quantise
 from clblur.responses import Response, per_channel
 from clblur.scenes.description import Scene, SceneObject
@@ -76,7 +77,7 @@ def _draw(scene: Scene, order: list[int], x: np.ndarray, y: np.ndarray, t: float
     bvx, bvy = bg.velocity
     rad = bg.texture(x - bvx * t, y - bvy * t)
     if rad.shape[-1] != channels:
-        raise ValueError(f"background texture gives {rad.shape[-1]} channels, expected "
+        raise InputError(f"background texture gives {rad.shape[-1]} channels, expected "
                          f"{channels}")
     ids = np.zeros(x.shape, np.int32)
     parts = []
@@ -133,9 +134,9 @@ def render(scene: Scene, response="srgb", dtype=np.uint8, *, samples: int = 64,
         See the module Conventions for every field's units and signs.
     """
     if samples < 2:
-        raise ValueError(f"samples must be >= 2, got {samples}")
+        raise InputError(f"samples must be >= 2, got {samples}")
     if spp < 1:
-        raise ValueError(f"spp must be >= 1, got {spp}")
+        raise InputError(f"spp must be >= 1, got {spp}")
     imax(dtype)  # rejects unsupported dtypes early
     h, w = scene.height, scene.width
     resp = per_channel(response, channels)
@@ -279,6 +280,6 @@ def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
     if mask is not None:
         d = d[np.asarray(mask, bool)]
         if d.size == 0:
-            raise ValueError("empty mask: no pixel to score")
+            raise InputError("empty mask: no pixel to score")
     mse = float(np.mean(d * d))
     return float("inf") if mse == 0 else 10 * math.log10(peak * peak / mse)

@@ -19,6 +19,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from clblur.camera import normalised_radius2
+from clblur.errors import InputError, InputTypeError
 from clblur.sampling import bilinear_corners
 from clblur.study.model import CODES, Group
 
@@ -272,14 +273,14 @@ def as_hwc(image: np.ndarray, what: str) -> np.ndarray:
     used.
     """
     if not isinstance(image, np.ndarray):
-        raise TypeError(f"{what} must be a numpy array")
+        raise InputTypeError(f"{what} must be a numpy array")
     if image.dtype == np.uint16:
         image = ((image.astype(np.uint32) + 128) // 257).astype(np.uint8)  # round(x / 257)
     if image.dtype != np.uint8:
-        raise ValueError(f"{what} is {image.dtype}; the study reads integer codes (uint8 or "
+        raise InputError(f"{what} is {image.dtype}; the study reads integer codes (uint8 or "
                          "uint16)")
     if image.ndim == 2:
         return image[..., None]
     if image.ndim != 3:
-        raise ValueError(f"{what} must be H x W or H x W x C, got shape {image.shape}")
+        raise InputError(f"{what} must be H x W or H x W x C, got shape {image.shape}")
     return image[..., :3]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from clblur.blur import blur
+from clblur.errors import InputError
 from clblur.motion import PSF, Field, Uniform, anchor_value, parse_motion, sample_counts
 from clblur.study.histograms import Spread, Taps, as_hwc, build_group, sample_grid, shifted
 from clblur.study.model import Group
@@ -25,7 +26,7 @@ def pair_group(static: np.ndarray, blurred: np.ndarray, motion, *, anchor: str =
     src = as_hwc(static, "static image")
     tgt = as_hwc(blurred, "blurred image")
     if src.shape != tgt.shape:
-        raise ValueError(f"static {src.shape} and blurred {tgt.shape} images differ in shape")
+        raise InputError(f"static {src.shape} and blurred {tgt.shape} images differ in shape")
     m = parse_motion(motion, src.shape[:2])
     flip = None
     if isinstance(m, PSF):

@@ -29,6 +29,7 @@ import numpy as np
 
 from clblur.calibration.ghosts import moving_pixels
 from clblur.calibration.series import check_brightening, photometric_exposure
+from clblur.errors import InputError
 from clblur.pixels import series_clip_level, series_padding
 from clblur.study.histograms import Taps, as_hwc, build_group, sample_grid, shifted
 from clblur.study.model import Group
@@ -104,17 +105,17 @@ def series_groups(images: list[np.ndarray], exposures: list[float],
     A series whose images do not brighten with their exposures is refused, the two images
     named by ``names`` (``clblur.calibration.series.check_brightening``)."""
     if len(images) != len(exposures) or len(images) < 2:
-        raise ValueError("an exposure series needs at least 2 images, one exposure each")
+        raise InputError("an exposure series needs at least 2 images, one exposure each")
     h = photometric_exposure(exposures, f_numbers).tolist()
     order = np.argsort(h)[::-1]  # longest first
     for a, b in zip(order[:-1], order[1:], strict=True):
         if h[a] == h[b]:  # a ratio of 1 says nothing of the response
-            raise ValueError(f"images {min(a, b)} and {max(a, b)} have the same exposure "
+            raise InputError(f"images {min(a, b)} and {max(a, b)} have the same exposure "
                              f"({h[a]:g}); each image of a series needs its own")
     imgs = [as_hwc(images[i], f"image {i}") for i in order]
     h = [h[i] for i in order]
     if any(im.shape != imgs[0].shape for im in imgs):
-        raise ValueError(f"series images differ in shape: "
+        raise InputError(f"series images differ in shape: "
                          f"{sorted({im.shape for im in imgs})}")
     top = clip_code(imgs, h)
     names = [f"image {i}" for i in range(len(images))] if names is None else names

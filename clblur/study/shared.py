@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from clblur.errors import InputError
 from clblur.io import data_dir, gopro_frames, read_image, write_image
 from clblur.manifest import ESTIMATE, write_manifest
 from clblur.responses import SRGB, Exp, Gamma
@@ -34,7 +35,7 @@ def memorial(out: Path, data: Path) -> Path:
     times = (data / "memorial" / "shutter_times.txt").read_text().split()
     files = sorted((data / "memorial").glob("memorial*.png"))
     if len(times) != len(files):
-        raise ValueError(f"memorial: {len(files)} images but {len(times)} shutter times")
+        raise InputError(f"memorial: {len(files)} images but {len(times)} shutter times")
     doc = {"kind": "exposure-series",
            "images": [{"path": str(f), "exposure": float(Fraction(t))}
                       for f, t in zip(files, times, strict=True)]}
@@ -84,7 +85,7 @@ def average_frames(codes: np.ndarray, how: str, storage: str) -> np.ndarray:
         curve = Exp(1.0)
         mean = curve.forward(curve.inverse(np.minimum(v, top)).mean(axis=0))
     else:
-        raise ValueError(f"unknown average {how!r}; use code, gamma22, srgb or paper")
+        raise InputError(f"unknown average {how!r}; use code, gamma22, srgb or paper")
     # code values; 1e-9 so exact code-mean halves do not fall a hair under the integer
     x = np.clip(codes.astype(np.float64).mean(axis=0) if how == "code" else mean * 255.0,
                 0.0, 255.0)
@@ -92,7 +93,7 @@ def average_frames(codes: np.ndarray, how: str, storage: str) -> np.ndarray:
         return np.rint(x).astype(np.uint8)
     if storage == "trunc":
         return np.floor(x + 1e-9).astype(np.uint8)
-    raise ValueError(f"unknown storage {storage!r}; use {', '.join(GOPRO_STORAGE)}")
+    raise InputError(f"unknown storage {storage!r}; use {', '.join(GOPRO_STORAGE)}")
 
 
 def gopro(out: Path, data: Path) -> list[Path]:
@@ -104,7 +105,7 @@ def gopro(out: Path, data: Path) -> list[Path]:
     PNG into ``out``."""
     files = gopro_frames(data)
     if len(files) < GOPRO_STACK:
-        raise ValueError(f"gopro240: {len(files)} frames, need at least {GOPRO_STACK}")
+        raise InputError(f"gopro240: {len(files)} frames, need at least {GOPRO_STACK}")
     frames = np.stack([read_image(f) for f in files])
     paths = []
     starts = range(0, len(files) - GOPRO_STACK + 1)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from clblur.errors import InputError
 from clblur.study.histograms import Taps, as_hwc, build_group, sample_grid, shifted
 from clblur.study.model import Group
 from clblur.study.variants import SHIFTS
@@ -18,12 +19,12 @@ __all__ = ["stack_group"]
 def stack_group(frames: list[np.ndarray], long: np.ndarray, *, max_pixels: int = 60000,
                 name: str = "stack") -> Group:
     if len(frames) < 2:
-        raise ValueError(f"a frame stack needs at least 2 frames, got {len(frames)}")
+        raise InputError(f"a frame stack needs at least 2 frames, got {len(frames)}")
     src = [as_hwc(f, f"frame {i}") for i, f in enumerate(frames)]
     tgt = as_hwc(long, "long exposure")
     for i, f in enumerate(src):
         if f.shape != tgt.shape:
-            raise ValueError(f"frame {i} has shape {f.shape}, the long exposure {tgt.shape}")
+            raise InputError(f"frame {i} has shape {f.shape}, the long exposure {tgt.shape}")
     rows, cols = sample_grid(tgt.shape[:2], max_pixels)
     nf = len(src)
 

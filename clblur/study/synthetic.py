@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from clblur.camera import Camera, accelerating_weights, random_scene
+from clblur.errors import InputError
 from clblur.responses import Exp, ExpShape, Gamma
 from clblur.study.model import Group
 from clblur.study.pairs import pair_group
@@ -75,7 +76,7 @@ def scenario(effects: dict[str, float | None], rng: np.random.Generator,
     image's light by a Gaussian of variance ``m`` px^2 (a softer lens)."""
     unknown = set(effects) - set(RANGES)
     if unknown:
-        raise ValueError(f"unknown effect(s) {sorted(unknown)}; use {', '.join(RANGES)}")
+        raise InputError(f"unknown effect(s) {sorted(unknown)}; use {', '.join(RANGES)}")
     mag = {e: (float(rng.uniform(*RANGES[e])) if m is None else float(m))
            for e, m in effects.items()}
     sign = float(rng.choice([-1.0, 1.0]))
