@@ -15,7 +15,9 @@ Conventions
 * With ``max_displacement=(max |dx|, max |dy|)`` (no pass over the flow) or a uniform motion or
   PSF, every chunk has the same halo and ``map_overlap`` runs (``boundary="none"``,
   ``trim=False``); chunks smaller than that halo are merged by rechunking, since
-  ``map_overlap`` takes a halo from the adjacent chunk only.
+  ``map_overlap`` takes a halo from the adjacent chunk only.  Each chunk checks its own
+  vectors against that halo when it is computed: a bound that does not hold is an
+  ``InputError`` naming the chunk, never a result wrong at the seams.
 * Backends are chosen inside the worker (``"auto"``: OpenCL when that process has a device), so
   OpenCL objects are never created in the client nor pickled.
 """
@@ -90,8 +92,11 @@ def _blur_hwc(array, flow, fixed, a: float, extent: tuple[int, int], max_displac
     if flow is not None and max_displacement is None:
         flow = flow.rechunk((array.chunks[0], array.chunks[1], 2))
         return _blur_own_halos(array, flow, _chunk_halos(flow, a), blur_options)
+    bound = None
     if flow is not None:
         depth = _flow_depth(max_displacement, a)
+        bound = tuple(float(b) for b in np.abs(np.asarray(max_displacement, np.float64)))
+        bound = (bound, max(a, 1.0 - a))  # the bound and the share of a vector ahead of p
     else:
         depth = fixed_halo(fixed, a)
     # a halo beyond the image is the image (positions clamp to its edge): along an axis no
@@ -100,7 +105,8 @@ def _blur_hwc(array, flow, fixed, a: float, extent: tuple[int, int], max_displac
     depth = (min(depth[0], h), min(depth[1], w))
     array = _rechunk_at_least(array, depth)
     depth = tuple(0 if len(array.chunks[i]) == 1 else depth[i] for i in (0, 1))
-    options = dict(blur_options, fixed=fixed, halo=depth, grid=array.chunks[:2], extent=(h, w))
+    options = dict(blur_options, fixed=fixed, halo=depth, grid=array.chunks[:2], extent=(h, w),
+                   bound=bound)
     axes = {0: depth[0], 1: depth[1], 2: 0}
     block = partial(_blur_block, **options)
     meta = np.empty((0,) * array.ndim, array.dtype)
@@ -197,10 +203,25 @@ def _origin(index: int, chunks: tuple[int, ...], depth: int) -> tuple[int, int]:
 
 
 def _blur_block(image, flow=None, *, fixed: Uniform | PSF | None, halo, grid, extent,
-                block_info=None, **options):
-    """One chunk of ``map_overlap``: its window located from the chunk grid."""
+                bound: tuple | None, block_info=None, **options):
+    """One chunk of ``map_overlap``: its window located from the chunk grid.  ``bound``: the
+    caller's ``max_displacement`` (and the anchor's reach factor), which sized the halo; a
+    chunk whose own vectors reach beyond that halo is refused, since its samples would be
+    read from outside the window (the result would be wrong at the seams, silently)."""
     loc = block_info[0]["chunk-location"]
     (wr0, r0), (wc0, c0) = (_origin(loc[i], grid[i], halo[i]) for i in (0, 1))
+    th, tw = grid[0][loc[0]], grid[1][loc[1]]
+    if bound is not None:
+        (bx, by), share = bound
+        own = np.abs(np.asarray(flow[r0 - wr0:r0 - wr0 + th, c0 - wc0:c0 - wc0 + tw],
+                                np.float64)).reshape(-1, 2)
+        most = own.max(axis=0) if own.size else np.zeros(2)
+        need = halo_for_reach(most[1] * share), halo_for_reach(most[0] * share)
+        if any(len(grid[i]) > 1 and need[i] > halo[i] for i in (0, 1)):
+            raise InputError(
+                f"the flow exceeds max_displacement=({bx:g}, {by:g}): |dx| up to {most[0]:g} "
+                f"and |dy| up to {most[1]:g} in the chunk at row {r0}, column {c0}; give a "
+                "bound that holds, or none (each chunk's halo is then sized from its own "
+                "vectors)")
     return _blur_window(image, fixed if flow is None else flow, origin=(wr0, wc0),
-                        chunk=(r0, c0, grid[0][loc[0]], grid[1][loc[1]]), extent=extent,
-                        **options)
+                        chunk=(r0, c0, th, tw), extent=extent, **options)
