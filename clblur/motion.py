@@ -77,7 +77,7 @@ Motion = Uniform | Field | PSF
 
 
 def anchor_value(anchor: str) -> float:
-    if anchor not in ANCHORS:
+    if not isinstance(anchor, str) or anchor not in ANCHORS:
         raise InputError(f"unknown anchor {anchor!r}; use one of {', '.join(ANCHORS)}")
     return ANCHORS[anchor]
 
@@ -203,7 +203,10 @@ def time_weights(samples: int | None, weights: Sequence[float] | None) -> tuple[
         samples = int(samples)
     if weights is None:
         return samples, None
-    w = np.asarray(weights, dtype=np.float64).ravel()
+    try:
+        w = np.asarray(weights, dtype=np.float64).ravel()
+    except (TypeError, ValueError):
+        raise InputTypeError(f"weights must be a sequence of numbers, got {weights!r}") from None
     if w.size == 0:
         raise InputError("weights must not be empty")
     _finite_vector(w, "time weights")

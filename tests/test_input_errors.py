@@ -62,6 +62,8 @@ BLUR_CASES = [
      dict(image=np.dstack([IMG, IMG[..., :1]]), alpha=True,
           response=["srgb", "srgb", "srgb", "srgb"]), False),
     ("alpha not a bool", dict(alpha="yes"), True),
+    ("weights from a generator", dict(weights=(w for w in (1.0, 2.0))), True),
+    ("anchor in a list", dict(anchor=["start"]), False),
     ("alpha of one channel", dict(image=IMG[..., :1], alpha=True), False),
     ("response out of range", dict(response="exp:-1"), False),
     ("response not a number", dict(response="gamma:abc"), False),
@@ -124,6 +126,9 @@ RESPONSE_CASES = [
     ("Gamma(100)", lambda: clblur.Gamma(100.0), False),
     ("Table decreasing", lambda: clblur.Table([0.0, 1.0], [1.0, 0.0]), False),
     ("Table too short", lambda: clblur.Table([0.0], [0.0]), False),
+    ("Table of words", lambda: clblur.response(
+        {"kind": "table", "params": {"exposure": "ab", "value": [0.0, 1.0]}}), False),
+    ("params not an object", lambda: clblur.response({"kind": "gamma", "params": [1]}), False),
 ]
 
 
@@ -194,3 +199,4 @@ def test_dask_blur_bad_input():
 def test_opencl_flow_refused_on_the_device_is_an_input_error(opencl):
     # the device counts bad flow components (NaN, beyond the limit) instead of the host
     _raises(lambda: clblur.blur(IMG, NAN_FLOW, backend="opencl"), False)
+    _raises(lambda: clblur.blur(IMG, (1.0, 0.0), backend="opencl", device="9:9"), False)

@@ -24,7 +24,7 @@ from importlib import resources
 
 import numpy as np
 
-from clblur.errors import InputTypeError
+from clblur.errors import InputError, InputTypeError
 from clblur.opencl.constants import BOX_RING_CPU, BOX_RING_GPU, build_defines
 from clblur.opencl.program import Program, kernel_source
 
@@ -39,7 +39,7 @@ class OpenCLUnavailable(RuntimeError):
     """No OpenCL platform, or the device cannot create a context."""
 
 
-class DeviceNotFound(OpenCLUnavailable, ValueError):
+class DeviceNotFound(OpenCLUnavailable, InputError):
     """The selector names no device (bad input: the CLI reports it as one line)."""
 
 

@@ -67,7 +67,11 @@ def from_dict(doc: dict) -> Response:
     if not isinstance(doc, dict) or "kind" not in doc:
         raise InputError("response document must be a JSON object with a 'kind' key")
     _check_keys(doc)
-    kind, params = doc["kind"], dict(doc.get("params") or {})
+    kind, params = doc["kind"], doc.get("params") or {}
+    if not isinstance(params, dict):
+        raise InputError(f"response document's 'params' must be an object of named "
+                         f"parameters, got {params!r}")
+    params = dict(params)
     if kind == "table":
         meta = params.get("meta") or {}
         try:

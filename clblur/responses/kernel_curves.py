@@ -127,8 +127,12 @@ class Table(Response):
 
     def __init__(self, exposure: Sequence[float], value: Sequence[float],
                  meta: dict | None = None):
-        x = np.asarray(exposure, dtype=np.float64).ravel()
-        v = np.asarray(value, dtype=np.float64).ravel()
+        try:
+            x = np.asarray(exposure, dtype=np.float64).ravel()
+            v = np.asarray(value, dtype=np.float64).ravel()
+        except (TypeError, ValueError):
+            raise InputError("table response samples must be lists of numbers, got "
+                             f"{str(exposure)[:40]!r} and {str(value)[:40]!r}") from None
         if x.size != v.size or x.size < 2:
             raise InputError("table response needs equally long exposure and value lists "
                              f"with at least 2 samples, got {x.size} and {v.size}")
