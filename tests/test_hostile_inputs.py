@@ -324,6 +324,7 @@ def build_corpus(root: Path) -> None:
     csv("b_extra_cells.csv", "image,dx,dy\ngood.png,1,0,7,8\n")
     csv("b_latin1.csv", "image,dx,dy\n\xe9t\xe9.png,1,0\n".encode("latin-1"))
     csv("b_empty_name.csv", "image,dx,dy\n,1,0\n")
+    csv("b_long_name.csv", "image,dx,dy\n" + "x" * 300 + ".png,1,0\n")  # over NAME_MAX
     csv("b_unicode_ok.csv", "image,dx,dy,output\nünï cødé.png,2,0,ü out.png\n"
                             "with space.png,1,1,\n")
     csv("b_nested_ok.csv", "image,dx,dy\nsub/nested.png,2,0\n")
@@ -492,7 +493,8 @@ def batch_cases() -> list[Case]:
         ("b_nul.csv", "path"),
         ("b_unknown_col.csv", "unknown"), ("b_no_image_col.csv", "image"),
         ("b_twice.csv", "twice"), ("b_extra_cells.csv", "cells"), ("b_latin1.csv", "utf-8"),
-        ("b_empty_name.csv", "empty"), ("zero.csv", "image"), ("magic.csv", "manifest"),
+        ("b_empty_name.csv", "empty"), ("b_long_name.csv", "too long"), ("zero.csv", "image"),
+        ("magic.csv", "manifest"),
         ("missing.csv", "not found"))]
     cases += [
         batch("--manifest", "{in}/b_symlink_image.csv", src="{in}/symin", match="outside"),

@@ -65,9 +65,13 @@ def resolve_inside(roots: PathLike | Sequence[PathLike], path: PathLike, what: s
 def require_file(path: PathLike, what: str) -> Path:
     """``path`` as a ``Path``; ``InputError`` naming ``what`` if it is missing or a folder."""
     path = Path(path)
-    if path.is_dir():
+    try:
+        folder, file = path.is_dir(), path.is_file()
+    except OSError as e:  # a name too long for the file system, a permission denied
+        raise InputError(f"{what} {str(path)[:80]}: {e.strerror or e}") from None
+    if folder:
         raise InputError(f"{what} {path} is a folder, not a file")
-    if not path.is_file():
+    if not file:
         raise InputError(f"{what} file not found: {path}")
     return path
 
