@@ -466,6 +466,12 @@ def option_cases() -> list[Case]:
         Case("blur:two-motions", ("blur", g, "{out}/o.png", m, "--flow", "{in}/flow.npy"),
              match="not allowed"),
         Case("info", ("info",), code=0),
+        # names longer than the file system takes (NAME_MAX 255): OSError tracebacks before
+        blur(g, m, out="{out}/" + "y" * 300 + ".png", match="too long"),
+        blur(g, m, "--response", "y" * 300 + ".json", match="too long"),
+        Case("calibrate:long-name", ("calibrate", "{in}/" + "y" * 300, "-o", "{out}/c.json"),
+             match="too long"),
+        Case("video:long-name", ("video", "{in}/" + "y" * 300, "{out}/v"), match="too long"),
         Case("info:extra", ("info", "--verbose"), match="unrecognized"),
         Case("unknown-command", ("sharpen", g), match="invalid choice"),
         Case("demo:out-is-file", ("demo", "--out", "{in}/good.png", *NUMPY), match="folder"),

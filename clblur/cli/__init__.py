@@ -18,6 +18,7 @@ Conventions
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import sys
 import warnings
@@ -33,6 +34,9 @@ COMMAND_MODULES = ("blur", "layers", "info", "demo", "calibrate", "study", "psf"
 # errors that mean "this input cannot be used", never "clblur is broken"
 INPUT_ERRORS = (InputError, ValueError, TypeError, FileNotFoundError, FileExistsError,
                 IsADirectoryError, NotADirectoryError, PermissionError)
+# path faults that carry no OSError subclass of their own: a name longer than the file system
+# takes, a symlink loop, a read-only file system named as the output
+PATH_ERRNOS = (errno.ENAMETOOLONG, errno.ELOOP, errno.EROFS)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -77,6 +81,11 @@ def main(argv: list[str] | None = None) -> int:
             warnings.showwarning = _one_line_warning(args.command)
             return int(args.func(args) or 0)
     except INPUT_ERRORS as e:
+        print(f"clblur {args.command}: error: {one_line(e)}", file=sys.stderr)
+        return 2
+    except OSError as e:
+        if e.errno not in PATH_ERRNOS:
+            raise
         print(f"clblur {args.command}: error: {one_line(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
