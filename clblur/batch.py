@@ -341,7 +341,28 @@ def plan_jobs(in_dir: Path, out_dir: Path, defaults: Job, flow_dir: Path | None 
     dsts = [j.dst for j in jobs]
     if len(set(dsts)) != len(dsts):
         raise InputError("two images would be written to the same output name")
+    _refuse_outputs_over_inputs(jobs, manifest)
     return jobs
+
+
+def _refuse_outputs_over_inputs(jobs: list[Job], manifest: Path | None) -> None:
+    """An output that is one of the batch's inputs (an image, flow, PSF or response file of
+    any job, or the manifest), however spelled, is refused before anything is written: the
+    check inside each blur came only when that image's turn came (other outputs were written
+    by then), and a PSF or manifest kept in OUT_DIR was not checked at all (overwritten)."""
+    inputs: dict[Path, str] = {}
+    if manifest is not None:
+        inputs[Path(manifest).resolve()] = "the manifest"
+    for job in jobs:
+        for what, path in (("image", job.src), ("flow", job.flow), ("PSF", job.psf),
+                           ("response", response_file(job.response))):
+            if path is not None:
+                inputs.setdefault(Path(path).resolve(), f"{job.name}'s {what}")
+    for job in jobs:
+        which = inputs.get(Path(job.dst).resolve())
+        if which is not None:
+            raise InputError(f"the output {job.dst} would overwrite {which} (inputs are never "
+                             "overwritten); keep inputs out of OUT_DIR or name another output")
 
 
 # --------------------------------------------------------------------------- running

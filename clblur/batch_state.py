@@ -3,8 +3,9 @@ markers and claims (conventions in ``clblur.batch``).
 
 Conventions
 -----------
-* ``job_key``: SHA-256 over the content (and size and mtime) of the input, flow, PSF and
-  response document, every option that changes pixels, and the clblur version.
+* ``job_key``: SHA-256 over the content (size and SHA-256 of the bytes) of the input, flow,
+  PSF and response document, every option that changes pixels, and the clblur version: a
+  file touched, copied or synced without its modification time keeps its key.
 * ``<output name>.json``: the completion marker (key and output size); ``<output name>.lock``:
   a claim, created with ``O_EXCL`` and refreshed every ``HEARTBEAT_S`` while its job runs;
   stale when its process is gone (same host) or not refreshed for ``STALE_LOCK_S``.
@@ -15,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import socket
 import threading
 import time
@@ -22,7 +24,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 __all__ = ["HEARTBEAT_S", "MARKER_DIR", "STALE_LOCK_S", "Claim", "Job", "Result", "claim",
-           "is_finished", "job_key", "lock_path", "marker_path", "remove_partials",
+           "is_finished", "job_key", "lock_path", "marker_path", "partial_name", "remove_partials",
            "response_file"]
 
 MARKER_DIR = ".clblur-batch"
@@ -72,7 +74,7 @@ _digests: dict[tuple, str] = {}
 
 
 def _file_digest(path: str) -> list | None:
-    """[size, mtime_ns, sha256] of a file (cached per process on size, mtime and inode)."""
+    """[size, sha256] of a file (cached per process on size, mtime and inode)."""
     try:
         st = os.stat(path)
     except OSError:
@@ -84,7 +86,7 @@ def _file_digest(path: str) -> list | None:
             for block in iter(lambda: f.read(1 << 20), b""):
                 h.update(block)
         _digests[ident] = h.hexdigest()
-    return [st.st_size, st.st_mtime_ns, _digests[ident]]
+    return [st.st_size, _digests[ident]]
 
 
 def response_file(spec: str) -> str | None:
@@ -178,28 +180,51 @@ class Claim:
         self.path.unlink(missing_ok=True)
 
 
+def _create(path: Path, body: str) -> bool:
+    """Create ``path`` holding ``body`` if it does not exist (``O_EXCL``: one creator wins)."""
+    try:
+        fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+    except FileExistsError:
+        return False
+    with os.fdopen(fd, "w") as f:
+        f.write(body)
+    return True
+
+
 def claim(job: Job) -> Claim | None:
-    """Claim ``job`` atomically; None when another live batch holds it."""
+    """Claim ``job`` atomically; None when another live batch holds it.
+
+    A stale claim is taken over under a second ``O_EXCL`` file (``NAME.lock.takeover``),
+    so that of two batches that both find it stale only one takes it: renaming the stale
+    lock aside unguarded let the slower one move aside the claim the faster had just made,
+    and both blurred the image (a reviewer measured 2 in 300 trials)."""
     path = lock_path(job)
     path.parent.mkdir(exist_ok=True)
     body = json.dumps({"host": socket.gethostname(), "pid": os.getpid(), "time": time.time()})
-    for _ in range(2):
-        try:
-            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-        except FileExistsError:
-            if not _lock_is_stale(path):
-                return None
-            # take the stale lock over: rename it away (atomic, so one taker wins), then retry
-            try:
-                os.replace(path, path.with_name(f".{path.name}.{os.getpid()}.stale"))
-                path.with_name(f".{path.name}.{os.getpid()}.stale").unlink(missing_ok=True)
-            except OSError:
-                pass
-            continue
-        with os.fdopen(fd, "w") as f:
-            f.write(body)
+    if _create(path, body):
         return Claim(path)
-    return None
+    if not _lock_is_stale(path):
+        return None
+    guard = path.with_name(path.name + ".takeover")
+    if not _create(guard, body):
+        try:  # another batch is taking it over; a guard left by a crash is cleared
+            if time.time() - guard.stat().st_mtime > HEARTBEAT_S:
+                guard.unlink(missing_ok=True)
+        except OSError:
+            pass
+        return None
+    try:
+        if path.exists() and not _lock_is_stale(path):
+            return None  # released and claimed again meanwhile
+        aside = path.with_name(f".{path.name}.{os.getpid()}.stale")
+        try:
+            os.replace(path, aside)
+            aside.unlink(missing_ok=True)
+        except FileNotFoundError:
+            pass
+        return Claim(path) if _create(path, body) else None
+    finally:
+        guard.unlink(missing_ok=True)
 
 
 def _live_claims(out_dir: Path) -> list[str]:
@@ -208,13 +233,25 @@ def _live_claims(out_dir: Path) -> list[str]:
     return [p.name.removesuffix(".lock") for p in locks if not _lock_is_stale(p)]
 
 
-def remove_partials(out_dir: Path) -> int:
-    """Delete temporary files that interrupted runs left (``atomic_write`` names), except
-    those of images a live batch holds."""
-    held = _live_claims(out_dir)
-    stale = [p for d in (out_dir, out_dir / MARKER_DIR) if d.is_dir()
-             for p in d.glob(".*.part*") if p.is_file()
-             and not any(p.name.startswith(f".{n}.") for n in held)]
+def partial_name(name: str) -> re.Pattern:
+    """The temporary files ``clblur.io.atomic_write`` makes for an output named ``name``:
+    ``.NAME.XXXXXXXX.partSUFFIX`` (``tempfile.mkstemp``'s eight random characters)."""
+    return re.compile(rf"\.{re.escape(name)}\.[a-z0-9_]{{8}}\.part{re.escape(Path(name).suffix)}")
+
+
+def remove_partials(out_dir: Path, names: list[str]) -> int:
+    """Delete the temporary files that interrupted runs left for the outputs ``names`` (and
+    their completion markers), except those of images a live batch holds.  Only those
+    names: another hidden file of OUT_DIR is the user's, whatever it is called."""
+    held = set(_live_claims(out_dir))
+    ours = {(out_dir, n) for n in names if n not in held} | \
+        {(out_dir / MARKER_DIR, f"{n}.json") for n in names if n not in held}
+    patterns: dict[Path, list[re.Pattern]] = {}
+    for folder, name in ours:
+        patterns.setdefault(folder, []).append(partial_name(name))
+    stale = [p for folder, found in patterns.items() if folder.is_dir()
+             for p in folder.glob(".*.part*") if p.is_file()
+             and any(f.fullmatch(p.name) for f in found)]
     for p in stale:
         p.unlink(missing_ok=True)
     return len(stale)

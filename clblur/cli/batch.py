@@ -79,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
         client = stack.enter_context(client_for(args.scheduler)) \
             if args.scheduler is not None else None
         out_dir.mkdir(parents=True, exist_ok=True)
-        stale = remove_partials(out_dir)
+        stale = remove_partials(out_dir, [Path(j.dst).name for j in jobs])
         if stale:
             print(f"removed {stale} partial file(s) left by an interrupted run", file=sys.stderr)
         results, skipped = run_batch(jobs, progress=not args.quiet, force=args.force,
