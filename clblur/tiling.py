@@ -260,14 +260,20 @@ def blur_file(src: str | os.PathLike, dst: str | os.PathLike, motion, response="
                        suffixes=tuple(IMAGE_FORMATS))
     budget = parse_size(memory_budget)
     header = check_decodable(src)
-    whole = (0 if is_tiff(src) else header.nbytes) + (0 if is_tiff(dst) else header.nbytes)
+    # what is held whole: a non-TIFF input as decoded; a non-TIFF output as the finished
+    # array and the encoder's copy of it (OpenCV's colour order; a PNG of a 3000 x 2000
+    # uint16 frame peaked at twice the array above the budget the TIFF path keeps)
+    held = {str(src): header.nbytes} if not is_tiff(src) else {}
+    if not is_tiff(dst):
+        held[str(dst)] = 2 * header.nbytes
+    whole = sum(held.values())
     if whole > budget:  # refused before anything is decoded
         raise InputError(
-            f"{src} and {dst} are held whole ({header.width} x {header.height} x "
-            f"{header.channels}: {describe_size(whole)}), more than the memory budget "
-            f"({describe_size(budget)}); raise --memory-budget, or use TIFF input and output, "
-            "which are read and written window by window (convert with e.g. "
-            "`vips tiffsave IN OUT.tif --tile --bigtiff`)")
+            f"{' and '.join(held)} {'are' if len(held) > 1 else 'is'} held whole "
+            f"({header.width} x {header.height} x {header.channels}: {describe_size(whole)}), "
+            f"more than the memory budget ({describe_size(budget)}); raise --memory-budget, or "
+            "use TIFF input and output, which are read and written window by window (convert "
+            "with e.g. `vips tiffsave IN OUT.tif --tile --bigtiff`)")
     image = open_image(src)
     if not is_tiff(dst) and dst.suffix.lower() != ".exr" and np.dtype(image.dtype).kind == "f":
         raise InputError(f"{dst.suffix} cannot hold float images; write .tif, .tiff or .exr "
