@@ -51,6 +51,7 @@ __all__ = ["DEFAULT_MEMORY_BUDGET", "TiledRun", "blur_file", "blur_tiled", "choo
            "parse_size", "tiles", "window_bytes_per_px"]
 
 DEFAULT_MEMORY_BUDGET = 512 * 2**20
+MIN_TILE = 32  # px a side: the smallest tile a memory budget may leave
 FLOW_BYTES_PER_PX = 8  # float32 (dx, dy)
 # longest motion run with the default ceil(|v|) + 1 samples (longer ones need samples=N)
 MAX_DEFAULT_LENGTH = 2**16
@@ -103,10 +104,14 @@ def choose_tile(shape: tuple[int, int], halo: tuple[int, int], bytes_per_px: int
     def cost(t: int) -> int:  # windows are clipped to the image
         return min(min(t, h) + 2 * hy, h) * min(min(t, w) + 2 * hx, w) * bytes_per_px
 
-    if cost(1) > memory_budget:
-        raise InputError(f"memory budget {memory_budget} B is too small for a halo of "
-                         f"{hy} x {hx} px (one window needs at least {cost(1)} B); raise it")
-    lo, hi = 1, max(h, w)
+    # a tile smaller than MIN_TILE a side is mostly halo: a 200 KiB budget on a 3000 x 2000
+    # frame ran for more than 12 minutes over hundreds of thousands of windows
+    least = min(MIN_TILE, max(h, w))
+    if cost(least) > memory_budget:
+        raise InputError(f"memory budget {describe_size(memory_budget)} is too small for a halo "
+                         f"of {hy} x {hx} px: tiles of {least} px a side need "
+                         f"{describe_size(cost(least))}; raise --memory-budget")
+    lo, hi = least, max(h, w)
     while lo < hi:  # largest t with cost(t) <= budget
         mid = (lo + hi + 1) // 2
         lo, hi = (mid, hi) if cost(mid) <= memory_budget else (lo, mid - 1)

@@ -96,9 +96,9 @@ def test_flow_halo_is_per_tile(rng):
 
 
 def test_memory_budget_sets_tile_and_stays_equal(rng):
-    img = _image(rng, (40, 60, 3))
+    img = _image(rng, (90, 120, 3))
     per_px = tiling.window_bytes_per_px(3, 1, False)
-    budget = 20 * 20 * per_px
+    budget = 45 * 45 * per_px
     out = np.zeros_like(img)
     run = blur_tiled(img, out, (3.0, 0.0), backend="numpy", memory_budget=budget)
     hy, hx = run.halo
@@ -112,6 +112,13 @@ def test_memory_budget_sets_tile_and_stays_equal(rng):
 def test_choose_tile_rejects_budget_below_halo():
     with pytest.raises(ValueError, match="too small for a halo"):
         choose_tile((100, 100), (50, 50), 400, 1000)
+    # a budget that leaves tiles of a few pixels beside the halo is refused too: 200 KiB on
+    # a 3000 x 2000 uint16 frame ran for more than 12 minutes
+    per_px = tiling.window_bytes_per_px(3, 2, False)
+    with pytest.raises(ValueError, match="tiles of 32 px a side need"):
+        choose_tile((2000, 3000), (9, 15), per_px, 200 * 2**10)
+    assert choose_tile((2000, 3000), (9, 15), per_px, (32 + 18) * (32 + 30) * per_px) == (32, 32)
+    assert choose_tile((10, 12), (9, 15), per_px, 10 * 12 * per_px) == (10, 12)  # whole
 
 
 def test_grey_image_and_zarr_arrays(rng):
