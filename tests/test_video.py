@@ -435,6 +435,32 @@ def test_bad_frame_in_folder_keeps_earlier_frames(tmp_path):
     assert len(list((tmp_path / "out").iterdir())) == 3
 
 
+def test_a_folder_of_mixed_bit_depths_stops_at_the_first_odd_frame(tmp_path):
+    # each output frame kept its own depth, so the sequence came out mixed as well
+    (tmp_path / "in").mkdir()
+    frames = moving_frames(3)
+    for i, f in enumerate(frames):
+        write_image(tmp_path / "in" / f"{i:03d}.png", f if i < 2 else f.astype(np.uint16) * 257)
+    with pytest.raises(VideoReadError, match="002.png.*uint16, earlier frames uint8"):
+        blur_video(tmp_path / "in", tmp_path / "out", backend="numpy")
+
+
+def test_a_gap_in_the_frame_numbers_is_named(tmp_path, capsys):
+    from clblur.cli import main
+
+    (tmp_path / "in").mkdir()
+    for i, f in zip((10, 11, 12, 14, 15), moving_frames(5), strict=True):
+        write_image(tmp_path / "in" / f"frame_{i:04d}.png", f)
+    assert main(["video", str(tmp_path / "in"), str(tmp_path / "out"), "--backend", "numpy",
+                 "--quiet"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "frame numbers jump from 12 to 14" in err[0], err
+    (tmp_path / "in" / "frame_0010.png").rename(tmp_path / "in" / "frame_0013.png")
+    assert main(["video", str(tmp_path / "in"), str(tmp_path / "out2"), "--backend", "numpy",
+                 "--quiet"]) == 0
+    assert "jump" not in capsys.readouterr().err
+
+
 def test_refuses_to_overwrite_input_and_bad_options(tmp_path):
     src = tmp_path / "in.mp4"
     write_video(src, moving_frames(2))

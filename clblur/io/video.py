@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import os
 import re
+import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from fractions import Fraction
@@ -80,6 +81,25 @@ def _natural_key(name: str) -> list:
     return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
 
 
+def _warn_of_gaps(stems: list[str], folder: Path) -> None:
+    """Warn when frames named alike (``frame_000170``, ...) skip numbers: the flow between two
+    neighbours then spans more than one frame interval, and the blur is too long there."""
+    parts = [re.fullmatch(r"(.*?)(\d+)(\D*)", s) for s in stems]
+    if len(stems) < 3 or not all(parts) or len({(m[1], m[3]) for m in parts}) != 1:
+        return
+    numbers = [int(m[2]) for m in parts]
+    steps = np.diff(numbers)
+    usual = int(np.median(steps))
+    jumps = np.flatnonzero(steps != usual)
+    if usual > 0 and jumps.size:
+        j = int(jumps[0])
+        warnings.warn(f"{folder}: frame numbers jump from {numbers[j]} to {numbers[j + 1]}"
+                      + (f" (and {jumps.size - 1} more)" if jumps.size > 1 else "")
+                      + f" where the others step by {usual}: frames missing? The motion "
+                      "between those neighbours spans more than one frame interval",
+                      stacklevel=3)
+
+
 class ImageSequenceSource:
     """Frames from the image files of a folder, in natural name order."""
 
@@ -95,9 +115,10 @@ class ImageSequenceSource:
         self.fps = Fraction(fps).limit_denominator(1001000)
         self.declared_frames: int | None = len(self.files)
         self.audio_stream = None
+        _warn_of_gaps([f.stem for f in self.files], self.path)
 
     def frames(self, on_audio: Callable | None = None) -> Iterator[Frame]:
-        shape = None
+        shape = dtype = None
         for i, f in enumerate(self.files):
             try:
                 img = read_image(f)
@@ -108,7 +129,10 @@ class ImageSequenceSource:
             if shape is not None and img.shape != shape:
                 raise VideoReadError(f"frame {i} ({f.name}) has shape {img.shape}, earlier "
                                      f"frames {shape}", frames_read=i)
-            shape = img.shape
+            if dtype is not None and img.dtype != dtype:
+                raise VideoReadError(f"frame {i} ({f.name}) is {img.dtype}, earlier frames "
+                                     f"{dtype}: one bit depth per sequence", frames_read=i)
+            shape, dtype = img.shape, img.dtype
             yield Frame(i, img, name=f.stem)
 
     def close(self) -> None:
