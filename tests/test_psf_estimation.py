@@ -222,3 +222,18 @@ def test_levin_kernels_from_half_a_pair_predict_the_other_half(shared_data, imag
     # (the study's psf_orientation finding, tests/test_study.py)
     turned = kernel_agreement(given[::-1, ::-1], est) > kernel_agreement(given, est)
     assert turned == (kernel in (2, 3))
+
+
+@pytest.mark.parametrize("image", [1, 3, 4])
+def test_a_path_that_leaves_the_first_window_grows_it(shared_data, image):
+    # Levin's kernel 6 leaves the 15 px window with a piece cut off at its corner (a fifth of
+    # the peak) that hysteresis dropped as a speck, so the window stopped growing: 13 x 11 px
+    # of a 25 x 21 px path, predicting the pair to 5 - 6 codes where the whole path gives 1
+    # (image 1 then fell back to sRGB light at 6.2 codes)
+    from clblur.io import read_image
+
+    base = shared_data / "levin2009"
+    fit = fit_psf(read_image(base / "gt" / f"im{image}.png"),
+                  read_image(base / f"im{image}_kernel6_img.png"))
+    assert min(fit.kernel.shape) >= 19 and fit.rmse < 1.5, (fit.kernel.shape, fit.rmse)
+    assert fit.response == "linear"
