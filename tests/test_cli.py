@@ -310,3 +310,29 @@ def test_a_library_warning_is_one_line(tmp_path, scene, capsys, monkeypatch):
     assert run("blur", src, tmp_path / "o.png", "--motion=2,0") == 0
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("clblur blur: warning: no usable OpenCL"), err
+
+
+def test_a_kernel_image_s_alpha_is_its_weight_and_a_floor_is_named(tmp_path, rng):
+    # white on transparent (an editor's drawing) was read as a 27 x 27 box; a background
+    # floor under the kernel blurs as light and was taken without a word
+    import warnings
+
+    from clblur.io import read_psf
+
+    line = np.zeros((27, 27), np.uint8)
+    line[13, 5:22] = 250
+    write_image(tmp_path / "line.png", line)
+    drawn = np.zeros((27, 27, 4), np.uint8)
+    drawn[..., :3] = 255
+    drawn[..., 3] = line
+    write_image(tmp_path / "drawn.png", drawn)
+    want = read_psf(tmp_path / "line.png")
+    np.testing.assert_allclose(read_psf(tmp_path / "drawn.png"), want)
+    write_image(tmp_path / "floor.png", line + 3)
+    with pytest.warns(UserWarning, match="no pixel is black"):
+        read_psf(tmp_path / "floor.png")
+    box = np.full((1, 7), 255, np.uint8)  # all light, all peak: a box, no floor
+    write_image(tmp_path / "box.png", box)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_psf(tmp_path / "box.png")

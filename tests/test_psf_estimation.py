@@ -207,7 +207,7 @@ def test_levin_kernels_from_half_a_pair_predict_the_other_half(shared_data, imag
     # Levin et al. 2009 measured each kernel from dots beside the print; the kernel estimated
     # from the left half of the pair predicts the right half's light better, as a linear
     # blur of the stored values, the study's finding for this set (docs/studies/levin2009.md,
-    # "Kernels measured from the pairs"; docs/studies/levin_kernels.py: 26 of 32 pairs)
+    # "Kernels measured from the pairs"; docs/studies/levin_kernels.py: 28 of 32 pairs)
     from clblur.io import read_image, read_psf
 
     base = shared_data / "levin2009"

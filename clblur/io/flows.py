@@ -12,6 +12,7 @@ Conventions
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -124,13 +125,34 @@ def read_psf(path: str | os.PathLike) -> np.ndarray:
                          f"{MAX_PSF_SIDE} px on a side")
     k = np.array(m) if m is not None else read_image(path)
     if k.ndim == 3 and m is None:
-        k = k[..., :3].mean(axis=2)
+        k = _kernel_weights(k)
     if k.ndim != 2:
         raise InputError(f"PSF {path} has shape {k.shape}; expected a 2-D kernel")
     k = np.asarray(k, dtype=np.float64)
     if not np.isfinite(k).all() or (k < 0).any() or k.sum() <= 0:
         raise InputError(f"PSF {path} must be finite, non-negative and not all zero")
+    if m is None and k.size > 1 and 0 < k.min() < 0.2 * k.max():
+        # an image whose every pixel holds light, but faintly at its darkest: a background
+        # (scanner, screenshot) under the kernel, which blurs as light (a box is all peak)
+        warnings.warn(f"PSF {path}: no pixel is black (the darkest holds {k.min() / k.max():.1%} "
+                      "of the peak), and that floor blurs as light; subtract the background "
+                      "if it is one", stacklevel=2)
     return k
+
+
+def _kernel_weights(image: np.ndarray) -> np.ndarray:
+    """A kernel image's weights: the mean of its colour channels, times its coverage where it
+    has an alpha channel (2 or 4 channels): a white-on-transparent kernel drawn in an editor
+    has colour everywhere and weight only where it is opaque."""
+    from clblur.pixels import imax
+
+    channels = image.shape[2]
+    has_alpha = channels in (2, 4)
+    weight = image[..., :channels - 1 if has_alpha else 3].astype(np.float64).mean(axis=2)
+    if has_alpha:
+        alpha = image[..., -1].astype(np.float64)
+        weight *= alpha / imax(image.dtype) if image.dtype.kind == "u" else alpha
+    return weight
 
 
 def depth_source(spec: str | os.PathLike) -> tuple[str, str | None]:
