@@ -939,7 +939,7 @@ def test_a_black_level_left_out_beside_the_shape_is_noted_where_the_data_start_h
             ({"black_level": black(True)}, shape | {"black_level"}, high, False)):
         _note_toe(findings, current, bounds)
         text = findings["black_level"].explanation
-        assert ("no code below about 28" in text) is noted, text
+        assert ("darkest patches of the data lie near 28 codes" in text) is noted, text
 
 
 def test_highlights_far_above_the_clip_leave_an_exposure_series_alone():

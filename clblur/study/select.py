@@ -344,9 +344,10 @@ def _note_toe(findings: dict[str, Finding], current: frozenset,
     dark = 255.0 * min(levels)
     if dark >= TOE_CODES:
         black.explanation += (
-            f" The data show no code below about {dark:.0f}: a black level under that "
-            "trades with the toe of the response shape, which can absorb it over the codes "
-            "seen, so these data may not tell the two apart (frames that reach near black "
+            f" The darkest patches of the data lie near {dark:.0f} codes (the most a black "
+            "level may be; single noisy pixels go lower): a black level under that trades "
+            "with the toe of the response shape, which can absorb it over the codes seen, so "
+            "these data may not tell the two apart (frames whose patches reach near black "
             "do).")
 
 
