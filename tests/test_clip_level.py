@@ -45,6 +45,13 @@ def test_a_flat_brightest_patch_is_not_clipping():
 def test_calibration_leaves_the_clip_point_out():
     clipped = ExposureSeries.create(series_frames(230), TIMES)
     assert clipped.white_level == pytest.approx(230 / 255)
+    # the report's clipped column counts the pixels at the clip point (it read 0.0 %)
+    from clblur.calibration.report import series_table
+
+    longest = series_table(clipped).splitlines()[-1]
+    share = float(longest.split("|")[4].strip().removesuffix(" %"))
+    assert share == pytest.approx(100 * np.mean(series_frames(230)[0] >= 230), abs=0.05)
+    assert share > 1.0
     cal = calibrate(clipped, ["exp"], refit=False)
     valid_top = cal.evaluations["exp"]["valid"][1]
     assert valid_top < 230 / 255

@@ -173,17 +173,20 @@ def comparison_table(evaluations: dict[str, dict], gaps) -> str:
 
 
 def series_table(series: ExposureSeries, tolerance: float = 0.03) -> str:
-    """Per image: median per channel, clipped share, and *impossible* pixels, whose value
+    """Per image: median per channel, clipped share (at the series' white level), and
+    *impossible* pixels, whose value
     exceeds the next longer exposure's by more than ``tolerance`` of full scale (corrupt
     values, moving objects)."""
     order = np.argsort(series.relative_exposures())
     full = series.full_scale
+    # a camera that clips below full scale clips at its white level (the series' own)
+    clip = min(series.white_level, 1.0) * full
     lines = ["| image | exposure (s) | median per channel | clipped | impossible |",
              "|---|---|---|---|---|"]
     for pos, i in enumerate(order):
         im = series.images[i].astype(np.float64)
         med = " / ".join(f"{m:g}" for m in np.median(im.reshape(-1, series.channels), axis=0))
-        clipped = float(np.mean(im >= full))
+        clipped = float(np.mean(im >= clip))
         if pos + 1 < order.size:
             longer = series.images[order[pos + 1]].astype(np.float64)
             bad = f"{float(np.mean(im > longer + tolerance * full)) * 100:.1f} %"
