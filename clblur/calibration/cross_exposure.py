@@ -73,7 +73,7 @@ class SplineFamily:
                              f"({src.size} pools for {knots} knots)")
         u = default_knots(int(knots))
         theta = fit_cross_exposure(u, src, mean, ratio, np.sqrt(count) * full_scale,
-                                   smoothness)
+                                   smoothness, pedestal=True)
         curve = MonotoneSpline(u, theta)
         params = {"knots": int(knots), "smoothness": float(smoothness),
                   "pairs": int(count.sum()), "black_level": curve_black_level(curve)}
@@ -144,12 +144,13 @@ def pooled_pairs(values: np.ndarray, valid: np.ndarray, tau: np.ndarray, max_gap
 
 def fit_cross_exposure(u: np.ndarray, src: np.ndarray, target: np.ndarray, ratio: np.ndarray,
                        weight: np.ndarray, smoothness: float,
-                       theta0: np.ndarray | None = None) -> np.ndarray:
+                       theta0: np.ndarray | None = None, pedestal: bool = False) -> np.ndarray:
     """Log increments of the ``MonotoneSpline`` on knots ``u`` minimising
     ``sum weight^2 (I(I^-1(src) ratio) - target)^2`` (analytic Jacobian, trust region).
 
-    Starts from a gamma-2.2 curve unless ``theta0`` is given; the sum of the increments is
-    pinned softly (the exposure unit is free).
+    Starts from ``theta0``, else from the best of three power laws and, with ``pedestal``,
+    a straight line above the black level the pairs imply (:func:`_pedestal`); the sum of
+    the increments is pinned softly (the exposure unit is free).
     """
     k = u.size - 1
     h = np.diff(u)
@@ -191,9 +192,15 @@ def fit_cross_exposure(u: np.ndarray, src: np.ndarray, target: np.ndarray, ratio
     if theta0 is None:
         # The objective has degenerate local minima (a curve nearly flat below its last knot
         # predicts every target inside one segment); a display gamma, a straight line and a
-        # steep power law start in different basins, and the lowest cost wins.
-        starts = [np.log(np.maximum(np.diff(Gamma(g).inverse(u)), 1e-6))
-                  for g in (2.2, 1.0, 4.0)]
+        # steep power law start in different basins, and the lowest cost wins.  So does a
+        # straight line above a black level read off the pairs themselves: a linear sensor
+        # with a pedestal (raw data, 12 % of full scale) lies in a basin none of the three
+        # reach, where the spline was left 10 - 29 codes off
+        curves = [Gamma(g).inverse(u) for g in (2.2, 1.0, 4.0)]
+        black = _pedestal(src, target, ratio) if pedestal else 0.0
+        if black > 0.0:
+            curves.append(np.maximum(u - black, 0.0))
+        starts = [np.log(np.maximum(np.diff(c), 1e-6)) for c in curves]
     else:
         starts = [np.asarray(theta0, dtype=np.float64)]
     best, best_cost = None, np.inf
@@ -206,6 +213,25 @@ def fit_cross_exposure(u: np.ndarray, src: np.ndarray, target: np.ndarray, ratio
             if cost < best_cost:
                 best, best_cost = theta, cost
     return best
+
+
+def _pedestal(src: np.ndarray, target: np.ndarray, ratio: np.ndarray) -> float:
+    """The black level ``b`` of a linear camera that the pooled pairs imply: for each ratio
+    ``r`` a line ``target = r src + (1 - r) b`` fitted by least squares, the median ``b``
+    over the ratios; 0 where it is no level a file could hold (below 0 or above half
+    scale)."""
+    levels = []
+    for r in np.unique(ratio):
+        pick = (ratio == r) & (abs(r - 1.0) > 1e-9)
+        if pick.sum() < 3:
+            continue
+        slope, intercept = np.polyfit(src[pick], target[pick], 1)
+        if abs(1.0 - slope) > 1e-6:
+            levels.append(intercept / (1.0 - slope))
+    if not levels:
+        return 0.0
+    b = float(np.median(levels))
+    return b if 0.0 < b < 0.5 else 0.0
 
 
 def _levenberg_marquardt(residuals, jacobian, theta: np.ndarray, iterations: int = 200,
