@@ -356,3 +356,21 @@ def test_a_ppm_stack_calibrates_as_its_png_copy(tmp_path):
     assert b.names[0] == "e00.ppm" and b.images[0].dtype == np.uint16
     for x, y in zip(a.images, b.images, strict=True):
         np.testing.assert_array_equal(x, y)
+
+
+def test_refined_times_are_printed_for_the_model_written(tmp_path, capsys):
+    # --refine-times found a wrong shutter time, but said so only inside evaluation.json;
+    # and a model that takes the times as given printed nothing about it
+    images, times = ramp_stack(6, shape=(40, 120))
+    times[2] *= 2 ** -0.4  # image 2 was exposed 0.4 stop longer than it says
+    write_folder(tmp_path / "s", images)
+    (tmp_path / "t.txt").write_text("\n".join(str(t) for t in times))
+    base = ["calibrate", str(tmp_path / "s"), "--times", str(tmp_path / "t.txt"),
+            "--refine-times", "--no-refit", "--quiet", "--samples", "200"]
+    assert main([*base, "--model", "gamma-offset", "-o", str(tmp_path / "g.json")]) == 0
+    line = next(s for s in capsys.readouterr().out.splitlines() if s.startswith("refined"))
+    off = {name: float(v) for name, v in (c.split() for c in line.split(": ", 1)[1].split(", "))}
+    assert off["e02.png"] == pytest.approx(0.4, abs=0.1)
+    assert all(abs(v) < 0.1 for name, v in off.items() if name != "e02.png"), off
+    assert main([*base, "--model", "spline", "-o", str(tmp_path / "s.json")]) == 0
+    assert "the spline model takes the exposure times as given" in capsys.readouterr().out

@@ -57,6 +57,7 @@ class SplineFamily:
     name = "spline"
     default_low = PAIR_LOW_CODE / 255.0
     uses_pixels = True
+    refines_times = False  # the times are taken as given (``fit`` ignores refine_times)
 
     def fit(self, samples, tau, *, full_scale, refine_times=False, knots: int = 64,
             smoothness: float = 0.3, max_gap: float = 4.5, **opts) -> FamilyFit:

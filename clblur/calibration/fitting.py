@@ -180,7 +180,7 @@ def fit(series: ExposureSeries, model: str, *, shared: bool = False, n_samples: 
     loglik = -0.5 * n_obs * (np.log(2 * np.pi * sigma2) + 1.0)
     responses = [fits[0].response] * series.channels if shared else [f.response for f in fits]
     params = {"shared": shared, "per_channel": [f.params for f in fits]}
-    if refine_times:
+    if refine_times and getattr(family, "refines_times", True):
         params["relative_exposures"] = [f.tau.tolist() for f in fits]
     if model == "exp":
         params["k"] = [f.params["k"] for f in fits]

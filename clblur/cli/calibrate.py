@@ -17,6 +17,8 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+
 from clblur.calibration.evaluate import EVAL_LOW, FLAT_TOLERANCE
 from clblur.calibration.models import MODELS
 from clblur.cli.options import add_series_options
@@ -97,6 +99,21 @@ def _number(kind: type, low: float, high: float = math.inf, *, low_open: bool = 
     return parse
 
 
+def _refined_times(chosen, series) -> str:
+    """What ``--refine-times`` found, for the model written: each image's exposure against
+    its stated one, in stops (longest = 0 in both; the mean over the channels' curves)."""
+    refined = chosen.params.get("relative_exposures")
+    if not refined:
+        return (f"--refine-times: the {chosen.model} model takes the exposure times as "
+                "given; the other models refine them")
+    stated = np.asarray(series.relative_exposures(), np.float64)
+    stated = stated / stated.max()
+    found = np.mean([np.asarray(t, np.float64) / np.max(t) for t in refined], axis=0)
+    stops = np.log2(found / stated)
+    cells = ", ".join(f"{name} {d:+.2f}" for name, d in zip(series.names, stops, strict=True))
+    return f"refined exposure times ({chosen.model}), stops off the stated ones: {cells}"
+
+
 def check_outputs(args: argparse.Namespace) -> None:
     """Every output path must be writable before the fitting starts (it takes minutes)."""
     from clblur.calibration.series import series_files
@@ -168,6 +185,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"scored with the full fits: a series of {len(result.series.images)} images "
               "cannot be refitted without one of them (held-out refits need 3 or more)")
     chosen = result.fits[best]
+    if args.refine_times:
+        print(_refined_times(chosen, result.series))
     if args.shared or len(chosen.responses) == 1:
         chosen.responses[0].save(args.output)
     else:
