@@ -322,6 +322,9 @@ def _select(groups: list[Group], folds: Folds, nblocks: int, alpha: float, min_g
 # codes: a black level can hide below the darkest codes the data show when they lie this far
 # up or more (``_note_toe``)
 TOE_CODES = 3.0
+# effects that absorb part of a black level the shape's toe hides (``_note_toe``): a code
+# offset and a common exposure factor bend the cross-exposure relation near black alike
+STAND_INS = frozenset({"quantisation", "exposure_gain"})
 
 
 def _note_toe(findings: dict[str, Finding], current: frozenset,
@@ -349,6 +352,12 @@ def _note_toe(findings: dict[str, Finding], current: frozenset,
             "with the toe of the response shape, which can absorb it over the codes seen, so "
             "these data may not tell the two apart (frames whose patches reach near black "
             "do).")
+        proxies = sorted(current & STAND_INS)
+        if proxies:
+            black.explanation += (
+                f" {' and '.join(proxies)}, joined here, can stand in for such a black level "
+                "(a filmic camera 16 codes above black read as a +1-code quantisation offset "
+                "and an exposure gain of 0.97): read them with that in mind.")
 
 
 def on_edge(effect: str, fits: list[dict], channels: int,
