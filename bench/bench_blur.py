@@ -43,10 +43,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import peers  # noqa: E402  (bench/peers.py)
+from results_file import write_results  # noqa: E402  (bench/results_file.py)
 
 from clblur import opencl, reference  # noqa: E402
 from clblur.io import (
-    atomic_write_text,  # noqa: E402
     data_dir,  # noqa: E402
     gopro_frames,  # noqa: E402
 )
@@ -390,7 +390,7 @@ def write_report(args, rows, info, dev, source, mean_n, load_before, load_after)
     lines += ["", "Agreement notes compare the peer's uint8 output with clblur's "
               "(the forward LUT quantises exposure to 65536 levels, so small differences are "
               "the peer's).", ""]
-    atomic_write_text(Path(args.out), "\n".join(lines))
+    write_results(Path(args.out), "\n".join(lines))
     print(f"wrote {args.out}")
 
 
