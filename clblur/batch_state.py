@@ -216,12 +216,7 @@ def claim(job: Job) -> Claim | None:
     try:
         if path.exists() and not _lock_is_stale(path):
             return None  # released and claimed again meanwhile
-        aside = path.with_name(f".{path.name}.{os.getpid()}.stale")
-        try:
-            os.replace(path, aside)
-            aside.unlink(missing_ok=True)
-        except FileNotFoundError:
-            pass
+        path.unlink(missing_ok=True)  # the guard makes this taker the only one
         return Claim(path) if _create(path, body) else None
     finally:
         guard.unlink(missing_ok=True)
@@ -244,11 +239,9 @@ def remove_partials(out_dir: Path, names: list[str]) -> int:
     their completion markers), except those of images a live batch holds.  Only those
     names: another hidden file of OUT_DIR is the user's, whatever it is called."""
     held = set(_live_claims(out_dir))
-    ours = {(out_dir, n) for n in names if n not in held} | \
-        {(out_dir / MARKER_DIR, f"{n}.json") for n in names if n not in held}
-    patterns: dict[Path, list[re.Pattern]] = {}
-    for folder, name in ours:
-        patterns.setdefault(folder, []).append(partial_name(name))
+    free = [n for n in names if n not in held]
+    patterns = {out_dir: [partial_name(n) for n in free],
+                out_dir / MARKER_DIR: [partial_name(f"{n}.json") for n in free]}
     stale = [p for folder, found in patterns.items() if folder.is_dir()
              for p in folder.glob(".*.part*") if p.is_file()
              and any(f.fullmatch(p.name) for f in found)]

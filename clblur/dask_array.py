@@ -95,8 +95,7 @@ def _blur_hwc(array, flow, fixed, a: float, extent: tuple[int, int], max_displac
     bound = None
     if flow is not None:
         depth = _flow_depth(max_displacement, a)
-        bound = tuple(float(b) for b in np.abs(np.asarray(max_displacement, np.float64)))
-        bound = (bound, max(a, 1.0 - a))  # the bound and the share of a vector ahead of p
+        bound = (tuple(float(b) for b in np.abs(np.asarray(max_displacement, np.float64))), a)
     else:
         depth = fixed_halo(fixed, a)
     # a halo beyond the image is the image (positions clamp to its edge): along an axis no
@@ -205,19 +204,18 @@ def _origin(index: int, chunks: tuple[int, ...], depth: int) -> tuple[int, int]:
 def _blur_block(image, flow=None, *, fixed: Uniform | PSF | None, halo, grid, extent,
                 bound: tuple | None, block_info=None, **options):
     """One chunk of ``map_overlap``: its window located from the chunk grid.  ``bound``: the
-    caller's ``max_displacement`` (and the anchor's reach factor), which sized the halo; a
+    caller's ``max_displacement`` (and the anchor), which sized the halo; a
     chunk whose own vectors reach beyond that halo is refused, since its samples would be
     read from outside the window (the result would be wrong at the seams, silently)."""
     loc = block_info[0]["chunk-location"]
     (wr0, r0), (wc0, c0) = (_origin(loc[i], grid[i], halo[i]) for i in (0, 1))
     th, tw = grid[0][loc[0]], grid[1][loc[1]]
     if bound is not None:
-        (bx, by), share = bound
-        own = np.abs(np.asarray(flow[r0 - wr0:r0 - wr0 + th, c0 - wc0:c0 - wc0 + tw],
-                                np.float64)).reshape(-1, 2)
-        most = own.max(axis=0) if own.size else np.zeros(2)
-        need = halo_for_reach(most[1] * share), halo_for_reach(most[0] * share)
+        (bx, by), anchor = bound
+        own = flow[r0 - wr0:r0 - wr0 + th, c0 - wc0:c0 - wc0 + tw]
+        need = flow_halo(own, anchor)  # what the chunk's own vectors reach
         if any(len(grid[i]) > 1 and need[i] > halo[i] for i in (0, 1)):
+            most = np.abs(np.asarray(own, np.float64)).reshape(-1, 2).max(axis=0)
             raise InputError(
                 f"the flow exceeds max_displacement=({bx:g}, {by:g}): |dx| up to {most[0]:g} "
                 f"and |dy| up to {most[1]:g} in the chunk at row {r0}, column {c0}; give a "

@@ -217,21 +217,19 @@ def fit_cross_exposure(u: np.ndarray, src: np.ndarray, target: np.ndarray, ratio
 
 
 def _pedestal(src: np.ndarray, target: np.ndarray, ratio: np.ndarray) -> float:
-    """The black level ``b`` of a linear camera that the pooled pairs imply: for each ratio
-    ``r`` a line ``target = r src + (1 - r) b`` fitted by least squares, the median ``b``
-    over the ratios; 0 where it is no level a file could hold (below 0 or above half
-    scale)."""
+    """The black level ``b`` of a linear camera that the pooled pairs imply.  Such a camera
+    maps each source value on a line ``target = s src + (1 - s) b`` (``s`` the exposure
+    ratio): per ratio a line fitted by least squares, its fixed point ``b``, the median over
+    the ratios; 0 where that is no level a file could hold (below 0 or above half scale)."""
     levels = []
     for r in np.unique(ratio):
-        pick = (ratio == r) & (abs(r - 1.0) > 1e-9)
-        if pick.sum() < 3:
+        pick = ratio == r
+        if abs(r - 1.0) < 1e-9 or pick.sum() < 3:
             continue
         slope, intercept = np.polyfit(src[pick], target[pick], 1)
         if abs(1.0 - slope) > 1e-6:
             levels.append(intercept / (1.0 - slope))
-    if not levels:
-        return 0.0
-    b = float(np.median(levels))
+    b = float(np.median(levels)) if levels else 0.0
     return b if 0.0 < b < 0.5 else 0.0
 
 
