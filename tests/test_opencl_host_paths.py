@@ -143,6 +143,63 @@ class _Fixed:
         return self.out
 
 
+# Device linearisation of float32 images (docs/tolerances.md, "Linearisation"): within
+# this error of the host's float64 inverse; full-scale and near-top values exact.  The
+# relative error of exp2(g log2 v) grows with |g log2 v|; the absolute floor, far below any
+# 16-bit code's exposure, covers the tiniest values (v = 2^-59 under gamma 1.8: 4.3e-6).
+FLOAT_LINEARISATION_RTOL = 4e-6
+FLOAT_LINEARISATION_ATOL = 1e-12
+
+
+def _device_exposures(opencl, rt, plan) -> np.ndarray:
+    from clblur.opencl.backend import upload_input
+
+    cl = opencl.pyopencl_module()
+    with rt.lock:
+        src = upload_input(rt, plan)
+        out = np.empty(plan.image.shape, np.float32)
+        cl.enqueue_copy(rt.queue, out, src.buffer, is_blocking=True,
+                        wait_for=[ev for band in src.ready for ev in band])
+    return out
+
+
+@pytest.mark.opencl
+@pytest.mark.parametrize("saturation", [1.0, 1.7])
+def test_float_images_are_linearised_on_the_device_like_the_host(opencl, saturation):
+    from clblur.opencl.linearisation import linearise_float_image
+    from clblur.pixels import full_scale_exposure, top_value
+    from clblur.responses import Table
+
+    rt = opencl.runtime(None)
+    one = np.float32(1.0)
+    values = np.concatenate([
+        np.linspace(-0.2, 1.2, 30001, dtype=np.float32),       # negatives and past full scale
+        one - np.arange(1, 300, dtype=np.float32) * np.float32(2.0 ** -24),  # up to 1 from below
+        np.float32(2.0) ** -np.arange(0, 60, dtype=np.float32),  # down to tiny values
+        [0.0, 0.04045, np.float32(0.04045 / 12.92), 1.0, 1e30]]).astype(np.float32)
+    values = values[:values.size // 7 * 7]
+    # a non-contiguous window (a tile), one band per row block, an odd width
+    image = np.repeat(values.reshape(-1, 7, 1), 5, axis=2)[:, ::-1]
+    table = Table([0.0, 0.1, 0.5, 1.0, 2.0], [0.0, 0.3, 0.7, 0.9, 1.0])
+    for spec in ("linear", "exp", "exp:7", "gamma:2.2", "gamma:0.45", "srgb", table,
+                 ["srgb", "exp", "gamma:1.8", table, "linear"]):
+        plan = make_plan(image, (0.0, 0.0), spec, saturation=saturation)
+        got = _device_exposures(opencl, rt, plan)
+        want = linearise_float_image(image, plan.responses, saturation)
+        np.testing.assert_allclose(got, want, rtol=FLOAT_LINEARISATION_RTOL,
+                                   atol=FLOAT_LINEARISATION_ATOL,
+                                   err_msg=str(spec))
+        for c, r in enumerate(plan.responses):
+            if not r.bounded:  # scene-linear values pass through, bit for bit
+                assert np.array_equal(got[..., c], image[..., c])
+                continue
+            f32 = np.dtype(np.float32)
+            full = np.float32(saturation * full_scale_exposure(r, f32))
+            assert np.all(got[..., c][image[..., c] >= 1] == full)
+            near = (image[..., c] > top_value(r, f32)) & (image[..., c] < 1)
+            assert np.all(got[..., c][near] == np.float32(r.inverse(top_value(r, f32))))
+
+
 @pytest.mark.opencl
 def test_banded_pinned_transfers_on_two_queues_equal_the_shared_path(opencl, rng,
                                                                       monkeypatch):

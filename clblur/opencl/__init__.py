@@ -5,7 +5,8 @@ Modules: ``device`` (selection, contexts, queues, buffers), ``program`` (kernel 
 ``constants`` (every constant shared with the kernels, passed as ``-D`` options), ``taps``
 (rasterising uniform motion and PSFs), ``response_pack`` (forward responses for the kernels),
 ``quantisation`` (code boundaries, their bucket index and the uint8 code grid),
-``half_float`` (half-storage error bound), ``linearisation`` (host tables), ``transfers``
+``half_float`` (half-storage error bound), ``linearisation`` (host tables, the float
+inverse's arguments), ``transfers``
 (row bands on several queues, pinned memory), ``backend`` (stage functions and ``blur``),
 ``resident`` (``pyopencl.array.Array`` in and out).  Importing this package imports no pyopencl.
 """

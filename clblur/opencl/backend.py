@@ -3,8 +3,9 @@
 Conventions
 -----------
 * Stages, per group of up to four channels (``response_pack.channel_groups``):
-  ``upload_input`` (the image, once) -> ``linearise`` (codes through per-channel tables, or
-  float input linearised on the host in float64, into an RGBA intermediate, or channel planes
+  ``upload_input`` (the image, once; float32 images are linearised there, on the device) ->
+  ``linearise`` (codes through per-channel tables, or float exposures, into an RGBA
+  intermediate, or channel planes
   for the CPU field kernel: half floats for uint8 outputs when ``half_float.half_storage_ok``
   allows, except in the CPU field kernel) ->
   ``integrate_field``
@@ -36,7 +37,12 @@ from clblur.motion import Field, flow_error, sample_counts
 from clblur.opencl import half_float, quantisation, response_pack, taps
 from clblur.opencl.constants import FIELD_LANES, IN_F32, IN_KINDS, LANES, OUT_F32, OUT_KINDS
 from clblur.opencl.device import Runtime, pyopencl_module, runtime
-from clblur.opencl.linearisation import linearisation_tables, linearise_float_image
+from clblur.opencl.linearisation import (
+    exposure_bound,
+    float_inverse_args,
+    linearisation_tables,
+    linearise_float_image,
+)
 from clblur.opencl.program import Program
 from clblur.opencl.transfers import bands_of, download, pinned_empty, upload_rows
 from clblur.request import BlurPlan
@@ -79,21 +85,28 @@ def _round_up(n: int, m: int) -> int:
 @dataclass
 class DeviceInput:
     """The uploaded image: integer codes with float64 linearisation tables, or float32
-    exposures linearised on the host.  ``ready``: events a reader of rows must wait for,
-    per band (``bands``: row ranges)."""
+    exposures.  ``ready``: events a reader of rows must wait for, per band (``bands``: row
+    ranges).  ``max_abs``: the largest ``|exposure|``, None until asked for
+    (``exposure_bound``)."""
 
     buffer: object
     kind: int
     luts: np.ndarray | None  # float64 (channels, Imax + 1) for integer images
-    max_abs: float
+    max_abs: float | None
     bands: list[tuple[int, int]]
     ready: list
+    # what queued commands still read (the raw float image behind ``buffer``): a buffer over
+    # a host array frees that array with it, queued or not
+    held: tuple = ()
 
 
-def upload_input(rt: Runtime, plan: BlurPlan, resident=None) -> DeviceInput:
-    """Stage 0: the image on the device (integer codes, or float32 exposures for float
-    images, linearised on the host in float64 as the reference does).  ``resident``: a
-    device buffer that already holds the integer image."""
+def upload_input(rt: Runtime, plan: BlurPlan, resident=None,
+                 gpu: bool | None = None) -> DeviceInput:
+    """Stage 0: the image on the device: integer codes, or float32 exposures.  float32
+    images are linearised on the device (``linearise_float``, band by band behind each
+    band's upload; ``gpu``: the kernel variant, default the device's type), float64 images on
+    the host in float64 (``clblur.opencl.linearisation``).  ``resident``: a device buffer that
+    already holds the integer image."""
     img = plan.image
     bands = bands_of(rt, img.shape[0])
     if img.dtype.kind == "u":
@@ -104,9 +117,27 @@ def upload_input(rt: Runtime, plan: BlurPlan, resident=None) -> DeviceInput:
             buf, ready = upload_rows(rt, "image", img, bands)
         return DeviceInput(buf, IN_KINDS[img.dtype], luts, float(np.max(np.abs(luts))), bands,
                            ready)
-    linear = linearise_float_image(img, plan.responses, plan.saturation)
-    buf, ready = upload_rows(rt, "image", linear, bands)
-    return DeviceInput(buf, IN_F32, None, float(np.max(np.abs(linear))), bands, ready)
+    if img.dtype == np.float64:
+        linear = linearise_float_image(img, plan.responses, plan.saturation)
+        buf, ready = upload_rows(rt, "image", linear, bands)
+        return DeviceInput(buf, IN_F32, None, float(np.max(np.abs(linear))), bands, ready)
+    raw, uploaded = upload_rows(rt, "image", img, bands)
+    params, tables, limits = float_inverse_args(plan.responses, plan.saturation)
+    args = {"resp": rt.upload("inv_resp", params, table=True),
+            "tables": rt.upload("inv_tables", tables, table=True),
+            "limits": rt.upload("inv_limits", limits, table=True)}
+    prog = rt.program(False, rt.gpu if gpu is None else gpu)
+    w, channels = img.shape[1], img.shape[2]
+    linear_buf = rt.buffer("linear_input", img.size * 4)
+    ready = []
+    for k, (r0, r1) in enumerate(bands):
+        queue = rt.all_queues()[k % len(rt.all_queues())]
+        pixels = (r1 - r0) * w
+        ready.append([prog.run("linearise_float", queue,
+                               _grid(-(-pixels // LANES), channels), (GROUP_SIZE, 1),
+                               wait_for=uploaded[k], image=raw, channels=channels,
+                               start=r0 * w, stop=r1 * w, lin=linear_buf, **args)])
+    return DeviceInput(linear_buf, IN_F32, None, None, bands, ready, held=(raw,))
 
 
 def finish_args(rt: Runtime, plan: BlurPlan, cbase: int, cg: int, out_buf) -> dict:
@@ -264,12 +295,15 @@ def integrate_box(rt: Runtime, prog: Program, plan: BlurPlan, src: DeviceInput,
                   after: list) -> list:
     """The box as exact fixed-point running sums, finish fused.  Lanes run across the box:
     columns for a vertical box, rows for a horizontal one.  Integer images are read as codes
-    through fixed-point tables (linearisation fused); float images are linearised on the host
-    and laid out in a float4 plane (transposed for a horizontal box) first."""
+    through fixed-point tables (linearisation fused); float images' exposures are laid out in
+    a float4 plane (transposed for a horizontal box) first."""
     h, w = plan.image.shape[:2]
     axis, lo, hi, ends = box
     # with ends the kernels sum 2 S - (first + last): twice the values' count of headroom
-    scale = taps.fixed_point_scale(src.max_abs, (2 if ends else 1) * (hi - lo + 1))
+    max_abs = src.max_abs
+    if max_abs is None:
+        max_abs = exposure_bound(plan.image, plan.responses, plan.saturation)
+    scale = taps.fixed_point_scale(max_abs, (2 if ends else 1) * (hi - lo + 1))
     transposed = axis == 0
     across, length = (h, w) if transposed else (w, h)
     grid = _grid(-(-across // LANES), group=BOX_GROUP_SIZE)
@@ -313,7 +347,7 @@ def run_plan(rt: Runtime, plan: BlurPlan, gpu: bool | None = None, *, half: bool
     gpu = rt.gpu if gpu is None else gpu
     img = plan.image
     h, w, channels = img.shape
-    src = upload_input(rt, plan, resident_image)
+    src = upload_input(rt, plan, resident_image, gpu)
     out, out_buf = (None, resident_out) if resident_out is not None else output_target(rt, img)
     tap_set = taps.space_invariant_taps(plan)
     box = tap_set.box() if tap_set is not None else None

@@ -63,7 +63,7 @@ def run_bent(rt: Runtime, plan: BlurPlan, first: np.ndarray, second: np.ndarray,
     h, w, channels = img.shape
     halves = [retime(plan, motion=Field(v), anchor=a, samples=samples, weights=None,
                      exposure=exposure) for v, a in ((first, 1.0), (second, 0.0))]
-    src = upload_input(rt, plan)
+    src = upload_input(rt, plan, gpu=gpu)
     prog = rt.program(False, gpu)
     planes = not gpu  # the CPU field kernel reads channel planes
     lin_buf = rt.buffer("linear", (h + 1) * (w + 1) * 4 * 4)

@@ -44,7 +44,7 @@
 
 /* Linearise one channel group into the padded intermediate (global size (w + 1, h + 1)):
  * integer codes through per-channel tables (lut[k * lut_len + code]); float32 input is
- * already linear (the host applied the inverse response in float64). */
+ * already linear (linearise_float below, or the host in float64 for float64 images). */
 static float linear_channel(__global const uchar *image, int in_kind, size_t index, int k,
                             __global const float *lut, int lut_len)
 {
@@ -68,6 +68,42 @@ __kernel void linearise(__global const uchar *image, int in_kind, int channels, 
     if (cg > 2) e.z = linear_channel(image, in_kind, base + 2, 2, lut, lut_len);
     if (cg > 3) e.w = linear_channel(image, in_kind, base + 3, 3, lut, lut_len);
     STORE4(e, (size_t)row * (w + 1) + col);
+}
+
+/* A float32 image (pixels x channels, interleaved) -> float32 exposures of the same layout:
+ * clblur.pixels.linearise in float32, eight pixels of one channel per work-item (global size
+ * (ceil((stop - start) / 8), channels)), pixels [start, stop) (a band of rows).  limits[c]:
+ * (top: the largest value inverted, rounded down to float32; the exposure of top itself and
+ * of a full-scale value, from the host in float64; gamma exponent; 1 for a bounded response).
+ * Under a bounded response values >= 1 are full scale (saturation * E_fs), values in
+ * (top, 1) get top's exposure (under exp the inverse's slope 1 / (k (1 - v)) near top would
+ * turn top's float32 rounding into a 1e-3 error) and the rest are clipped at 0 and
+ * inverted; the unbounded linear response passes scene-linear values through, negative
+ * ones included. */
+#if LANES != 8
+#error "linearise_float holds LANES pixels in a float8"
+#endif
+__kernel void linearise_float(__global const float *image, int channels, long start, long stop,
+                              __constant const float *resp, __global const float *tables,
+                              __constant const float8 *limits, __global float *lin)
+{
+    int c = get_global_id(1);
+    long p0 = start + (long)get_global_id(0) * LANES;
+    if (p0 >= stop || c >= channels) return;
+    float a[LANES];
+    for (int j = 0; j < LANES; j++)  /* past the band's end: repeat its last pixel */
+        a[j] = image[min(p0 + j, stop - 1) * channels + c];
+    float8 v = vload8(0, a);
+    float8 lim = limits[c];
+    float8 e = v;
+    if (lim.s4 != 0.0f) {
+        e = inverse_response8(clamp(v, 0.0f, lim.s0), resp + c * RESP_STRIDE, tables, lim.s3);
+        e = select(e, (float8)(lim.s1), v > lim.s0);
+        e = select(e, (float8)(lim.s2), v >= 1.0f);
+    }
+    vstore8(e, 0, a);
+    for (int j = 0; j < LANES && p0 + j < stop; j++)
+        lin[(p0 + j) * channels + c] = a[j];
 }
 
 /* linearise() into channel planes for the CPU field kernel: plane c (c < cg) of the padded

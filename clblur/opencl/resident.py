@@ -4,8 +4,8 @@ Conventions
 -----------
 * The image is an H x W or H x W x C ``uint8``/``uint16`` array on the selected device's
   context; the result is a new array of the same shape and dtype on that context.  Float
-  images are linearised on the host in float64 (the reference's exactness), so they are read
-  back, blurred and the result uploaded.
+  images are read back, blurred by the host entry (which refuses NaN and infinite values
+  and bounds the exposures for the box kernels) and the result uploaded.
 * ``motion``: ``(dx, dy)``, a PSF (numpy), a numpy flow, or an H x W x 2 float32/float16
   ``pyopencl.array.Array`` flow, read on the device and validated there.
 """

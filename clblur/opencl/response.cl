@@ -7,6 +7,8 @@
  *   [kind, parameter, table offset, table length], kind codes KIND_* (clblur.responses).
  *   exp: parameter = k;  gamma: parameter = 1/gamma (precomputed on the host);
  *   table: `tables[offset .. offset+len)` holds exposures, the next `len` floats the values.
+ * - Float images are linearised here too (inverse_response8); integer images through the
+ *   host's float64 tables (integrate.cl linear_channel).
  * - Quantisation: integer outputs are rint(clamp(v, 0, 1) * Imax) (clblur.pixels), found by
  *   comparing the exposure with the host's float64 inverse response at the code boundaries,
  *   never by evaluating the response on the device.  float32 outputs evaluate the response
@@ -36,6 +38,16 @@ static float table_forward(float x, __global const float *xs, __global const flo
     return vs[lo] + (x - xs[lo]) * ((vs[hi] - vs[lo]) / (xs[hi] - xs[lo]));
 }
 
+/* x^p for x in [0, 1] and p > 0, as exp2(p log2 x) (x = 0: exp2(-inf) = 0).  PoCL's scalar
+ * powr is a slow library call on CPUs: 12.6 M values took 932 ms against 109 ms for this form
+ * (one thread per value, 2-core VM).  Its error, about |p log2 x| float32 ulps of the result
+ * (under 3e-6 relative down to x = 2^-24), is far inside the float-output bound of
+ * docs/tolerances.md. */
+static float power01(float x, float p)
+{
+    return exp2(p * log2(x));
+}
+
 static float forward_response(float x, __constant const float *resp, __global const float *tables)
 {
     int kind = (int)resp[0];
@@ -44,11 +56,11 @@ static float forward_response(float x, __constant const float *resp, __global co
     case KIND_EXP:
         return -expm1(-p * x);
     case KIND_GAMMA:
-        return powr(clamp(x, 0.0f, 1.0f), p);  /* bounded: full scale at x >= 1 */
+        return power01(clamp(x, 0.0f, 1.0f), p);  /* bounded: full scale at x >= 1 */
     case KIND_SRGB: {
         float xc = clamp(x, 0.0f, 1.0f);
         /* knee at the exact image of the value knee 0.04045, as clblur.responses.SRGB */
-        return xc <= 0.04045f / 12.92f ? 12.92f * xc : 1.055f * powr(xc, 1.0f / 2.4f) - 0.055f;
+        return xc <= 0.04045f / 12.92f ? 12.92f * xc : 1.055f * power01(xc, 1.0f / 2.4f) - 0.055f;
     }
     case KIND_TABLE: {
         int off = (int)resp[2], n = (int)resp[3];
@@ -56,6 +68,65 @@ static float forward_response(float x, __constant const float *resp, __global co
     }
     default:  /* KIND_LINEAR */
         return x;
+    }
+}
+
+/* forward_response for a pixel's channel group (cg channels) at once: one vector evaluation
+ * where its channels share a closed-form kind (per-channel parameters), else channel by
+ * channel.  Lanes past cg are computed but never stored. */
+static float4 forward_response4(float4 x, __constant const float *resp,
+                                __global const float *tables, int cg)
+{
+    int kind = (int)resp[0];
+    bool shared = (cg < 2 || (int)resp[RESP_STRIDE] == kind) &&
+                  (cg < 3 || (int)resp[2 * RESP_STRIDE] == kind) &&
+                  (cg < 4 || (int)resp[3 * RESP_STRIDE] == kind);
+    if (shared && kind != KIND_TABLE) {
+        float4 p = (float4)(resp[1], resp[1 + RESP_STRIDE], resp[1 + 2 * RESP_STRIDE],
+                            resp[1 + 3 * RESP_STRIDE]);
+        float4 xc = clamp(x, 0.0f, 1.0f);
+        switch (kind) {
+        case KIND_EXP:
+            return -expm1(-p * x);
+        case KIND_GAMMA:
+            return exp2(p * log2(xc));  /* power01 */
+        case KIND_SRGB:
+            return select(1.055f * exp2((1.0f / 2.4f) * log2(xc)) - 0.055f, 12.92f * xc,
+                          xc <= 0.04045f / 12.92f);
+        default:  /* KIND_LINEAR */
+            return x;
+        }
+    }
+    return (float4)(forward_response(x.x, resp, tables),
+                    forward_response(x.y, resp + RESP_STRIDE, tables),
+                    forward_response(x.z, resp + 2 * RESP_STRIDE, tables),
+                    forward_response(x.w, resp + 3 * RESP_STRIDE, tables));
+}
+
+/* The inverse responses of float images, eight values of one channel at a time (the host's
+ * clblur.pixels.linearise, in float32; the saturation policy is the caller's).  `v` lies in
+ * [0, top]; `gamma` is the gamma exponent itself (the packed parameter is its reciprocal).
+ * Tables interpolate their samples the other way round, one value at a time. */
+static float8 inverse_response8(float8 v, __constant const float *resp,
+                                __global const float *tables, float gamma)
+{
+    switch ((int)resp[0]) {
+    case KIND_EXP:
+        return -log1p(-v) / resp[1];
+    case KIND_GAMMA:
+        return exp2(gamma * log2(v));  /* power01, eight at a time */
+    case KIND_SRGB:
+        return select(exp2(2.4f * log2((v + 0.055f) / 1.055f)), v / 12.92f, v <= 0.04045f);
+    case KIND_TABLE: {
+        int off = (int)resp[2], n = (int)resp[3];
+        float e[8];
+        vstore8(v, 0, e);
+        for (int j = 0; j < 8; j++)
+            e[j] = table_forward(e[j], tables + off + n, tables + off, n);
+        return vload8(0, e);
+    }
+    default:  /* KIND_LINEAR */
+        return v;
     }
 }
 
@@ -159,7 +230,7 @@ static void store_codes(int4 q, __global uchar *restrict out, int out_kind, size
 
 /* Forward-map and quantise the accumulated exposures of one pixel's channel group: integer
  * outputs by the threshold search (four channels at once), float32 outputs by evaluating
- * the response (channels spelled out, no private array, so they stay in registers). */
+ * the response for the whole group (forward_response4). */
 static void store_pixel(float4 acc, size_t pixel, STORE_PARAMS)
 {
     if (out_kind != OUT_F32) {
@@ -171,8 +242,9 @@ static void store_pixel(float4 acc, size_t pixel, STORE_PARAMS)
         return;
     }
     __global float *o = (__global float *)out + pixel * (size_t)channels + (size_t)cbase;
-    o[0] = forward_response(acc.x, resp, tables);
-    if (cg > 1) o[1] = forward_response(acc.y, resp + RESP_STRIDE, tables);
-    if (cg > 2) o[2] = forward_response(acc.z, resp + 2 * RESP_STRIDE, tables);
-    if (cg > 3) o[3] = forward_response(acc.w, resp + 3 * RESP_STRIDE, tables);
+    float4 v = forward_response4(acc, resp, tables, cg);
+    o[0] = v.x;
+    if (cg > 1) o[1] = v.y;
+    if (cg > 2) o[2] = v.z;
+    if (cg > 3) o[3] = v.w;
 }

@@ -32,11 +32,13 @@ def four_channels(group):
 
 def response_params(responses: tuple[Response, ...] | list[Response]
                     ) -> tuple[np.ndarray, np.ndarray]:
-    """Pack up to four channels' forward responses for clblur/opencl/response.cl.
+    """Pack channels' responses for clblur/opencl/response.cl: a channel group (up to four)
+    for the forward response, or every channel of an image for its inverse.
 
-    Returns (params: float32[GROUP * RESP_STRIDE], tables: float32, at least one element).
+    Returns (params: float32[max(GROUP, channels) * RESP_STRIDE], tables: float32, at least
+    one element).
     """
-    params = np.zeros(GROUP * RESP_STRIDE, dtype=np.float32)
+    params = np.zeros(max(GROUP, len(responses)) * RESP_STRIDE, dtype=np.float32)
     tables: list[np.ndarray] = []
     offset = 0
     for k, r in enumerate(responses):
