@@ -9,6 +9,7 @@ noise when the data is absent); exp response, anchor center.  Cases:
   diagonal   uniform (15, 20): a 26-sample line at 53 degrees
   box        uniform (24, 0): integer length, default N = 25, a box (running sums)
   box-<L>    horizontal boxes of growing length (cost per pixel must not grow)
+  <case>-float32  the same frame as float32 in [0, 1] (linearised on the device)
 Peers (same linearise -> integrate -> forward -> round pipeline, all cores; bench/peers.py):
   numba      prange gather with the same per-pixel N, positions, bilinear and clamping
   torch      grid_sample per sample index (CPU on a centred --torch-crop, scaled; CUDA on the
@@ -133,6 +134,19 @@ def peer_filter2d(img: np.ndarray, taps: opencl_taps.IntegerTaps,
     return forward(acc)
 
 
+def peer_float_filter2d(img: np.ndarray, taps: opencl_taps.IntegerTaps) -> np.ndarray:
+    """A float32 image under exp, all in OpenCV: cv2.log, filter2D, cv2.exp (the inverse and
+    the forward as the closed forms; values clipped below full scale as clblur's top).  The
+    exposure -log(1 - v) / k is carried as log(1 - v): k cancels in the forward."""
+    kernel = np.zeros((taps.dy.max() - taps.dy.min() + 1, taps.dx.max() - taps.dx.min() + 1),
+                      np.float32)
+    kernel[taps.dy - taps.dy.min(), taps.dx - taps.dx.min()] = taps.w
+    anchor = (int(-taps.dx.min()), int(-taps.dy.min()))
+    lin = cv2.log(np.float32(1.0) - np.minimum(img, np.float32(1.0 - 1.0 / (4 * 65535))))
+    acc = cv2.filter2D(lin, -1, kernel, anchor=anchor, borderType=cv2.BORDER_REPLICATE)
+    return np.float32(1.0) - cv2.exp(acc)
+
+
 def peer_remap(img: np.ndarray, flow: np.ndarray, anchor: float,
                forward: ForwardLut) -> np.ndarray:
     h, w = img.shape[:2]
@@ -204,7 +218,7 @@ def main(argv=None) -> int:
         wall, cpu = seconds
         rate, per_cpu = megapixels / wall, megapixels / max(cpu, 1e-9)
         rows.append((case, method, rate, per_cpu, note))
-        print(f"{case:10s} {method:44s} {rate:9.2f} MP/s {per_cpu:9.2f} MP/CPU-s  {note}",
+        print(f"{case:16s} {method:44s} {rate:9.2f} MP/s {per_cpu:9.2f} MP/CPU-s  {note}",
               flush=True)
 
     def ours(motion):
@@ -293,6 +307,22 @@ def main(argv=None) -> int:
     for length in (9, 33, 129, 513):
         t_ours, _ = ours((float(length - 1), 0.0))
         add(f"box-{length}", "clblur OpenCL", t_ours, "running sums")
+
+    # float32 images (a compositor's frame, a float tensor): the same frame in [0, 1]
+    fimg = (img / np.float32(255.0)).astype(np.float32)
+    for case, motion in (("field", flow), ("diagonal", (15.0, 20.0))):
+        t_u8, _ = ours(motion)
+        plan = make_plan(fimg, motion, RESPONSE)
+        t_ours, out = timed(lambda plan=plan: opencl.blur(plan, device=args.device),
+                            args.repeats)
+        add(f"{case}-float32", "clblur OpenCL", t_ours,
+            f"{t_ours[0] / t_u8[0]:.1f}x the uint8 image's time")
+        if isinstance(motion, tuple):
+            taps = opencl_taps.space_invariant_taps(make_plan(img[:1, :1], motion, RESPONSE))
+            t_peer, peer = timed(lambda taps=taps: peer_float_filter2d(fimg, taps),
+                                 args.repeats)
+            add(f"{case}-float32", "OpenCV log + filter2D + exp, float32", t_peer,
+                f"max |diff| {np.abs(out - peer).max():.1e}")
 
     load_after = os.getloadavg()
     write_report(args, rows, machine(), dev, source, mean_n, load_before, load_after)

@@ -11,8 +11,13 @@ Conventions
   premultiplied by the coverage ``a = code / Imax``; after integration the colour exposure is
   divided by the integrated coverage, the response re-applied, and both quantised (colour 0
   where the coverage rounds to code 0: a transparent pixel has no colour).  Float images
-  carry premultiplied alpha: the colour channels are linearised as given and come out
-  premultiplied; coverage is integrated as is.
+  carry premultiplied alpha, the EXR convention: under ``linear`` (scene-linear light) the
+  colour channels are light already and pass as given; under any other response the colour
+  is premultiplied in the response's domain, so it is divided by the coverage, linearised and
+  premultiplied in linear light, and after integration the response is applied to the light
+  per unit coverage and multiplied by the integrated coverage (an opaque colour stays at or
+  below its coverage under a bounded response).  A pixel without coverage (light without
+  coverage, e.g. a glow) is linearised as given.  Coverage is integrated as is.
 """
 
 from __future__ import annotations
@@ -130,14 +135,27 @@ def linearise(plan: BlurPlan, dtype: type = np.float64) -> np.ndarray:
         values = normalise(plan.image)
         lin = np.empty(values.shape, dtype)
         for c in range(colour):
-            lin[..., c] = linearise_channel(values[..., c], plan.responses[c], plan.dtype,
-                                            plan.saturation)
+            v, cover = values[..., c], _premultiplied_cover(plan, c, values)
+            if cover is not None:  # premultiplied in the response's domain: un-premultiply
+                v = np.where(cover > 0, v / np.where(cover > 0, cover, 1.0), v)
+            lin[..., c] = linearise_channel(v, plan.responses[c], plan.dtype, plan.saturation)
+            if cover is not None:  # and premultiply the light
+                lin[..., c] *= np.where(cover > 0, cover, 1.0)
     if plan.alpha:
         a = values[..., -1] if values is not None else normalise(plan.image[..., -1])
         lin[..., -1] = a
         if plan.dtype.kind == "u":  # straight alpha in the file: premultiply in linear light
             lin[..., :colour] *= a[..., None]
     return lin
+
+
+def _premultiplied_cover(plan: BlurPlan, c: int, values: np.ndarray) -> np.ndarray | None:
+    """The coverage that float colour channel ``c`` is premultiplied by, where the channel's
+    response is not ``linear`` (under ``linear`` the colour is light already and passes as
+    is); else None."""
+    if not plan.alpha or plan.dtype.kind == "u" or plan.responses[c].kind == "linear":
+        return None
+    return values[..., -1]
 
 
 def finish(acc: np.ndarray, plan: BlurPlan) -> np.ndarray:
@@ -156,7 +174,15 @@ def finish(acc: np.ndarray, plan: BlurPlan) -> np.ndarray:
         acc[..., :colour] = np.where(seen[..., None], acc[..., :colour]
                                      / np.where(seen, a, 1.0)[..., None], 0.0)
     for c in range(colour):
-        out[..., c] = plan.responses[c].forward(acc[..., c])
+        cover = _premultiplied_cover(plan, c, acc)
+        if cover is None:
+            out[..., c] = plan.responses[c].forward(acc[..., c])
+            continue
+        # premultiplied float colour: the response of the light per unit coverage, times
+        # the coverage (a pixel without coverage keeps its light's response as is)
+        seen = cover > 0
+        unit = np.where(seen, cover, 1.0)
+        out[..., c] = plan.responses[c].forward(acc[..., c] / unit) * unit
     if plan.alpha:
         out[..., -1] = acc[..., -1]
         if straight:

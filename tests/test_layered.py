@@ -532,11 +532,42 @@ def test_alpha_is_coverage_blurred_linearly(dtype):
         np.testing.assert_array_equal(out[..., 3], np.rint(a_blur * 255))
         np.testing.assert_array_equal(out[..., :3], np.rint(colour * 255))
         assert (out[12, 6:22, 0] == img[12, 12, 0]).all()  # the colour keeps its value
-    else:  # premultiplied in, premultiplied out
-        colour = SRGB.forward(clblur.blur(lin, (8, 0), "linear", backend="numpy"))
+    else:  # premultiplied in, premultiplied out: the response of the light per coverage
+        c_blur = clblur.blur(lin * a[..., None], (8, 0), "linear", backend="numpy")
+        seen = a_blur[..., None] > 0
+        colour = np.where(seen, SRGB.forward(c_blur / np.where(seen, a_blur[..., None], 1))
+                          * a_blur[..., None], 0)
         np.testing.assert_allclose(out[..., 3], a_blur, atol=1e-6)
         np.testing.assert_allclose(out[..., :3], colour, atol=1e-6)
+        # the colour keeps its value per unit coverage: never above the coverage
+        covered = out[..., 3] > 1e-3
+        np.testing.assert_allclose(out[..., 0][covered] / out[..., 3][covered], img[12, 12, 0],
+                                   rtol=1e-5)
     assert 0 < out[12, 6, 3] < out[12, 12, 3]  # a linear ramp, no response applied
+
+
+@pytest.mark.parametrize("spec", ["srgb", "gamma:2.2", "exp", "linear"])
+def test_premultiplied_float_alpha_blurs_as_straight_integer_alpha(spec, rng):
+    """A float RGBA image premultiplied in the response's domain (the EXR convention) and the
+    same picture as straight-alpha uint16 are one scene: the gather and the layered path give
+    the same premultiplied colour, within the uint16 output's rounding."""
+    h, w = 24, 40
+    straight = rng.integers(0, 65536, (h, w, 4)).astype(np.uint16)
+    straight[..., 3] = 0
+    straight[6:18, 8:22, 3] = rng.integers(20000, 65536, (12, 14))
+    straight[8:16, 10:20, 3] = 65535
+    a = straight[..., 3] / 65535.0
+    premultiplied = np.concatenate([straight[..., :3] / 65535.0 * a[..., None], a[..., None]],
+                                   axis=2).astype(np.float64)
+    flow = np.zeros((h, w, 2), np.float32)
+    flow[6:18, 8:22] = (9, 2)
+    depth = np.where(flow[..., 0] > 0, 1.0, 2.0)
+    for kw in ({}, {"depth": depth}):
+        got = clblur.blur(premultiplied, flow, spec, alpha=True, backend="numpy", **kw)
+        want = clblur.blur(straight, flow, spec, alpha=True, backend="numpy", **kw) / 65535.0
+        want[..., :3] *= want[..., 3:]
+        np.testing.assert_allclose(got, want, atol=3e-5, err_msg=f"{spec} {kw}")
+        assert np.all(got[..., :3] <= got[..., 3:] + 1e-12) or spec == "linear"
 
 
 # ------------------------------------------------------------------ OpenCL cross-checks
