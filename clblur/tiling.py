@@ -40,8 +40,10 @@ from clblur.io import (
     check_output,
     create_tiff,
     describe_size,
+    exr_layout,
     is_tiff,
     open_image,
+    read_flow,
     write_image,
 )
 from clblur.motion import anchor_value
@@ -279,6 +281,12 @@ def blur_file(src: str | os.PathLike, dst: str | os.PathLike, motion, response="
             f"more than the memory budget ({describe_size(budget)}); raise --memory-budget, or "
             "use TIFF input and output, which are read and written window by window (convert "
             "with e.g. `vips tiffsave IN OUT.tif --tile --bigtiff`)")
+    layout = exr_layout(src)  # an EXR input's windows and header, kept by an EXR output
+    if layout is not None and isinstance(motion, (str, os.PathLike)) and \
+            str(motion).lower().endswith(".exr"):  # its pixels matched by place, not index
+        from clblur.io.exr import align
+
+        motion = align(read_flow(motion), motion, layout, "flow")
     image = open_image(src)
     if not is_tiff(dst) and dst.suffix.lower() != ".exr" and np.dtype(image.dtype).kind == "f":
         raise InputError(f"{dst.suffix} cannot hold float images; write .tif, .tiff or .exr "
@@ -297,5 +305,5 @@ def blur_file(src: str | os.PathLike, dst: str | os.PathLike, motion, response="
         return result[0]
     out = np.empty(tuple(image.shape), np.dtype(image.dtype))
     run = blur_tiled(image, out, motion, **options)
-    write_image(dst, out)
+    write_image(dst, out, layout=layout)
     return run

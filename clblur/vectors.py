@@ -198,13 +198,19 @@ def read_vectors(path: str | os.PathLike, convention: str,
                              f"{', '.join(chans)}")
         return {"pass": np.stack([chans[n] for n in names], axis=-1)}
     if convention == "blender":
-        groups = [n[:-1] for n in chans if n.endswith("Vector.X")] + [""]
-        for pre in groups:  # "Vector.", "<layer>.Vector.", then plain RGBA
-            names = [pre + c for c in "XYZW"] if pre else list("RGBA")
+        # "Vector.", "<layer>.Vector.", then plain X, Y, Z, W, then RGBA (a File Output node)
+        groups = sorted(n[:-1] for n in chans if n.endswith("Vector.X")
+                        and all(n[:-1] + c in chans for c in "XYZW"))
+        if len(groups) > 1:  # one per view layer: which one is the user's to say
+            layers = ", ".join(g[:-len(".Vector.")] or "(none)" for g in groups)
+            raise InputError(f"{path} has several Blender vector passes (view layers {layers}); "
+                             f"name one: {path}:LAYER")
+        for pre in [*groups, "", None]:
+            names = [pre + c for c in "XYZW"] if pre is not None else list("RGBA")
             if all(n in chans for n in names):
                 return {"pass": np.stack([chans[n] for n in names], axis=-1)}
-        raise InputError(f"{path} has no Blender vector pass (Vector.X/Y/Z/W or RGBA); "
-                         f"channels: {', '.join(chans)}")
+        raise InputError(f"{path} has no Blender vector pass (Vector.X/Y/Z/W, X/Y/Z/W or "
+                         f"RGBA); channels: {', '.join(chans)}")
     out = {}
     for layer in ("forward", "backward"):
         if f"{layer}.u" in chans and f"{layer}.v" in chans:

@@ -169,3 +169,191 @@ def test_cli_depth_from_an_exr_channel(tmp_path, rendered):
         out.unlink()
     assert main(["blur", str(src), str(tmp_path / "o.exr"), "--flow", str(src), "--vectors",
                  "blender", "--depth", f"{src}:nope", "--response", "linear"]) == 2
+
+
+# ------------------------------------------------- what a compositor's EXR files carry
+
+def _windowed(tmp_path, name, channels, data, display, **attrs):
+    """Write ``channels`` with the data window ``data`` in the display window ``display``
+    (and header ``attrs``: pixel aspect ratio, line order, compression)."""
+    h, w = next(iter(channels.values())).shape
+    x0, y0 = data
+    layout = exr.Layout((x0, y0, x0 + w - 1, y0 + h - 1), display, **attrs)
+    path = tmp_path / name
+    exr.write_channels(path, channels, layout=layout)
+    return path
+
+
+def test_an_exr_output_keeps_its_inputs_windows_and_header(tmp_path, rng):
+    """A bounding-box data window, an overscan window, a pixel aspect ratio, a line order,
+    a compression and float16 colour come back as they went in, on the tiled path and on the
+    whole-image one (alpha, depth); the pixels are the data window's, blurred in place."""
+    import OpenEXR
+
+    rgb = rng.uniform(0, 1, (40, 56, 3)).astype(np.float32)
+    planes = {c: rgb[..., i] for i, c in enumerate("RGB")}
+    display = (0, 0, 63, 47)
+    cases = {"bbox": ((5, 3), {}), "overscan": ((-8, -6), {}),
+             "aspect": ((0, 0), {"pixel_aspect": 2.0, "compression": OpenEXR.PIZ_COMPRESSION,
+                                 "line_order": OpenEXR.DECREASING_Y})}
+    for name, (corner, attrs) in cases.items():
+        src = _windowed(tmp_path, f"{name}.exr", planes, corner, display, **attrs)
+        want = exr.layout(src)
+        for extra in ([], ["--depth", "speed"]):
+            out = tmp_path / f"{name}_out{len(extra)}.exr"
+            assert main(["blur", str(src), str(out), "--motion=4,1", "--backend", "numpy",
+                         *extra]) == 0
+            got = exr.layout(out)
+            assert got == want, (name, extra)
+            np.testing.assert_allclose(exr.read_image(out),
+                                       clblur.blur(rgb, (4, 1), "linear", backend="numpy"),
+                                       atol=1e-6)
+    half = tmp_path / "half.exr"
+    exr.write_channels(half, planes, half=True)
+    assert exr.layout(half).half
+    assert main(["blur", str(half), str(tmp_path / "half_out.exr"), "--motion=3,0"]) == 0
+    assert exr.layout(tmp_path / "half_out.exr").half  # float16 in, float16 out
+
+
+def test_exr_depth_and_vectors_are_matched_by_window_not_index(tmp_path, rng, capsys):
+    """A flow or depth file whose data window covers the image's is cropped to it; one that
+    does not cover it is refused (it had been read by array index, misplaced by the windows'
+    offset, without a word)."""
+    rgb = rng.uniform(0, 1, (30, 40, 3)).astype(np.float32)
+    flow = np.zeros((30, 40, 2), np.float32)
+    flow[8:20, 10:24] = (7, 2)
+    src = _windowed(tmp_path, "img.exr", {c: rgb[..., i] for i, c in enumerate("RGB")},
+                    (4, 2), (0, 0, 47, 35))
+    big = np.zeros((40, 52, 2), np.float32)  # covers the image's window from (-2, -3)
+    big[5:35, 6:46] = flow
+    flows = _windowed(tmp_path, "flow.exr", {"flow.x": big[..., 0], "flow.y": big[..., 1]},
+                      (-2, -3), (0, 0, 47, 35))
+    depth = np.where(flow[..., 0] > 0, 1.0, 5.0).astype(np.float32)
+    deep = np.full((40, 52), 9.0, np.float32)
+    deep[5:35, 6:46] = depth
+    depths = _windowed(tmp_path, "depth.exr", {"Z": deep}, (-2, -3), (0, 0, 47, 35))
+    for extra, kw in (([], {}), (["--depth", str(depths)], {"depth": depth})):
+        out = tmp_path / f"o{len(extra)}.exr"
+        assert main(["blur", str(src), str(out), "--flow", str(flows), "--backend", "numpy",
+                     *extra]) == 0
+        np.testing.assert_allclose(exr.read_image(out),
+                                   clblur.blur(rgb, flow, "linear", backend="numpy", **kw),
+                                   atol=1e-6)
+    short = _windowed(tmp_path, "short.exr", {"flow.x": flow[..., 0], "flow.y": flow[..., 1]},
+                      (0, 0), (0, 0, 47, 35))  # same size, another place
+    capsys.readouterr()
+    assert main(["blur", str(src), str(tmp_path / "x.exr"), "--flow", str(short)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "does not cover the image's (4, 2) - (43, 31)" in err[0]
+
+
+def test_exr_layers_are_named_never_guessed(tmp_path, rng, capsys):
+    """A Blender multilayer render with several colour passes blurs from FILE.exr:LAYER; two
+    view layers' vector passes or depth channels are refused until one is named (the first
+    had been taken silently); plain X, Y, Z, W is a vector pass too."""
+    rgba = rng.uniform(0, 1, (20, 24, 4)).astype(np.float32)
+    chans = {f"View.{p}.{c}": rgba[..., i] * k for p, k in (("Combined", 1), ("AO", 0.5))
+             for i, c in enumerate("RGBA")}
+    moving = np.zeros((20, 24, 4), np.float32)
+    moving[..., 0] = moving[..., 2] = -6  # Blender: previous and next, x right
+    chans |= {f"Main.Vector.{c}": moving[..., i] for i, c in enumerate("XYZW")}
+    chans |= {f"AOVs.Vector.{c}": np.zeros((20, 24), np.float32) for c in "XYZW"}
+    chans |= {"Main.Depth.Z": np.ones((20, 24), np.float32),
+              "AOVs.Depth.Z": np.ones((20, 24), np.float32)}
+    src = tmp_path / "render.exr"
+    exr.write_channels(src, chans)
+    capsys.readouterr()
+    for args, why in (([str(src), "--flow", f"{src}:Main"], "several colour layers"),
+                      ([f"{src}:View.Combined", "--flow", str(src)],
+                       "several Blender vector passes (view layers AOVs, Main)"),
+                      ([f"{src}:View.Combined", "--flow", f"{src}:Main", "--depth", str(src)],
+                       "several depth channels")):
+        assert main(["blur", args[0], str(tmp_path / "x.exr"), *args[1:], "--vectors",
+                     "blender"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and why in err[0], err
+    out = tmp_path / "o.exr"
+    assert main(["blur", f"{src}:View.Combined", str(out), "--flow", f"{src}:Main",
+                 "--depth", f"{src}:Main.Depth.Z", "--vectors", "blender",
+                 "--backend", "numpy"]) == 0
+    flow = vectors.load_flow(src, "blender", layer="Main")
+    np.testing.assert_allclose(exr.read_image(out), clblur.blur(
+        rgba, flow, "linear", alpha=True, depth=np.ones((20, 24)), backend="numpy"), atol=1e-6)
+    plain = tmp_path / "xyzw.exr"
+    exr.write_channels(plain, {c: moving[..., i] for i, c in enumerate("XYZW")})
+    np.testing.assert_array_equal(vectors.read_vectors(plain, "blender")["pass"], moving)
+
+
+def test_inverse_depth_and_the_exr_default_response(tmp_path, rng):
+    """`--inverse-depth` reads 1 / distance (Nuke's depth.Z): the same blur as the distance;
+    an EXR's default response is linear, so a highlight of 8 and a negative stay (exp had
+    clipped them at full scale and 0)."""
+    rgb = rng.uniform(-0.1, 1, (20, 30, 3)).astype(np.float32)
+    rgb[5, 5] = 8.0
+    src = tmp_path / "hdr.exr"
+    exr.write_image(src, rgb)
+    flow = np.zeros((20, 30, 2), np.float32)
+    flow[4:12, 4:14] = (6, 0)
+    np.save(tmp_path / "flow.npy", flow)
+    distance = np.where(flow[..., 0] > 0, 2.0, 10.0).astype(np.float32)
+    exr.write_channels(tmp_path / "inv.exr", {"depth.Z": 1 / distance})
+    out = tmp_path / "o.exr"
+    assert main(["blur", str(src), str(out), "--flow", str(tmp_path / "flow.npy"), "--depth",
+                 str(tmp_path / "inv.exr"), "--inverse-depth", "--backend", "numpy"]) == 0
+    np.testing.assert_allclose(exr.read_image(out), clblur.blur(
+        rgb, flow, "linear", depth=distance, backend="numpy"), atol=1e-6)
+    assert exr.read_image(out).max() > 1 and exr.read_image(out).min() < 0
+
+
+def test_bad_exr_colour_is_one_line(tmp_path, capfd):
+    """A truncated file, UINT colour (IDs) and NaN colour: one line naming the file, exit 2
+    (the library had printed its own two lines before ours)."""
+    rgb = np.random.default_rng(2).uniform(0, 1, (32, 40, 3)).astype(np.float32)
+    good = tmp_path / "good.exr"
+    exr.write_image(good, rgb)
+    data = good.read_bytes()
+    (tmp_path / "trunc.exr").write_bytes(data[:len(data) // 2])
+    exr.write_channels(tmp_path / "ids.exr", {c: np.arange(12, dtype=np.uint32).reshape(3, 4)
+                                              for c in "RGB"})
+    nan = rgb.copy()
+    nan[3, 4, 1] = np.nan
+    exr.write_image(tmp_path / "nan.exr", nan)
+    capfd.readouterr()
+    for name, why in (("trunc", "cannot read EXR"), ("ids", "unsigned integers"),
+                      ("nan", "1 value(s) of the colour channels are NaN")):
+        src = tmp_path / f"{name}.exr"
+        assert main(["blur", str(src), str(tmp_path / "o.exr"), "--motion=3,0"]) == 2
+        captured = capfd.readouterr()
+        lines = (captured.out + captured.err).strip().splitlines()
+        assert len(lines) == 1 and why in lines[0] and str(src) in lines[0], lines
+
+
+def test_blur_layers_takes_the_overscan_its_windows_state(tmp_path, capsys):
+    """Layers rendered with 2 px of overscan (a data window beyond the display window): the
+    output is the display window, with the EXR windows; a different --overscan is refused
+    (5 had cut 3 px of picture off, 0 had written the overscan as picture)."""
+    h, w = 24, 32
+    fg = np.zeros((h + 4, w + 4, 4), np.float32)
+    fg[10:18, 8:16] = (1.0, 0.2, 0.1, 1.0)
+    bg = np.full((h + 4, w + 4, 3), 0.3, np.float32)
+    display = (0, 0, w - 1, h - 1)
+    paths = []
+    for name, img in (("fg", fg), ("bg", bg)):
+        chans = {c: img[..., i] for i, c in enumerate("RGBA"[:img.shape[2]])}
+        paths.append(str(_windowed(tmp_path, f"{name}.exr", chans, (-2, -2), display)))
+    flow = np.zeros((h + 4, w + 4, 2), np.float32)
+    flow[fg[..., 3] > 0] = (6, 0)
+    np.save(tmp_path / "fg.npy", flow)
+    np.save(tmp_path / "bg.npy", np.zeros_like(flow))
+    layers = ["--layer", paths[0], str(tmp_path / "fg.npy"), "--layer", paths[1],
+              str(tmp_path / "bg.npy")]
+    out = tmp_path / "o.exr"
+    assert main(["blur-layers", str(out), *layers, "--backend", "numpy"]) == 0
+    got = exr.layout(out)
+    assert got.data_window == got.display_window == display
+    want = clblur.blur_layers([(fg, flow), (bg, np.zeros_like(flow))], "linear", overscan=2,
+                              backend="numpy")
+    np.testing.assert_allclose(exr.read_image(out), want, atol=1e-6)
+    capsys.readouterr()
+    assert main(["blur-layers", str(tmp_path / "x.exr"), *layers, "--overscan", "5"]) == 2
+    assert "reaches 2 px beyond their display window" in capsys.readouterr().err

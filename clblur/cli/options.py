@@ -13,7 +13,7 @@ from clblur.blur import BACKENDS
 from clblur.errors import InputError
 from clblur.motion import ANCHORS, EXPOSURES
 
-__all__ = ["add_backend_options", "add_blur_options", "add_exposure_option",
+__all__ = ["add_backend_options", "add_blur_options", "add_exposure_option", "default_response",
            "add_memory_option", "add_motion_options", "add_series_options",
            "add_vector_options", "blur_options", "check_device", "check_response",
            "check_vector_options", "motion_from_args", "parse_vector"]
@@ -37,11 +37,15 @@ def _finite(x: float) -> bool:
     return x == x and abs(x) != float("inf")
 
 
-def add_blur_options(p: argparse.ArgumentParser) -> None:
-    """Options shared by every command that blurs (blur, batch)."""
-    p.add_argument("--response", default="exp", metavar="SPEC",
+def add_blur_options(p: argparse.ArgumentParser, linear_for_exr: bool = False) -> None:
+    """Options shared by every command that blurs (blur, blur-layers, batch).
+    ``linear_for_exr``: the response defaults to ``linear`` for an EXR input
+    (:func:`default_response`), else to ``exp``."""
+    p.add_argument("--response", default=None if linear_for_exr else "exp", metavar="SPEC",
                    help="linear, exp, exp:K, gamma:G, srgb, or a response JSON file "
-                        "(default: exp, the paper's Eq. 3)")
+                        "(default: " + ("linear for an EXR input, which holds scene-linear "
+                                        "light, else " if linear_for_exr else "") +
+                        "exp, the paper's Eq. 3)")
     p.add_argument("--anchor", choices=list(ANCHORS), default="center",
                    help="shutter time the static image shows (default: center)")
     p.add_argument("--samples", type=int, default=None, metavar="N",
@@ -142,20 +146,39 @@ def add_path_option(p: argparse.ArgumentParser) -> None:
                         "their three points (curved)")
 
 
-def motion_from_args(args: argparse.Namespace, bent: bool = False) -> object:
+def motion_from_args(args: argparse.Namespace, bent: bool = False, layout=None) -> object:
     """The motion a blur command asked for; a flow stays a path so big ones can be mapped.
     ``bent``: a renderer's vector pass as its two halves about the frame time (``--path
-    bent|curved``; `clblur blur` checks first that a pass was given)."""
+    bent|curved``; `clblur blur` checks first that a pass was given).  ``--flow
+    FILE.exr:LAYER`` names a Blender view layer's vector pass.  ``layout``: an EXR image's
+    (``clblur.io.exr.Layout``): an EXR flow or vector file is then read and its pixels put
+    on the image's data window (``clblur.io.exr.align``)."""
     from clblur.io import read_psf
+    from clblur.io.flows import depth_source as exr_part
 
     if args.motion is not None:
         return parse_vector(args.motion)
     if args.flow is not None:
-        if getattr(args, "vectors", "clblur") != "clblur":  # a renderer's vector pass
+        path, layer = exr_part(args.flow)
+        on_image = layout is not None and path.lower().endswith(".exr")
+        if getattr(args, "vectors", "clblur") != "clblur" or layer is not None:
             from clblur.vectors import load_flow
 
-            return load_flow(args.flow, args.vectors, args.vector_shutter, bent=bent)
-        return args.flow
+            motion = load_flow(path, getattr(args, "vectors", "clblur"),
+                               getattr(args, "vector_shutter", 0.5), bent=bent, layer=layer)
+        elif on_image:
+            from clblur.io import read_flow
+
+            motion = read_flow(path)
+        else:
+            return path
+        if on_image:
+            from clblur.io.exr import align
+
+            what = "flow" if getattr(args, "vectors", "clblur") == "clblur" else "vectors"
+            motion = tuple(align(m, path, layout, what) for m in motion) if bent else \
+                align(motion, path, layout, what)
+        return motion
     return read_psf(args.psf)
 
 
@@ -182,6 +205,14 @@ def check_response(spec: str, option: str = "--response", channels: int | None =
         check_spec(spec, channels)
     except InputError as e:
         raise InputError(str(e) if spec in str(e) else f"{option} {spec}: {e}") from None
+
+
+def default_response(args: argparse.Namespace, image_file: str) -> None:
+    """Set ``--response`` where it was left out: ``linear`` for an EXR input (scene-linear
+    light: a bounded response would clip its highlights at full scale and its negatives at
+    0), else ``exp``, the paper's Eq. 3."""
+    if args.response is None:
+        args.response = "linear" if str(image_file).lower().endswith(".exr") else "exp"
 
 
 def blur_options(args: argparse.Namespace) -> dict:

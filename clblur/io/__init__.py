@@ -6,7 +6,8 @@ paths may point.
 module               holds
 ===================  ==============================================================
 ``io.images``        ``read_image``/``write_image`` (dispatch by ``image_format``),
-                     ``probe_image``/``check_decodable`` (header only, bomb check)
+                     ``probe_image``/``check_decodable`` (header only, bomb check),
+                     ``exr_layout`` (what an EXR output keeps of its input)
 ``io.raster``        ``MappedRaster``, ``TiffWindows``, ``OrientedRaster``, ``open_image``
                      (window by window), ``create_tiff``
 ``io.flows``         ``.npy``/``.flo`` flows (``read_flow``, ``open_flow``), ``read_psf``
@@ -24,6 +25,7 @@ from clblur.io.images import (
     IMAGE_FORMATS,
     check_decodable,
     describe_size,
+    exr_layout,
     image_format,
     light_channels,
     probe_image,
@@ -50,7 +52,7 @@ from clblur.io.raster import (
 
 __all__ = ["FLO_MAGIC", "IMAGE_FORMATS", "MappedRaster", "OrientedRaster", "TiffWindows",
            "as_array_like", "atomic_write", "atomic_write_text", "check_decodable",
-           "check_output", "create_tiff", "data_dir", "describe_size", "gopro_frames",
+           "check_output", "create_tiff", "data_dir", "describe_size", "exr_layout", "gopro_frames",
            "image_format", "is_tiff", "light_channels", "open_flow", "open_image", "probe_image",
            "read_flow", "read_depth", "read_image", "read_psf", "refuse_overwrite",
            "require_file", "resolve_inside", "tmp_beside", "write_flow", "write_image"]

@@ -32,7 +32,7 @@ from clblur.errors import InputError
 from clblur.io.atomic import atomic_write
 from clblur.io.paths import require_file
 
-__all__ = ["IMAGE_FORMATS", "MAX_DECODE_PIXELS", "ImageHeader", "image_format",
+__all__ = ["exr_layout", "IMAGE_FORMATS", "MAX_DECODE_PIXELS", "ImageHeader", "image_format",
            "light_channels", "probe_image", "read_image", "write_image"]
 
 # extension -> format name; read_image/write_image dispatch on the name
@@ -155,11 +155,18 @@ def _decoder_error(path: Path, fmt: str, e: Exception, logged: list[str] = ()) -
                       f"({why})".splitlines()[0])
 
 
-def probe_image(path: str | os.PathLike) -> ImageHeader:
-    """Read an image file's header only (no pixel decoding); ``InputError`` if it has none."""
+def _only_exr_layers(path: Path, layer: str | None) -> None:
+    if layer is not None and image_format(path) != "exr":
+        raise InputError(f"{path}:{layer}: only EXR files have named layers")
+
+
+def probe_image(path: str | os.PathLike, layer: str | None = None) -> ImageHeader:
+    """Read an image file's header only (no pixel decoding); ``InputError`` if it has none.
+    ``layer``: an EXR file's colour layer (``clblur.io.exr.find_channels``)."""
     path = Path(path)
     fmt = image_format(path)
     require_file(path, "image")
+    _only_exr_layers(path, layer)
     header = None
     logged: list[str] = []
     try:
@@ -182,7 +189,7 @@ def probe_image(path: str | os.PathLike) -> ImageHeader:
         elif fmt == "exr":
             from clblur.io.exr import probe
 
-            header = ImageHeader(*probe(path))
+            header = ImageHeader(*probe(path, layer))
         elif fmt == "netpbm":
             from clblur.io import netpbm
 
@@ -218,9 +225,11 @@ def describe_size(nbytes: int | float) -> str:
     return f"{int(nbytes)} B"
 
 
-def check_decodable(path: str | os.PathLike, max_bytes: int | None = None) -> ImageHeader:
-    """Probe ``path`` and refuse it when its decoded size is too large to hold in memory."""
-    header = probe_image(path)
+def check_decodable(path: str | os.PathLike, max_bytes: int | None = None,
+                    layer: str | None = None) -> ImageHeader:
+    """Probe ``path`` and refuse it when its decoded size is too large to hold in memory
+    (``layer``: as for :func:`probe_image`)."""
+    header = probe_image(path, layer)
     pixels = header.height * header.width
     if pixels > MAX_DECODE_PIXELS:
         raise InputError(f"image {path} claims {header.width} x {header.height} pixels, more "
@@ -235,7 +244,8 @@ def check_decodable(path: str | os.PathLike, max_bytes: int | None = None) -> Im
     return header
 
 
-def read_image(path: str | os.PathLike, max_bytes: int | None = None) -> np.ndarray:
+def read_image(path: str | os.PathLike, max_bytes: int | None = None,
+               layer: str | None = None) -> np.ndarray:
     """Read an image file whole.
 
     Parameters
@@ -244,6 +254,9 @@ def read_image(path: str | os.PathLike, max_bytes: int | None = None) -> np.ndar
         PNG, TIFF, JPEG, BMP, WebP, OpenEXR or Netpbm PGM / PPM (``IMAGE_FORMATS``).
     max_bytes : int, optional
         Refuse (before decoding) images whose decoded pixels take more bytes.
+    layer : str, optional
+        An EXR file's colour layer (``LAYER.R/G/B/A``; ``clblur.io.exr.find_channels``), for
+        a multilayer file with more than one.
 
     Returns
     -------
@@ -254,11 +267,11 @@ def read_image(path: str | os.PathLike, max_bytes: int | None = None) -> np.ndar
     """
     path = Path(path)
     require_file(path, "image")
-    check_decodable(path, max_bytes)
+    check_decodable(path, max_bytes, layer)
     if image_format(path) == "exr":  # linear float channels: clblur.io.exr
         from clblur.io import exr
 
-        return exr.read_image(path)
+        return exr.read_image(path, layer)
     if image_format(path) == "netpbm":  # no orientation tag: stored as displayed
         from clblur.io import netpbm
 
@@ -493,6 +506,15 @@ def _read_opencv(path: Path) -> np.ndarray:
 EIGHT_BIT_FORMATS = ("jpeg", "bmp", "webp")
 
 
+def exr_layout(path: str | os.PathLike, layer: str | None = None):
+    """The ``clblur.io.exr.Layout`` of an EXR image file, None for other formats."""
+    if image_format(Path(path)) != "exr":
+        return None
+    from clblur.io import exr
+
+    return exr.layout(path, layer)
+
+
 def _for_opencv(path: Path, fmt: str, image: np.ndarray) -> np.ndarray:
     """``image`` in a layout and depth OpenCV writes as ``fmt`` without losing what the format
     can hold: grey + alpha as RGBA (no such OpenCV layout), 16-bit codes scaled to the nearest
@@ -507,14 +529,17 @@ def _for_opencv(path: Path, fmt: str, image: np.ndarray) -> np.ndarray:
     return image
 
 
-def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
-    """Write an image atomically; the format follows the extension (``image_format``)."""
+def write_image(path: str | os.PathLike, image: np.ndarray, *, layout=None) -> None:
+    """Write an image atomically; the format follows the extension (``image_format``).
+    ``layout``: an EXR input's ``clblur.io.exr.Layout`` (:func:`exr_layout`), kept by an EXR
+    output (its windows, pixel aspect ratio, screen window, line order, compression and
+    float16 colour); other formats have no such header and ignore it."""
     path = Path(path)
     fmt = image_format(path)
     if fmt == "exr":
         from clblur.io import exr
 
-        exr.write_image(path, image)
+        exr.write_image(path, image, layout=layout)
         return
     if fmt == "netpbm":
         from clblur.io import netpbm
