@@ -17,7 +17,8 @@ Conventions
   premultiplied in linear light, and after integration the response is applied to the light
   per unit coverage and multiplied by the integrated coverage (an opaque colour stays at or
   below its coverage under a bounded response).  A pixel without coverage (light without
-  coverage, e.g. a glow) is linearised as given.  Coverage is integrated as is.
+  coverage, e.g. a glow) is linearised as given.  Coverage is integrated as is and kept in
+  [0, 1].
 """
 
 from __future__ import annotations
@@ -184,7 +185,9 @@ def finish(acc: np.ndarray, plan: BlurPlan) -> np.ndarray:
         unit = np.where(seen, cover, 1.0)
         out[..., c] = plan.responses[c].forward(acc[..., c] / unit) * unit
     if plan.alpha:
-        out[..., -1] = acc[..., -1]
+        # a mean of coverages in [0, 1] stays there; float32 sums (a device's) can end one
+        # step past 1, and an "over" would then take a negative share of what is behind
+        out[..., -1] = np.clip(acc[..., -1], 0.0, 1.0)
         if straight:
             out[..., :colour] = np.where(seen[..., None], out[..., :colour], 0.0)
     return plan.finish(quantise(out, plan.dtype))
