@@ -432,6 +432,51 @@ def test_concurrent_calls_from_threads_match_sequential_ones(opencl, rng):
         assert np.array_equal(got, want)
 
 
+def _forked_child(queue) -> None:
+    """In a worker forked after the parent used OpenCL: what each backend choice does."""
+    import warnings
+
+    import clblur
+
+    img = np.full((16, 16, 3), 100, np.uint8)
+    try:
+        clblur.blur(img, (4.0, 1.0), "srgb", backend="opencl")
+        queue.put(("opencl", "ran"))
+    except Exception as e:  # noqa: BLE001 - reported to the parent
+        queue.put(("opencl", f"{type(e).__name__}: {e}"))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        got = clblur.blur(img, (4.0, 1.0), "srgb", backend="auto")
+    same = np.array_equal(got, clblur.blur(img, (4.0, 1.0), "srgb", backend="numpy"))
+    queue.put(("auto", same, [str(w.message) for w in caught]))
+
+
+@pytest.mark.opencl
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork on this platform")
+def test_a_worker_forked_after_opencl_is_refused_not_hung(opencl):
+    """A DataLoader-style worker forked after the parent's first OpenCL call hung forever in
+    its first upload (PoCL's threads do not survive fork). It now gets a one-line reason for
+    backend="opencl", and "auto" falls back to numpy with its warning."""
+    import multiprocessing as mp
+
+    import clblur
+
+    clblur.blur(np.zeros((8, 8, 3), np.uint8), (2.0, 0.0), "srgb", backend="opencl")
+    ctx = mp.get_context("fork")
+    queue = ctx.Queue()
+    child = ctx.Process(target=_forked_child, args=(queue,))
+    child.start()
+    try:
+        first, second = queue.get(timeout=120), queue.get(timeout=120)
+    finally:
+        child.join(10)
+        if child.is_alive():
+            child.kill()
+    assert first[0] == "opencl" and "OpenCLUnavailable" in first[1] and "spawn" in first[1]
+    assert second[0] == "auto" and second[1] is True
+    assert any("do not survive fork" in m for m in second[2])
+
+
 # --- measured error table for docs/tolerances.md: python tests/test_opencl.py ------------------
 
 def measure_errors() -> None:

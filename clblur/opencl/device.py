@@ -6,9 +6,14 @@ Conventions
   first device.  A selector is ``"P:D"`` (platform and device indices, as ``clblur info``
   lists them) or a case-insensitive substring of ``"<platform name> <device name>"``.
 * Nothing is created at import (pyopencl itself is imported on first use).  Each process
-  builds one context and queue per selector on first use (a forked worker notices the new
-  pid and builds its own); programs are cached by build options, device buffers are reused
-  between calls.  No OpenCL object leaves this module's state, so nothing needs pickling.
+  builds one context and queue per selector on first use; programs are cached by build
+  options, device buffers are reused between calls.  No OpenCL object leaves this module's
+  state, so nothing needs pickling.
+* Processes: a worker started with ``spawn`` or ``forkserver`` (or forked before this process
+  touched OpenCL) builds its own.  A worker forked *after* it did cannot: the drivers' threads
+  and device state do not survive ``fork`` (PoCL's workers hung forever in the child's first
+  upload), so there OpenCL is unusable, with a message that says why; ``backend="auto"``
+  falls back to numpy with its one warning.
 * Devices that do not share host memory (GPUs) get two in-order queues (bands of an image
   overlap upload, kernel and download across them) and pinned (``ALLOC_HOST_PTR``) staging
   buffers, reused across calls; CPU devices read the caller's arrays in place.
@@ -57,8 +62,26 @@ def _selector(device: str | None) -> str:
     return sel.strip()
 
 
+# the process that first called into an OpenCL driver (None: none has in this process line)
+_touched_in: int | None = None
+
+
+def _check_not_forked() -> None:
+    """Refuse OpenCL in a process forked after its parent initialised a driver (module
+    Conventions): the child would hang in its first command."""
+    if _touched_in is not None and _touched_in != os.getpid():
+        raise OpenCLUnavailable(
+            f"OpenCL was initialised in process {_touched_in} before it forked this one, and "
+            "OpenCL drivers do not survive fork; start workers with the 'spawn' method "
+            "(multiprocessing.get_context('spawn'); a torch DataLoader's "
+            "multiprocessing_context='spawn'), or fork before the first OpenCL call")
+
+
 def _enumerate() -> list[tuple[int, int, object, object]]:
+    global _touched_in
+    _check_not_forked()
     cl = pyopencl_module()
+    _touched_in = os.getpid()
     try:
         platforms = cl.get_platforms()
     except cl.Error as e:
@@ -235,7 +258,7 @@ def runtimes() -> dict[str, Runtime]:
     return dict(_runtimes)
 
 
-_usable: dict[str, tuple[bool, str]] = {}
+_usable: dict[tuple[str, int], tuple[bool, str]] = {}
 _registry_lock = threading.Lock()
 
 
@@ -246,6 +269,7 @@ def runtime(device: str | None = None) -> Runtime:
         rt = _runtimes.get(sel)
         if rt is not None and rt.pid == os.getpid():
             return rt
+        _check_not_forked()
         cl = pyopencl_module()
         pi, di, platform, dev = _pick(sel)
         try:
@@ -287,8 +311,9 @@ def usable(device: str | None = None) -> tuple[bool, str]:
 
     The answer is cached per selector for the life of the process."""
     sel = _selector(device)
-    if sel in _usable:
-        return _usable[sel]
+    key = (sel, os.getpid())  # a forked child asks again (module Conventions)
+    if key in _usable:
+        return _usable[key]
     try:
         rt = runtime(sel)
         with rt.lock:
@@ -300,7 +325,7 @@ def usable(device: str | None = None) -> tuple[bool, str]:
         answer = (False, str(e))
     except Exception as e:  # noqa: BLE001 - any driver failure means "not usable"
         answer = (False, f"{type(e).__name__}: {e}")
-    _usable[sel] = answer
+    _usable[key] = answer
     return answer
 
 
