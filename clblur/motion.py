@@ -26,6 +26,7 @@ Conventions
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -44,6 +45,8 @@ EXPOSURES = ("frames", "continuous")  # module Conventions
 # Largest flow component accepted, in px: far beyond any image, small enough that sample
 # positions keep 2^-8 px in float32 and the per-pixel sample count stays bounded.
 FLOW_LIMIT = 65536.0
+# PSF weights this far below 0, relative to the largest, are round-off (clipped to 0)
+PSF_ROUNDOFF = 1e-6
 
 
 @dataclass(frozen=True)
@@ -147,6 +150,10 @@ def parse_motion(motion, shape: tuple[int, int], check: bool = True) -> Motion:
             check_flow(flow)
         return Field(flow)
     if arr.ndim == 2:
+        if arr.shape in ((1, 2), (2, 1)):  # vecs[i:i+1] looks like a vector and is not one
+            warnings.warn(f"a {arr.shape[0]} x {arr.shape[1]} motion array is a PSF of two "
+                          "taps, not a vector (dx, dy); pass a tuple or a flat array of two "
+                          "for a vector", stacklevel=3)
         return psf(arr)
     raise InputError(f"motion has shape {arr.shape}; expected (2,), (H, W, 2) or a 2-D PSF")
 
@@ -158,7 +165,15 @@ def psf(kernel: np.ndarray) -> PSF:
         raise InputError(f"PSF must be a non-empty 2-D array, got shape {k.shape}")
     _finite_vector(k, "PSF")
     if (k < 0).any():
-        raise InputError("PSF weights must be non-negative")
+        # a resampled or rotated kernel leaves round-off just below 0: that is no weight
+        floor = PSF_ROUNDOFF * float(np.abs(k).max())
+        low = float(k.min())
+        if low < -floor:
+            at = np.unravel_index(int(np.argmin(k)), k.shape)
+            raise InputError(f"PSF weights must be non-negative, got {low:.3g} at (row, col) "
+                             f"{tuple(int(i) for i in at)} (values within {PSF_ROUNDOFF:g} of "
+                             "the largest below 0 count as round-off, 0)")
+        k = np.maximum(k, 0.0)
     total = k.sum()
     if total <= 0:
         raise InputError("PSF weights sum to zero")

@@ -6,6 +6,7 @@ inputs and raise the same clear errors.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -89,6 +90,9 @@ def check_image(image) -> np.ndarray:
     """Return ``image`` as an H x W x C array, or raise a clear error."""
     if not isinstance(image, np.ndarray):
         raise InputTypeError(f"image must be a numpy array, got {type(image).__name__}")
+    if not image.dtype.isnative and image.dtype.newbyteorder("=") in [
+            np.dtype(d) for d in SUPPORTED_DTYPES]:
+        image = image.astype(image.dtype.newbyteorder("="))  # big-endian data: same values
     if image.dtype not in [np.dtype(d) for d in SUPPORTED_DTYPES]:
         raise InputTypeError(f"unsupported image dtype {image.dtype}; use uint8, uint16, float32 "
                              "or float64")
@@ -125,6 +129,13 @@ def make_plan(image, motion, response="exp", *, anchor: str = "center",
         # a PSF's taps are its samples and their weights: the options would be dropped
         raise InputError("samples and weights apply to motion vectors; a PSF carries its own "
                          "taps and weights")
+    if isinstance(parsed, Uniform) and n is None and \
+            math.hypot(parsed.dx, parsed.dy) > FLOW_LIMIT:
+        # the default ceil(|v|) + 1 samples: 1e9 px had allocated 7.5 GiB of positions (or
+        # drawn the OOM killer), 1e6 px ran for minutes; the flows' limit, as the CLI's
+        raise InputError(f"motion ({parsed.dx:g}, {parsed.dy:g}) is longer than "
+                         f"{FLOW_LIMIT:g} px and would take that many samples per pixel by "
+                         "default; give a sample count (samples=N, --samples N)")
     if exposure == "continuous":
         if isinstance(parsed, PSF):
             raise InputError("exposure='continuous' applies to motion vectors; a PSF carries "

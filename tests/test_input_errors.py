@@ -200,3 +200,28 @@ def test_opencl_flow_refused_on_the_device_is_an_input_error(opencl):
     # the device counts bad flow components (NaN, beyond the limit) instead of the host
     _raises(lambda: clblur.blur(IMG, NAN_FLOW, backend="opencl"), False)
     _raises(lambda: clblur.blur(IMG, (1.0, 0.0), backend="opencl", device="9:9"), False)
+
+
+def test_what_an_augmentation_pipeline_hands_over(rng):
+    """A random draw's huge vector is refused before it allocates (1e9 px had allocated
+    7.5 GiB of sample positions, or drawn the OOM killer), unless a sample count is given; a
+    big-endian image is its values; round-off just below 0 in a resampled PSF is 0, a real
+    negative lobe is named; a 1 x 2 array is a PSF, with a warning that it is no vector."""
+    img = rng.random((12, 14, 3)).astype(np.float32)
+    for v in ((1e9, 0.0), (0.0, -7e4), (5e4, 5e4)):
+        with pytest.raises(InputError, match="longer than 65536 px.*samples=N"):
+            clblur.blur(img, v, "srgb", backend="numpy")
+    assert clblur.blur(img, (1e9, 0.0), "srgb", samples=3, backend="numpy").shape == img.shape
+    np.testing.assert_array_equal(clblur.blur(img.astype(">f4"), (3.0, 1.0), "srgb",
+                                              backend="numpy"),
+                                  clblur.blur(img, (3.0, 1.0), "srgb", backend="numpy"))
+    kernel = np.array([[0.0, 1.0, 1.0, 1.0, 0.0]])
+    rounded = kernel.copy()
+    rounded[0, 4] = -1e-12
+    np.testing.assert_array_equal(clblur.blur(img, rounded, "srgb", backend="numpy"),
+                                  clblur.blur(img, kernel, "srgb", backend="numpy"))
+    rounded[0, 4] = -0.01
+    with pytest.raises(InputError, match=r"-0.01 at \(row, col\) \(0, 4\)"):
+        clblur.blur(img, rounded, "srgb", backend="numpy")
+    with pytest.warns(UserWarning, match="PSF of two taps, not a vector"):
+        clblur.blur(img, np.array([[8.0, 3.0]]), "srgb", backend="numpy")
