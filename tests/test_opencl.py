@@ -5,7 +5,7 @@ Tolerances (reasoning in docs/tolerances.md):
 * Integer outputs (uint8, uint16): every pixel within 1 code value of the reference; a
   pixel may differ at all only where the reference's unrounded value lies within
   ``TIE_LSB`` = 0.3 code values of a rounding boundary (k + 1/2); and at most
-  ``MAX_DIFFER`` = 2 % of the pixels differ, not counting exact ties (within 1e-6 codes of
+  ``MAX_DIFFER`` = 3 % of the pixels differ, not counting exact ties (within 1e-6 codes of
   a boundary, where the reference itself rounds on float64 noise).  The kernel rounds exactly
   (it compares exposures with float64-derived boundaries); what moves a value across a
   boundary is float32 arithmetic and, for uint8 only, half-float storage of exposures, whose
@@ -35,7 +35,7 @@ from clblur.request import make_plan
 from clblur.responses import ExpShape, Gamma, Table, response
 
 TIE_LSB = 0.3
-MAX_DIFFER = 0.02
+MAX_DIFFER = 0.03  # sub-pixel motions under linear reach 1.8 - 2.3 % (docs/tolerances.md)
 EXACT_TIE_LSB = 1e-6
 FLOAT_ATOL = 2e-5
 FLOAT_RTOL = 1e-5
@@ -173,6 +173,17 @@ def test_mixed_per_channel_responses(opencl, rng, dtype):
     img = random_image(rng, dtype, 5)
     for motion in (discontinuous_flow(rng), (3.3, 1.7), np.ones((3, 5))):
         assert_matches_reference(opencl, make_plan(img, motion, mixed))
+
+
+@pytest.mark.opencl
+def test_sub_pixel_motion_under_linear(opencl, rng):
+    """The worst case of the integer bound's share: sub-pixel mixes of uint8 codes under the
+    linear response leave many pixels near a rounding boundary, where half storage (0.125
+    codes under linear) can move them (1.8 % on 256 x 256; it had been stated as 2 % from a
+    sweep without sub-pixel motions)."""
+    img = rng.integers(0, 256, (64, 64, 3), dtype=np.uint8)
+    for motion in ((0.19, -0.079), (0.3, 0.3), (0.347, 0.162)):
+        assert_matches_reference(opencl, make_plan(img, motion, "linear"))
 
 
 @pytest.mark.opencl
