@@ -32,6 +32,7 @@ Conventions
 from __future__ import annotations
 
 import contextlib
+import functools
 import io
 import os
 import sys
@@ -113,16 +114,24 @@ def describe_window(w: Window) -> str:
 
 def layout(path: str | os.PathLike, layer: str | None = None) -> Layout:
     """The :class:`Layout` of an EXR file (``layer``: the colour layer whose pixel type
-    counts, as :func:`find_channels` picks it)."""
-    exr = _openexr()
+    counts, as :func:`find_channels` picks it).  The bindings tell a channel's pixel type
+    only with its pixels, so the file is read; a command asks more than once, so the answer
+    is kept per file version (path, size, modification time)."""
     path = Path(path)
     require_file(path, "EXR")
+    stat = path.stat()
+    return _layout(str(path), stat.st_size, stat.st_mtime_ns, layer)
+
+
+@functools.lru_cache(maxsize=32)
+def _layout(path: str, size: int, mtime: int, layer: str | None) -> Layout:
+    exr = _openexr()
     with _reading(path), exr.File(str(path), separate_channels=True) as f:
         header = dict(f.header())
         types = {name: c.pixels.dtype for name, c in f.channels().items()}
     data = _window(header["dataWindow"]) if "dataWindow" in header else None
     if data is None:  # some writers' headers come back without it: the pixels' extent
-        h, w = next(iter(_read_pixels(path).values())).shape
+        h, w = next(iter(_read_pixels(Path(path)).values())).shape
         data = (0, 0, w - 1, h - 1)
     display = _window(header["displayWindow"]) if "displayWindow" in header else data
     try:
@@ -137,11 +146,24 @@ def layout(path: str | os.PathLike, layer: str | None = None) -> Layout:
                   bool(colour) and all(types[c] == np.float16 for c in colour))
 
 
+def _data_window(path: str | os.PathLike) -> Window:
+    """A file's data window from its header alone (from its pixels where the header comes
+    back without one)."""
+    exr = _openexr()
+    require_file(Path(path), "EXR")
+    with _reading(path), exr.File(str(path), header_only=True) as f:
+        header = dict(f.header())
+    if "dataWindow" in header:
+        return _window(header["dataWindow"])
+    h, w = next(iter(_read_pixels(Path(path)).values())).shape
+    return 0, 0, w - 1, h - 1
+
+
 def align(array: np.ndarray, path: str | os.PathLike, image: Layout, what: str) -> np.ndarray:
     """``array``, read from the EXR ``path``, on the image's data window: as it is where the
     two windows agree, cropped where the file's window covers the image's, else refused
     (the pixels are matched by their place in the picture, not by their array index)."""
-    own = layout(path).data_window
+    own = _data_window(path)
     want = image.data_window
     if own == want:
         return array
