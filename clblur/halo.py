@@ -21,8 +21,7 @@ import numpy as np
 
 from clblur.errors import InputError, InputTypeError
 from clblur.io import as_array_like, open_flow
-from clblur.motion import PSF, Field, Uniform, psf
-from clblur.request import make_plan
+from clblur.motion import PSF, Field, Uniform, parse_motion, psf
 
 __all__ = ["TiledMotion", "fixed_halo", "flow_halo", "global_flow_halo", "halo_for_reach",
            "reach", "tiled_motion"]
@@ -41,7 +40,7 @@ def tiled_motion(motion, shape: tuple[int, int]) -> TiledMotion:
     """Classify ``motion`` without loading a flow field: ``(dx, dy)``, an H x W x 2 array-like
     (numpy, np.memmap, zarr, MappedRaster), a ``.npy``/``.flo`` path, or a 2-D PSF."""
     if isinstance(motion, (Uniform, PSF)):
-        return TiledMotion(fixed=make_plan(np.zeros((1, 1), np.uint8), motion).motion)
+        return TiledMotion(fixed=parse_motion(motion, (1, 1)))
     if isinstance(motion, Field):
         motion = motion.flow
     if isinstance(motion, (str, os.PathLike)):
@@ -49,7 +48,7 @@ def tiled_motion(motion, shape: tuple[int, int]) -> TiledMotion:
     if not hasattr(motion, "shape"):
         motion = np.asarray(motion)
     if np.ndim(motion) == 1 or tuple(motion.shape) == (2,):
-        return TiledMotion(fixed=make_plan(np.zeros((1, 1), np.uint8), motion).motion)
+        return TiledMotion(fixed=parse_motion(motion, (1, 1)))
     if len(motion.shape) == 2:
         return TiledMotion(fixed=psf(np.asarray(motion)))
     if len(motion.shape) == 3:
