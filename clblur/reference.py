@@ -51,9 +51,14 @@ def _window_corners(img: np.ndarray, x: np.ndarray, y: np.ndarray, origin: tuple
     r0, c0 = origin
     h, w = img.shape[:2]
     y0, y1, x0, x1, fx, fy = bilinear_corners(x, y, fh, fw)
-    x0, x1 = np.clip(x0 - c0, 0, w - 1), np.clip(x1 - c0, 0, w - 1)
-    y0, y1 = np.clip(y0 - r0, 0, h - 1), np.clip(y1 - r0, 0, h - 1)
+    (x0, x1), (y0, y1) = _in_window((x0, x1), c0, w), _in_window((y0, y1), r0, h)
     return img[y0, x0], img[y0, x1], img[y1, x0], img[y1, x1], fx[..., None], fy[..., None]
+
+
+def _in_window(corners, start: int, size: int):
+    """Full-image corner indices on one axis as indices of a window starting at ``start``
+    (``size`` long), clipped to it as a guard (a correct halo never needs it)."""
+    return tuple(np.clip(i - start, 0, size - 1) for i in corners)
 
 
 def bilinear_at(img: np.ndarray, x: np.ndarray, y: np.ndarray, origin: tuple[int, int],
@@ -89,8 +94,7 @@ def shifted(img: np.ndarray, ox: float, oy: float, plan: BlurPlan) -> np.ndarray
     y = np.arange(r0, r0 + h, dtype=np.float64) + oy
     _, _, x0, x1, fx, _ = bilinear_corners(x, np.zeros_like(x), fh, fw)
     y0, y1, _, _, _, fy = bilinear_corners(np.zeros_like(y), y, fh, fw)
-    x0, x1 = np.clip(x0 - c0, 0, w - 1), np.clip(x1 - c0, 0, w - 1)
-    y0, y1 = np.clip(y0 - r0, 0, h - 1), np.clip(y1 - r0, 0, h - 1)
+    (x0, x1), (y0, y1) = _in_window((x0, x1), c0, w), _in_window((y0, y1), r0, h)
     if not (fx.any() or fy.any()):  # a whole-pixel offset: the corner itself, exactly
         return np.take(np.take(img, y0, axis=0), x0, axis=1)
     shape = (1, w) + (1,) * (img.ndim - 2)

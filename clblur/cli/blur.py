@@ -54,7 +54,7 @@ def register(sub) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from clblur.io import IMAGE_FORMATS, check_output, exr_layout, probe_image
-    from clblur.io.flows import depth_source as exr_part
+    from clblur.io.flows import exr_part
     from clblur.layering import NAMED_ORDERS
     from clblur.tiling import blur_file, parse_size
 
@@ -105,7 +105,7 @@ def _blur_whole(args: argparse.Namespace, alpha: bool) -> None:
     """Layered exposure and alpha: the whole image in memory, written atomically."""
     import clblur
     from clblur.io import exr_layout, read_depth, read_flow, read_image, write_image
-    from clblur.io.flows import depth_source as exr_part
+    from clblur.io.flows import exr_part
     from clblur.layering import NAMED_ORDERS
     from clblur.tiling import parse_size
 

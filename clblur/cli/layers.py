@@ -46,7 +46,7 @@ def register(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     import clblur
     from clblur.io import IMAGE_FORMATS, check_output, exr_layout, read_image, write_image
-    from clblur.io.flows import depth_source as exr_part
+    from clblur.io.flows import exr_part
     from clblur.vectors import load_flow
 
     paths = [exr_part(p)[0] for pair in args.layer for p in pair]
@@ -116,9 +116,7 @@ def _cut(layout, overscan: int):
     state it, the picture left is the display window too."""
     if layout is None:
         return None
-    if layout.overscan():
-        return layout.inset(overscan)
     from dataclasses import replace
 
     cut = layout.inset(overscan)
-    return replace(cut, display_window=cut.data_window)
+    return cut if layout.overscan() else replace(cut, display_window=cut.data_window)

@@ -154,7 +154,7 @@ def motion_from_args(args: argparse.Namespace, bent: bool = False, layout=None) 
     (``clblur.io.exr.Layout``): an EXR flow or vector file is then read and its pixels put
     on the image's data window (``clblur.io.exr.align``)."""
     from clblur.io import read_psf
-    from clblur.io.flows import depth_source as exr_part
+    from clblur.io.flows import exr_part
 
     if args.motion is not None:
         return parse_vector(args.motion)

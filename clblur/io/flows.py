@@ -23,7 +23,7 @@ from clblur.io.images import read_image
 from clblur.io.paths import require_file
 from clblur.io.raster import MappedRaster
 
-__all__ = ["FLO_MAGIC", "MAX_PSF_SIDE", "depth_source", "open_flow", "read_depth", "read_flow",
+__all__ = ["FLO_MAGIC", "MAX_PSF_SIDE", "exr_part", "open_flow", "read_depth", "read_flow",
            "read_psf", "write_flow"]
 
 FLO_MAGIC = 202021.25  # Middlebury .flo tag
@@ -155,7 +155,7 @@ def _kernel_weights(image: np.ndarray) -> np.ndarray:
     return weight
 
 
-def depth_source(spec: str | os.PathLike) -> tuple[str, str | None]:
+def exr_part(spec: str | os.PathLike) -> tuple[str, str | None]:
     """``(file, EXR name or None)`` of a file spec: ``FILE``, or ``FILE.exr:NAME`` naming a
     channel (a depth spec: ``FILE.exr:CHANNEL``) or a layer prefix (``clblur blur-layers``:
     ``render.exr:Ball.Combined``).  The one parser for readers and output checks."""
@@ -172,7 +172,7 @@ def read_depth(path: str | os.PathLike) -> np.ndarray:
     ``FILE.exr`` finds ``Z`` / ``depth.Z`` / ``<layer>.Depth.Z``; ``FILE.exr:CHANNEL`` names
     the channel.  Smaller is nearer (see ``clblur.blur``'s ``depth``).
     """
-    path, channel = depth_source(path)
+    path, channel = exr_part(path)
     if path.lower().endswith(".exr"):
         from clblur.io.exr import read_depth as read_exr_depth
 
