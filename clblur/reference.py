@@ -111,8 +111,6 @@ def shifted(img: np.ndarray, ox: float, oy: float, plan: BlurPlan) -> np.ndarray
 def integrate(lin: np.ndarray, plan: BlurPlan) -> np.ndarray:
     """Weighted mean of the linearised image along each pixel's motion path."""
     h, w = lin.shape[:2]
-    r0, c0 = plan.origin
-    yy, xx = np.mgrid[r0:r0 + h, c0:c0 + w].astype(np.float64)  # full-image coordinates
     m = plan.motion
     if isinstance(m, Uniform):
         offsets, wts = uniform_taps(m, plan.samples, plan.anchor, plan.weights)
@@ -121,6 +119,8 @@ def integrate(lin: np.ndarray, plan: BlurPlan) -> np.ndarray:
             acc += wj * shifted(lin, ox, oy, plan)
         return acc
     if isinstance(m, Field):
+        r0, c0 = plan.origin
+        yy, xx = np.mgrid[r0:r0 + h, c0:c0 + w].astype(np.float64)  # full-image coordinates
         vx = m.flow[..., 0].astype(np.float64)
         vy = m.flow[..., 1].astype(np.float64)
         if plan.samples is None:
