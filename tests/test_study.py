@@ -580,6 +580,67 @@ def test_a_cause_outside_the_vocabulary_is_reported_as_structure_left(amplitude)
         assert "What the model leaves: no structure" in markdown(r)
 
 
+@pytest.mark.parametrize("seed", [1, 2])
+def test_values_at_either_end_are_censored_not_left_out(seed):
+    # a wide-range scene through the paper's own camera with shot and read noise: the long
+    # exposures clip, the short ones reach code 0.  Left out, the values that noise pushed
+    # over an end bent the fitted curve away from both ends, which read as a black level,
+    # quantisation and a response shape (seeds 1, 2); with the ends' tails in the
+    # likelihood (``model.gaussian_nll``) only the noise is found.
+    rng = np.random.default_rng(seed)
+    cam = Camera(noise_a=1e-3, noise_b=1e-5)
+    scene = np.exp(np.log(0.003) + np.log(1000.0) * random_scene(rng, (64, 96), 3, 0.0, 1.0))
+    times = [2.0, 1.0, 0.5, 0.25, 0.125]
+    images = [cam.capture(scene, t, rng=rng) for t in times]
+    assert (images[0] == 255).mean() > 0.1 and (images[-1] == 0).mean() > 0.02
+    groups = series_groups(images, times)
+    assert all(g.censored is not None and (g.censored != 0).any() for g in groups)
+    r = study_groups("exposure-series", groups).report
+    assert [f["effect"] for f in r["findings"] if f["significant"]] == ["noise"]
+    assert not r["leftover"]["structure"], r["leftover"]
+
+
+def test_censored_values_weigh_their_tail_pooled_or_not():
+    # a censored value's likelihood is the Gaussian tail beyond its end, and pooling rows
+    # of one prediction (clblur.study.compact) keeps it to rounding
+    from scipy import stats
+
+    from clblur.study.compact import compact
+    from clblur.study.model import gaussian_nll, observed_mean
+    from clblur.study.variants import pixel_nll
+
+    rng = np.random.default_rng(4)
+    cam = Camera(noise_a=1e-3, noise_b=1e-5)
+    scene = np.exp(np.log(0.003) + np.log(1000.0) * random_scene(rng, (32, 48), 3, 0.0, 1.0))
+    images = [cam.capture(scene, t, rng=rng) for t in (2.0, 1.0, 0.5)]
+    g = series_groups(images, [2.0, 1.0, 0.5])[1]
+    # a series' target is the shorter image, so it reaches the clip code mostly where its
+    # source clipped (left out); the upper tail's arithmetic is checked on bright values
+    # marked censored here
+    bright = g.valid & (g.target > 200) & (rng.random(g.valid.shape) < 0.5)
+    g.censored[bright], g.valid[bright] = 1, False
+    p = null_params()
+    pred, var = predict(g, p)
+    low, high = g.censored < 0, g.censored > 0
+    assert low.any() and high.any() and not (g.valid & (g.censored != 0)).any()
+    sd = np.sqrt(var)
+    want = np.where(g.valid, -stats.norm.logpdf(g.target, pred, sd), 0.0)
+    want += np.where(low, -stats.norm.logcdf(0.5, pred, sd), 0.0)
+    want += np.where(high, -stats.norm.logsf(g.top - 0.5, pred, sd), 0.0)
+    np.testing.assert_allclose(gaussian_nll(g, pred, var), want.sum(axis=1), rtol=1e-10)
+    pooled = compact(g, position_matters=False)
+    assert pooled is not g and (pooled.censored != 0).any()
+    assert pooled.target.shape[0] < g.target.shape[0]  # rows of all three channels
+    np.testing.assert_allclose(pixel_nll(pooled, p).sum(), pixel_nll(g, p).sum(), rtol=1e-10)
+    # a kept value's mean given that it was kept: the truncated Gaussian's, far from the
+    # ends the prediction itself
+    kept = observed_mean(g, pred, var)
+    a, b = (0.5 - pred) / sd, (g.top - 0.5 - pred) / sd
+    np.testing.assert_allclose(kept, stats.truncnorm.mean(a, b, pred, sd), rtol=1e-9, atol=1e-9)
+    far = (a < -8) & (b > 8)
+    assert far.any() and (kept[far] == pred[far]).all()
+
+
 def test_a_noisy_source_is_no_structure_left():
     # a noisy source code predicts too high where few pixels are brighter (regression to
     # the mean); binned by the prediction, these null series (shot noise a = 1e-3) read as

@@ -15,10 +15,12 @@ Conventions
 A compact group keeps ``C`` channels; its rows come in channel blocks, block ``c`` valid only
 in channel ``c`` (the histogram rows of the other channels are empty), so the per-channel
 gains apply unchanged.  ``Group.__dict__["stats"]`` holds ``(N, S1, S2)`` as ``(n, C)``
-arrays (``model.gaussian_nll`` reads them).  Pixels whose histogram rows hold more than one
-code (motion) stay single rows.  For models with a geometric variant the variants' rows
-are part of what must be identical (``geometric``).  Where pooling would leave more than
-``_WORTH`` of the values (pairs and stacks: rows hold motion) the group is used as it is.
+arrays (``model.gaussian_nll`` reads them); censored values pool in rows of their own
+(``Group.censored`` set, ``valid`` not), whose count weighs the tail.  Pixels whose
+histogram rows hold more than one code (motion) stay single rows.  For models with a
+geometric variant the variants' rows are part of what must be identical (``geometric``).
+Where pooling would leave more than ``_WORTH`` of the values (pairs and stacks: rows hold
+motion) the group is used as it is.
 """
 
 from __future__ import annotations
@@ -92,18 +94,20 @@ def _compact(g: Group, position_matters: bool, geometric: bool,
         table = np.column_stack([np.asarray(f, np.float64) for f in fields])
         # multi-code rows stay apart: a unique last column
         table = np.column_stack([table, np.where(single, -1.0, np.arange(n, dtype=np.float64))])
-        valid = g.valid[:, c]
-        rows = np.flatnonzero(valid)
+        # censored values pool apart from observed ones (their likelihood is a tail's), by
+        # end: the censoring state is part of the key
+        ends = np.zeros(n, np.int8) if g.censored is None else g.censored[:, c]
+        rows = np.flatnonzero(g.valid[:, c] | (ends != 0))
         if rows.size == 0:
             continue
-        _, first, inverse = np.unique(table[rows], axis=0, return_index=True,
-                                      return_inverse=True)
+        _, first, inverse = np.unique(np.column_stack([table[rows], ends[rows]]), axis=0,
+                                      return_index=True, return_inverse=True)
         inverse = inverse.ravel()
         y = g.target[rows, c]
         count = np.bincount(inverse, minlength=first.size).astype(np.float64)
         s1 = np.bincount(inverse, y, minlength=first.size)
         s2 = np.bincount(inverse, y * y, minlength=first.size)
-        blocks.append((c, rows[first], count, s1, s2))
+        blocks.append((c, rows[first], count, s1, s2, ends[rows[first]]))
     if sum(b[1].size for b in blocks) > _WORTH * int(g.valid.sum()):
         return g  # rows hold motion: pooling would not pay for the channel blocks
     return _assemble(g, blocks, nc, variants)
@@ -113,14 +117,16 @@ def _assemble(g: Group, blocks: list, nc: int, variants: dict) -> Group:
     total = sum(b[1].size for b in blocks)
     stats = [np.zeros((total, nc)) for _ in range(3)]
     valid = np.zeros((total, nc), bool)
+    censored = np.zeros((total, nc), np.int8)
     target = np.zeros((total, nc))
     take, chan = [], []
     at = 0
-    for c, rows, count, s1, s2 in blocks:
+    for c, rows, count, s1, s2, ends in blocks:
         sl = slice(at, at + rows.size)
         for arr, v in zip(stats, (count, s1, s2), strict=True):
             arr[sl, c] = v
-        valid[sl, c] = True
+        valid[sl, c] = ends == 0
+        censored[sl, c] = ends
         target[sl, c] = s1 / count
         take.append(rows)
         chan.append(np.full(rows.size, c))
@@ -142,7 +148,8 @@ def _assemble(g: Group, blocks: list, nc: int, variants: dict) -> Group:
                 {k: per_channel(hs) for k, hs in g.hist.items()}, per_channel(g.hist_sq),
                 g.r2[take], g.block[take] if g.block is not None else None,
                 g.fold[take] if g.fold is not None else None, g.source_clipped,
-                None if g.images is None else g.images[take])
+                None if g.images is None else g.images[take],
+                None if g.censored is None else censored, g.top)
     out.__dict__["stats"] = stats
     out.__dict__["variants"] = {
         e: {v: {key: per_channel(hs) for key, hs in hist.items()} for v, hist in d.items()}

@@ -31,7 +31,7 @@ from clblur.study.effects import (
     is_per_image,
     param_range,
 )
-from clblur.study.model import WARP_KEYS, Group, time_ok
+from clblur.study.model import WARP_KEYS, Group, observed_mean, time_ok
 from clblur.study.shape_start import shape_starts
 from clblur.study.variants import (
     darkest_codes,
@@ -284,7 +284,9 @@ class Folds:
         for f in (0, 1):
             for g in self.part[f]:
                 pb, var = predict(g, base[1 - f])
-                pe, _ = predict(g, ext[1 - f])
+                pe, var_e = predict(g, ext[1 - f])
+                # kept values are compared with their mean given that they were kept
+                pb, pe = observed_mean(g, pb, var), observed_mean(g, pe, var_e)
                 out += block_terms(g, pb, pe, var, self.nblocks)
         return out[0], out[1], out[2]
 

@@ -21,7 +21,7 @@ import scipy.sparse as sp
 from clblur.camera import normalised_radius2
 from clblur.errors import InputError, InputTypeError
 from clblur.sampling import bilinear_corners
-from clblur.study.model import CODES, Group
+from clblur.study.model import CODES, Group, censored_ends
 
 __all__ = ["Spread", "Taps", "as_hwc", "build_group", "sample_grid", "shifted"]
 
@@ -150,7 +150,8 @@ def build_group(name: str, sources: list[np.ndarray], target: np.ndarray,
     r2 = normalised_radius2((h, w))[rows, cols]
     clipped = any(bool((s == 255).any()) for s in sources)
     g = Group(name, tgt, valid, rows, cols, (h, w), float(ratio), hist,
-              [hq.tocsr() for hq in hist_sq], r2, source_clipped=clipped)
+              [hq.tocsr() for hq in hist_sq], r2, source_clipped=clipped,
+              censored=censored_ends(tgt, np.ones(tgt.shape, bool), full), top=full)
     from clblur.study.variants import attach
 
     built = {eff: {key: (_spread_hists({i: m[keep] for i, m in base.items()}, fn, every,

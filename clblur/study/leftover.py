@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from clblur.study.crossfit import block_terms
+from clblur.study.model import observed_mean
 from clblur.study.significance import weighted_test
 from clblur.study.variants import predict
 
@@ -58,6 +59,7 @@ def _level(g: Group, p: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     leaves no offset by it, and a real departure, a function of the true code, still shows.
     """
     pred, var, share = predict(g, p, source_share=True)
+    pred = observed_mean(g, pred, var)  # a kept value's mean (``model.observed_mean``)
     return pred, var, pred + share * np.where(g.valid, g.target - pred, 0.0)
 
 

@@ -23,8 +23,18 @@ Noise model of the residual ``y - pred`` (code values), Gaussian with variance
 ``1/12 + nc + s^2 (na x_t + nb) + (s m)^2 sum_q M^2 (T'^2/12 + na T + nb)``:
 target quantisation, noise added to the coded values, target noise and source
 quantisation plus noise propagated through the average (``s`` the response slope at the
-prediction, ``T'`` the table's code step).  Target pixels at code 0 or 255 are censored and
-left out.
+prediction, ``T'`` the table's code step).
+
+Censoring.  A target at code 0 or at the clip code (255, or a camera's lower clip) says only
+that its value lies at or beyond that end, and its likelihood is that of the tail:
+``P(y < 0.5)`` or ``P(y > top - 0.5)`` under the same Gaussian (``Group.censored``).  Left
+out instead, the pixels that noise pushed over an end would be missing from one side of
+every prediction near it, so the values kept there read as a curve that bends away from
+the ends (dark values too bright, bright ones too dark): a hidden black level, exposures
+and white balances of their own.  An sRGB bracket of a real radiance map with shot and read
+noise read as all three; without the censored values' tails, and with them, the same data
+kept away from both ends read as none (docs/studies/method.md).  Residuals of the values
+kept are measured against their mean given that they were kept (``observed_mean``).
 """
 
 from __future__ import annotations
@@ -34,6 +44,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
+from scipy import special
 
 from clblur.responses import ExpShape
 from clblur.study.effects import (
@@ -45,8 +56,8 @@ from clblur.study.effects import (
     exposure_deviations,
 )
 
-__all__ = ["CODES", "TOP", "WARP_KEYS", "Group", "forward", "inverse_table", "null_params",
-           "gaussian_nll", "predict", "shape", "time_ok"]
+__all__ = ["CODES", "TOP", "WARP_KEYS", "Group", "censored_ends", "forward", "inverse_table",
+           "null_params", "gaussian_nll", "observed_mean", "predict", "shape", "time_ok"]
 
 CODES = 256
 # Free-shape warp coefficients of the response (``clblur.responses.ExpShape``); absent keys
@@ -80,6 +91,11 @@ class Group:
     # indices), for the images' own exposures and white balance (``effects``' ``lt:I``,
     # ``lw:I:c``); None outside a series
     images: np.ndarray | None = None
+    # (n, C) int8: -1 where the target is at code 0, +1 where it is at the clip code ``top``
+    # and the pixel is otherwise usable (its likelihood is the tail beyond that end), else 0;
+    # None: nothing censored
+    censored: np.ndarray | None = None
+    top: float = 255.0  # the clip code of the targets
 
     def time_norm(self, i: int) -> np.ndarray:
         """Row sums of time term ``i`` (the same for every channel), cached."""
@@ -129,7 +145,8 @@ class Group:
                      {k: [h[idx] for h in v] for k, v in self.hist.items()},
                      [h[idx] for h in self.hist_sq], self.r2[idx], self.block[idx],
                      self.fold[idx], self.source_clipped,
-                     None if self.images is None else self.images[idx])
+                     None if self.images is None else self.images[idx],
+                     None if self.censored is None else self.censored[idx], self.top)
 
 
 def shape(p: dict[str, float], factor: float = 1.0) -> ExpShape:
@@ -243,7 +260,7 @@ def predict(g: Group, p: dict[str, float], source_share: bool = False) -> tuple[
     m = ((g.ratio * np.exp(p["gain"]) * vig_out)[:, None] * np.asarray(gains)[None, :]
          * _image_factors(g, own, 1) * _image_factors(g, balance_deviations(p, nc), nc))
     x = m * e
-    v, dv = _forward(curves, factors, x, g.valid if "stats" in g.__dict__ else None)
+    v, dv = _forward(curves, factors, x, _evaluated(g) if "stats" in g.__dict__ else None)
     beta = np.asarray(betas)[None, :]
     scale = 255.0 * (1.0 - beta)
     pred = 255.0 * beta + scale * v
@@ -298,16 +315,67 @@ def _rowsum(h: sp.csr_matrix) -> np.ndarray:
 
 def gaussian_nll(g: Group, pred: np.ndarray, var: np.ndarray) -> np.ndarray:
     """Gaussian negative log-likelihood of ``g``'s targets under ``(pred, var)`` (n, C), per
-    target pixel, summed over its valid channels."""
+    target pixel, summed over its valid channels and its censored ones (the tail's)."""
     stats = g.__dict__.get("stats")
     if stats is not None:  # pooled rows (``clblur.study.compact``): count, sum, sum of squares
         count, s1, s2 = stats
         nll = 0.5 * (count * (_LOG2PI + np.log(var)) + (s2 - 2.0 * pred * s1
                                                          + count * pred * pred) / var)
-        return np.where(g.valid, nll, 0.0).sum(axis=1)
-    r = g.target - pred
-    nll = 0.5 * (_LOG2PI + np.log(var) + r * r / var)
-    return np.where(g.valid, nll, 0.0).sum(axis=1)
+    else:
+        count = 1.0
+        r = g.target - pred
+        nll = 0.5 * (_LOG2PI + np.log(var) + r * r / var)
+    out = np.where(g.valid, nll, 0.0).sum(axis=1)
+    if g.censored is not None:
+        # the tails: P(y < 0.5) at code 0, P(y > top - 0.5) at the clip code
+        low, high = g.censored < 0, g.censored > 0
+        if low.any() or high.any():
+            z = np.where(low, 0.5 - pred, pred - (g.top - 0.5)) / np.sqrt(var)
+            tail = -special.log_ndtr(np.where(low | high, z, 0.0))
+            out = out + np.where(low | high, count * tail, 0.0).sum(axis=1)
+    return out
+
+
+def observed_mean(g: Group, pred: np.ndarray, var: np.ndarray) -> np.ndarray:
+    """The mean of a target value given that it was kept (neither end): ``pred`` moved by the
+    truncated Gaussian's shift, ``sd (phi(a) - phi(b)) / (Phi(b) - Phi(a))`` with ``a, b`` the
+    ends ``0.5`` and ``top - 0.5`` in standard units.
+
+    Why: the residuals of kept values near an end are not centred on the prediction even when
+    the model is true (the values noise pushed over the end are the ones missing); measured
+    against this mean, they are.  ``pred`` itself where ``g`` censors nothing."""
+    if g.censored is None:
+        return pred
+    sd = np.sqrt(var)
+    a = (0.5 - pred) / sd
+    b = (g.top - 0.5 - pred) / sd
+    # only values within a few deviations of an end move; elsewhere the shift underflows
+    near = (a > -8.0) | (b < 8.0)
+    if not near.any():
+        return pred
+    a, b, s = a[near], b[near], sd[near]
+    kept = np.maximum(special.ndtr(b) - special.ndtr(a), 1e-300)
+    out = pred.copy()
+    out[near] = pred[near] + s * (_phi(a) - _phi(b)) / kept
+    return out
+
+
+def _phi(z: np.ndarray) -> np.ndarray:
+    return np.exp(-0.5 * z * z) / np.sqrt(2.0 * np.pi)
+
+
+def censored_ends(target: np.ndarray, usable: np.ndarray, top: float) -> np.ndarray:
+    """``Group.censored`` of targets ``target`` (codes) whose pixels are ``usable``: -1 at
+    code 0, +1 at or above the clip code ``top``."""
+    out = np.zeros(target.shape, np.int8)
+    out[usable & (target <= 0)] = -1
+    out[usable & (target >= top)] = 1
+    return out
+
+
+def _evaluated(g: Group) -> np.ndarray:
+    """The (n, C) entries whose prediction the likelihood reads: valid or censored."""
+    return g.valid if g.censored is None else g.valid | (g.censored != 0)
 
 
 def null_params() -> dict[str, float]:

@@ -32,7 +32,7 @@ from clblur.calibration.series import check_brightening, photometric_exposure
 from clblur.errors import InputError
 from clblur.pixels import series_clip_level, series_padding
 from clblur.study.histograms import Taps, as_hwc, build_group, sample_grid, shifted
-from clblur.study.model import Group
+from clblur.study.model import Group, censored_ends
 from clblur.study.variants import SHIFTS
 
 __all__ = ["clip_code", "series_groups"]
@@ -160,9 +160,12 @@ def series_groups(images: list[np.ndarray], exposures: list[float],
         # read as false noise, exposure, white-balance and curve findings and as structure
         # left, the paper's own camera included. So such pixels are left out, as
         # calibration leaves them out, with the 4-neighbours the misregistration effect's
-        # shifted taps read; a target at the clip point is censored like 255.
+        # shifted taps read; a target at the clip point is censored like 255 (its
+        # likelihood the tail beyond it, ``model.gaussian_nll``).
         clipped = _clipped_near(src, top)[g.rows, g.cols]
         g.valid &= (g.target < top) & ~clipped
+        g.censored = censored_ends(g.target, ~clipped, top)
+        g.top = float(top)
         dropped += int(clipped.sum())
         sampled += clipped.size
         g.source_clipped = False

@@ -152,7 +152,10 @@ def _concat(gs: list[Group]) -> Group:
               np.concatenate([g.block for g in gs]), np.concatenate([g.fold for g in gs]),
               any(g.source_clipped for g in gs),
               np.concatenate([g.images for g in gs])
-              if all(g.images is not None for g in gs) else None)
+              if all(g.images is not None for g in gs) else None,
+              _censored(gs), first.top)
+    if any(g.top != first.top for g in gs):
+        raise ValueError("groups packed together must share their clip code")
     var = first.__dict__.get("variants", {})
     g.__dict__["variants"] = {
         e: {k: {key: stack(lambda g, e=e, k=k, key=key: g.__dict__["variants"][e][k][key])
@@ -230,6 +233,14 @@ class _Mix:
         for w, h, _ in self.parts[1:]:
             out = out + w * h.sum(axis=axis)
         return out
+
+
+def _censored(gs: list[Group]) -> np.ndarray | None:
+    """The packed rows' ``Group.censored`` (zeros for a group that censors nothing)."""
+    if all(g.censored is None for g in gs):
+        return None
+    return np.concatenate([np.zeros(g.target.shape, np.int8) if g.censored is None
+                           else g.censored for g in gs])
 
 
 def predict(g: Group, p: dict, source_share: bool = False) -> tuple[np.ndarray, ...]:
