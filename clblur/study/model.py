@@ -322,17 +322,20 @@ def gaussian_nll(g: Group, pred: np.ndarray, var: np.ndarray) -> np.ndarray:
         nll = 0.5 * (count * (_LOG2PI + np.log(var)) + (s2 - 2.0 * pred * s1
                                                          + count * pred * pred) / var)
     else:
-        count = 1.0
-        r = g.target - pred
-        nll = 0.5 * (_LOG2PI + np.log(var) + r * r / var)
+        res = g.target - pred
+        nll = 0.5 * (_LOG2PI + np.log(var) + res * res / var)
     out = np.where(g.valid, nll, 0.0).sum(axis=1)
     if g.censored is not None:
-        # the tails: P(y < 0.5) at code 0, P(y > top - 0.5) at the clip code
-        low, high = g.censored < 0, g.censored > 0
-        if low.any() or high.any():
-            z = np.where(low, 0.5 - pred, pred - (g.top - 0.5)) / np.sqrt(var)
-            tail = -special.log_ndtr(np.where(low | high, z, 0.0))
-            out = out + np.where(low | high, count * tail, 0.0).sum(axis=1)
+        # the tails, P(y < 0.5) at code 0 and P(y > top - 0.5) at the clip code, on the
+        # censored entries alone (a few percent: on all, the tails cost more than the rest)
+        r, c = np.nonzero(g.censored)
+        if r.size:
+            mu = pred[r, c]
+            z = np.where(g.censored[r, c] < 0, 0.5 - mu, mu - (g.top - 0.5))
+            tail = -special.log_ndtr(z / np.sqrt(var[r, c]))
+            if stats is not None:
+                tail = tail * count[r, c]
+            out = out + np.bincount(r, tail, minlength=out.size)
     return out
 
 
