@@ -32,8 +32,8 @@ out instead, the pixels that noise pushed over an end would be missing from one 
 every prediction near it, so the values kept there read as a curve that bends away from
 the ends (dark values too bright, bright ones too dark): a hidden black level, exposures
 and white balances of their own.  An sRGB bracket of a real radiance map with shot and read
-noise read as all three; without the censored values' tails, and with them, the same data
-kept away from both ends read as none (docs/studies/method.md).  Residuals of the values
+noise read as all three with the ends left out, and as none with their tails
+(docs/studies/method.md).  Residuals of the values
 kept are measured against their mean given that they were kept (``observed_mean``).
 """
 

@@ -114,13 +114,13 @@ def pack(groups: list[Group]) -> list[Group]:
     ``6 n`` rows costs little more than one of ``n``.  Rows keep their block, fold and
     exposure ratio (``Group.ratio`` becomes per row), so sums and per-block scores are
     unchanged.  Groups with a ``psf_orientation`` variant keep their own flip (one per
-    group) and stay apart.
+    group) and stay apart, as do groups of different clip codes (``Group.top``).
     """
     def layout(g: Group):
         var = g.__dict__.get("variants", {})
         if "psf_orientation" in var:
             return None
-        return (g.channels, tuple(sorted(g.hist)),
+        return (g.channels, g.top, tuple(sorted(g.hist)),
                 tuple((e, tuple((k, tuple(sorted(h, key=str))) for k, h in sorted(d.items())))
                       for e, d in sorted(var.items())))
 
@@ -154,8 +154,6 @@ def _concat(gs: list[Group]) -> Group:
               np.concatenate([g.images for g in gs])
               if all(g.images is not None for g in gs) else None,
               _censored(gs), first.top)
-    if any(g.top != first.top for g in gs):
-        raise ValueError("groups packed together must share their clip code")
     var = first.__dict__.get("variants", {})
     g.__dict__["variants"] = {
         e: {k: {key: stack(lambda g, e=e, k=k, key=key: g.__dict__["variants"][e][k][key])
