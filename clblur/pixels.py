@@ -34,7 +34,8 @@ from clblur.errors import InputError, InputTypeError
 from clblur.responses import Response
 
 __all__ = ["SUPPORTED_DTYPES", "clip_level", "code_step", "full_scale_exposure", "imax",
-           "linearisation_table", "linearise", "normalise", "quantise", "series_clip_level",
+           "linearisation_table", "linearise", "near_clip", "normalise", "quantise",
+           "series_clip_level",
            "series_padding", "top_value", "validate_saturation"]
 
 SUPPORTED_DTYPES = (np.uint8, np.uint16, np.float32, np.float64)
@@ -165,6 +166,28 @@ def series_clip_level(images: list[np.ndarray], exposures) -> float:
     checked on the next longest (``exposures`` in any consistent unit)."""
     order = np.argsort(np.asarray(exposures, np.float64))[::-1]
     return clip_level(images[order[0]], images[order[1]] if len(order) > 1 else None)
+
+
+def near_clip(image: np.ndarray, top: float, reach: int) -> np.ndarray:
+    """H x W bool: the pixels within ``reach`` pixels (a square) of a value at or above
+    ``top`` in any channel of an H x W x C ``image``.
+
+    What a clipped value biases in an image a lossy codec coded in blocks (a JPEG's 8 or
+    16 pixels, ``clblur.io.images.codec_block``): the codec rings around the clipped edge,
+    and the decoder cuts the ringing at full scale and keeps it below, so the block's
+    other values come out darker than the light; its colour transform spreads that to
+    every channel.  The block grid is not known once a registration has cropped the frame
+    or an EXIF tag turned it, so the reach goes every way.  An sRGB bracket of Memorial's
+    radiance map stored as JPEG (quality 90) read in the study as exposure times 3 - 4 %
+    off their nominal ones until these pixels were left out as sources
+    (``clblur.study.series``; docs/studies/validation.md)."""
+    import cv2
+
+    hit = (image >= top).any(axis=2).astype(np.uint8)
+    if not hit.any():
+        return np.zeros(hit.shape, bool)
+    side = 2 * int(reach) + 1
+    return cv2.dilate(hit, np.ones((side, side), np.uint8)).astype(bool)
 
 
 # a run of one exact colour along an image edge at least this long may be padding

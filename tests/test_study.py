@@ -600,6 +600,60 @@ def test_values_at_either_end_are_censored_not_left_out(seed):
     assert not r["leftover"]["structure"], r["leftover"]
 
 
+def _jpeg_file(path, codes: np.ndarray, subsampling: int) -> None:
+    from PIL import Image
+
+    Image.fromarray(codes).save(path, "JPEG", quality=90, subsampling=subsampling)
+
+
+@pytest.mark.parametrize("seed", [1, 3])
+def test_jpeg_blocks_around_a_clipped_value_are_left_out(seed, tmp_path):
+    # a bracket through the paper's own camera with shot and read noise, stored as JPEG
+    # (quality 90, 4:2:0: 16-pixel blocks); its long exposures clip in wide highlights.
+    # The decoder cuts the ringing above 255 and keeps it below, so a clipped value biases
+    # its whole block.  With only the clipped values' 4-neighbours left out (block 1),
+    # seeds 1, 2, 3 read as `response_shape` with, in turn, `exposure_times`,
+    # `white_balance`, `misregistration` and `channel_shape`, and structure left; with
+    # their blocks left out (``series._clipped_near``), as the noise alone, which the
+    # JPEG's own error adds to.
+    from clblur.study import study
+
+    rng = np.random.default_rng(seed)
+    cam = Camera(noise_a=1e-3, noise_b=1e-5)
+    scene = np.exp(np.log(0.05) + np.log(60.0) * random_scene(rng, (128, 192), 3, 0.0, 1.0))
+    times = [2.0, 1.0, 0.5, 0.25, 0.125]
+    for i, t in enumerate(times):
+        _jpeg_file(tmp_path / f"e{i}.jpg", cam.capture(scene, t, rng=rng), subsampling=2)
+    assert (read_image(tmp_path / "e0.jpg") == 255).mean() > 0.1
+    write_manifest(tmp_path / "m.json", {"kind": "exposure-series", "images": [
+        {"path": f"e{i}.jpg", "exposure": t} for i, t in enumerate(times)]})
+    r = study(tmp_path / "m.json").report
+    assert "within 16 pixels of one" in r["clipping"]
+    assert [f["effect"] for f in r["findings"] if f["significant"]] == ["noise"]
+    assert not r["leftover"]["structure"], r["leftover"]
+
+
+def test_codec_block_is_read_from_the_header(tmp_path):
+    # the block a lossy codec mixes values in, from the file's headers alone
+    from PIL import Image
+
+    from clblur.io import codec_block
+
+    codes = np.random.default_rng(0).integers(0, 256, (24, 40, 3), dtype=np.uint8)
+    for sub, side in ((0, 8), (1, 16), (2, 16)):  # 4:4:4, 4:2:2, 4:2:0
+        _jpeg_file(tmp_path / f"s{sub}.jpg", codes, sub)
+        assert codec_block(tmp_path / f"s{sub}.jpg") == side
+    Image.fromarray(codes[..., 0]).save(tmp_path / "grey.jpg", quality=90)
+    Image.fromarray(codes).save(tmp_path / "lossy.webp", quality=80)
+    Image.fromarray(codes).save(tmp_path / "lossless.webp", lossless=True)
+    write_image(tmp_path / "plain.png", codes)
+    (tmp_path / "cut.jpg").write_bytes((tmp_path / "s0.jpg").read_bytes()[:20])
+    got = {n: codec_block(tmp_path / n)
+           for n in ("grey.jpg", "lossy.webp", "lossless.webp", "plain.png", "cut.jpg")}
+    assert got == {"grey.jpg": 8, "lossy.webp": 16, "lossless.webp": 1, "plain.png": 1,
+                   "cut.jpg": 1}
+
+
 def test_censored_values_weigh_their_tail_pooled_or_not():
     # a censored value's likelihood is the Gaussian tail beyond its end, and pooling rows
     # of one prediction (clblur.study.compact) keeps it to rounding

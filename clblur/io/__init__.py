@@ -7,7 +7,8 @@ module               holds
 ===================  ==============================================================
 ``io.images``        ``read_image``/``write_image`` (dispatch by ``image_format``),
                      ``probe_image``/``check_decodable`` (header only, bomb check),
-                     ``exr_layout`` (what an EXR output keeps of its input)
+                     ``exr_layout`` (what an EXR output keeps of its input),
+                     ``codec_block`` (a lossy codec's block size, from the header)
 ``io.raster``        ``MappedRaster``, ``TiffWindows``, ``OrientedRaster``, ``open_image``
                      (window by window), ``create_tiff``
 ``io.flows``         ``.npy``/``.flo`` flows (``read_flow``, ``open_flow``), ``read_psf``
@@ -24,6 +25,7 @@ from clblur.io.flows import FLO_MAGIC, open_flow, read_depth, read_flow, read_ps
 from clblur.io.images import (
     IMAGE_FORMATS,
     check_decodable,
+    codec_block,
     describe_size,
     exr_layout,
     image_format,
@@ -51,7 +53,7 @@ from clblur.io.raster import (
 )
 
 __all__ = ["FLO_MAGIC", "IMAGE_FORMATS", "MappedRaster", "OrientedRaster", "TiffWindows",
-           "as_array_like", "atomic_write", "atomic_write_text", "check_decodable",
+           "as_array_like", "atomic_write", "atomic_write_text", "check_decodable", "codec_block",
            "check_output", "create_tiff", "data_dir", "describe_size", "exr_layout", "gopro_frames",
            "image_format", "is_tiff", "light_channels", "open_flow", "open_image", "probe_image",
            "read_flow", "read_depth", "read_image", "read_psf", "refuse_overwrite",

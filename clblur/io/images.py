@@ -32,8 +32,8 @@ from clblur.errors import InputError
 from clblur.io.atomic import atomic_write
 from clblur.io.paths import require_file
 
-__all__ = ["exr_layout", "IMAGE_FORMATS", "MAX_DECODE_PIXELS", "ImageHeader", "image_format",
-           "light_channels", "probe_image", "read_image", "write_image"]
+__all__ = ["exr_layout", "IMAGE_FORMATS", "MAX_DECODE_PIXELS", "ImageHeader", "codec_block",
+           "image_format", "light_channels", "probe_image", "read_image", "write_image"]
 
 # extension -> format name; read_image/write_image dispatch on the name
 IMAGE_FORMATS = {".png": "png", ".tif": "tiff", ".tiff": "tiff", ".jpg": "jpeg",
@@ -117,6 +117,50 @@ def _jpeg_header(f) -> ImageHeader | None:
             precision, h, w, n = struct.unpack(">BHHB", seg)
             return ImageHeader(h, w, 3 if n >= 3 else 1, 2 if precision > 8 else 1)
     return None
+
+
+# the JPEG processes that code without a transform (SOF3, 7, 11, 15): no blocks to mix values
+_LOSSLESS_SOF = {0xC3, 0xC7, 0xCB, 0xCF}
+
+
+def codec_block(path: str | os.PathLike) -> int:
+    """The side, in pixels, of the largest block a file's lossy codec codes values together
+    in: 1 for lossless storage (PNG, TIFF, EXR, Netpbm, BMP, lossless JPEG and WebP).
+
+    A baseline or progressive JPEG codes 8 x 8 blocks of each component, and a chroma
+    component subsampled 2 : 1 (4:2:2, 4:2:0) covers 16 pixels with its 8; a lossy WebP
+    (VP8) codes 16 x 16 macroblocks.  Within such a block every decoded value depends on
+    every coded one, so a value clamped at either end of the code range (the clipped
+    highlight whose ringing the decoder cuts at 255) biases its block's other values
+    (``clblur.study.series``).  Read from the file's headers; 1 where they cannot be read.
+    """
+    path = Path(path)
+    fmt = image_format(path)
+    try:
+        with open(path, "rb") as f:
+            if fmt == "jpeg":
+                for marker, length in _jpeg_segments(f):
+                    if marker not in _SOF:
+                        continue
+                    if marker in _LOSSLESS_SOF:
+                        return 1
+                    seg = f.read(length - 2)
+                    n = seg[5] if len(seg) >= 6 else 0
+                    factors = [max(b >> 4, b & 15) for b in seg[7:6 + 3 * n:3]]
+                    return 8 * max(factors, default=1)
+            elif fmt == "webp":
+                head = f.read(12)
+                if head[:4] == b"RIFF" and head[8:] == b"WEBP":
+                    while len(head := f.read(8)) == 8:
+                        kind, length = struct.unpack("<4sI", head)
+                        if kind == b"VP8 ":
+                            return 16
+                        if kind == b"VP8L":
+                            return 1
+                        f.seek(length + (length & 1), os.SEEK_CUR)
+    except OSError:
+        pass
+    return 1
 
 
 class _Collect(logging.Handler):

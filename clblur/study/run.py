@@ -14,6 +14,7 @@ from clblur.calibration.series import photometric_exposure
 from clblur.errors import InputError
 from clblur.io import (
     atomic_write_text,
+    codec_block,
     light_channels,
     read_flow,
     read_image,
@@ -91,17 +92,23 @@ def groups_from_manifest(manifest: Manifest, max_pixels: int = DEFAULT_PIXELS,
             if notes is not None:
                 notes["registration"] = describe(reg, [e.path.name for e in manifest.images])
         left_out: dict = {}
+        # a JPEG's clipped highlight biases its whole block (``series._clipped_near``)
+        block = max(codec_block(e.path) for e in manifest.images)
         groups = series_groups(imgs, [e.exposure for e in manifest.images],
                                [e.f_number for e in manifest.images], max_pixels=max_pixels,
-                               notes=left_out, names=[e.path.name for e in manifest.images])
+                               notes=left_out, names=[e.path.name for e in manifest.images],
+                               block=block)
         if notes is not None and (left_out["clip_code"] < 255 or left_out["clipped_sources"]):
             top = left_out["clip_code"]
+            near = (f", which bounds its light from below only, or within {block} pixels of "
+                    f"one (the images are coded in {block}-pixel blocks, whose values a "
+                    "decoder's clip biases)" if block > 1 else
+                    " or beside one, which bounds its light from below only")
             notes["clipping"] = (
                 (f"the series clips at code {top} of 255 (below full scale): targets at or "
                  "above it are censored; " if top < 255 else "")
                 + f"{100 * left_out['clipped_sources']:.1f} % of the sampled values have a "
-                  f"source at code {top} or beside one, which bounds its light from below "
-                  "only, and are left out")
+                  f"source at code {top}{near}, and are left out")
         if notes is not None and left_out["padding"]:
             frames = ", ".join(f"{manifest.images[i].path.name} {100 * f:.1f} %"
                                for i, f in sorted(left_out["padding"].items()))

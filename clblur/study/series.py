@@ -30,7 +30,7 @@ import numpy as np
 from clblur.calibration.ghosts import moving_pixels
 from clblur.calibration.series import check_brightening, photometric_exposure
 from clblur.errors import InputError
-from clblur.pixels import series_clip_level, series_padding
+from clblur.pixels import near_clip, series_clip_level, series_padding
 from clblur.study.histograms import Taps, as_hwc, build_group, sample_grid, shifted
 from clblur.study.model import Group, censored_ends
 from clblur.study.variants import SHIFTS
@@ -95,7 +95,7 @@ def _black_bound(image: np.ndarray, padding: np.ndarray) -> np.ndarray:
 def series_groups(images: list[np.ndarray], exposures: list[float],
                   f_numbers: list[float | None] | None = None, *,
                   max_pixels: int = 60000, notes: dict | None = None,
-                  names: list[str] | None = None) -> list[Group]:
+                  names: list[str] | None = None, block: int = 1) -> list[Group]:
     """The study groups of an exposure series: each image predicts the next shorter one and
     the one after (module doc).  ``notes``, when given, receives what was left out as no
     light: ``clip_code`` (below 255 for a camera that clips below full scale),
@@ -103,7 +103,11 @@ def series_groups(images: list[np.ndarray], exposures: list[float],
     and ``moving`` (the fraction of pixels that do not show one static scene,
     ``clblur.calibration.ghosts``).
     A series whose images do not brighten with their exposures is refused, the two images
-    named by ``names`` (``clblur.calibration.series.check_brightening``)."""
+    named by ``names`` (``clblur.calibration.series.check_brightening``).
+    ``block``: the side of the blocks a lossy codec coded the images in
+    (``clblur.io.images.codec_block``: 8 or 16 for a JPEG), 1 for lossless storage; a source
+    value within that many pixels of a clipped one, in any channel, is left out
+    (:func:`_clipped_near`)."""
     if len(images) != len(exposures) or len(images) < 2:
         raise InputError("an exposure series needs at least 2 images, one exposure each")
     h = photometric_exposure(exposures, f_numbers).tolist()
@@ -162,7 +166,7 @@ def series_groups(images: list[np.ndarray], exposures: list[float],
         # calibration leaves them out, with the 4-neighbours the misregistration effect's
         # shifted taps read; a target at the clip point is censored like 255 (its
         # likelihood the tail beyond it, ``model.gaussian_nll``).
-        clipped = _clipped_near(src, top)[g.rows, g.cols]
+        clipped = _clipped_near(src, top, block)[g.rows, g.cols]
         g.valid &= (g.target < top) & ~clipped
         g.censored = censored_ends(g.target, ~clipped, top)
         g.top = float(top)
@@ -176,11 +180,18 @@ def series_groups(images: list[np.ndarray], exposures: list[float],
     return groups
 
 
-def _clipped_near(image: np.ndarray, top: int) -> np.ndarray:
-    """Per pixel and channel (H x W x C bool): the pixel or one of its 4-neighbours is at or
-    above the clip code ``top``."""
+def _clipped_near(image: np.ndarray, top: int, block: int = 1) -> np.ndarray:
+    """Per pixel and channel (H x W x C bool): the values a clipped one (at or above ``top``)
+    biases, which a series leaves out as sources.  Stored losslessly (``block`` 1): the
+    clipped value and its 4-neighbours, which the misregistration effect's shifted taps
+    read, each channel on its own.  Coded in blocks (a JPEG): everything within ``block``
+    pixels of it in every channel (``clblur.pixels.near_clip``: the decoder's clip darkens
+    the block's other values)."""
     import cv2
 
+    if block > 1:
+        near = near_clip(image, top, block)
+        return np.repeat(near[:, :, None], image.shape[2], axis=2)
     cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
     near = cv2.dilate((image >= top).astype(np.uint8), cross)  # each channel on its own
     return near.reshape(image.shape).astype(bool)
