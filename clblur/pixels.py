@@ -168,26 +168,32 @@ def series_clip_level(images: list[np.ndarray], exposures) -> float:
     return clip_level(images[order[0]], images[order[1]] if len(order) > 1 else None)
 
 
-def near_clip(image: np.ndarray, top: float, reach: int) -> np.ndarray:
-    """H x W bool: the pixels within ``reach`` pixels (a square) of a value at or above
-    ``top`` in any channel of an H x W x C ``image``.
+def near_clip(image: np.ndarray, top: float, block: int, reach: int) -> np.ndarray:
+    """H x W bool: the clipped region of an image a lossy codec coded in ``block``-pixel
+    blocks (a JPEG's 8 or 16, ``clblur.io.images.codec_block``), grown by ``reach`` pixels.
 
-    What a clipped value biases in an image a lossy codec coded in blocks (a JPEG's 8 or
-    16 pixels, ``clblur.io.images.codec_block``): the codec rings around the clipped edge,
-    and the decoder cuts the ringing at full scale and keeps it below, so the block's
-    other values come out darker than the light; its colour transform spreads that to
-    every channel.  The block grid is not known once a registration has cropped the frame
-    or an EXIF tag turned it, so the reach goes every way.  An sRGB bracket of Memorial's
-    radiance map stored as JPEG (quality 90) read in the study as exposure times 3 - 4 %
-    off their nominal ones until these pixels were left out as sources
-    (``clblur.study.series``; docs/studies/validation.md)."""
+    The region is every pixel at or above ``top`` in any channel, with the gaps narrower
+    than a block between such pixels closed.  The codec rings around a clipped highlight's
+    edge: some of its plateau's pixels come out a few codes below the clip, and so escape
+    a test on their own code although their light is far above it (a calibration bent its
+    curve's top 24 - 98 % up for them), and the ringing shifts the other values of the
+    plateau's blocks in a pattern that differs from frame to frame as the edge's height
+    does, in every channel (the colour transform mixes them).  The grid of the blocks is not
+    known once a registration has cropped the frame or an EXIF tag turned it, so ``reach``
+    goes every way: a whole block (``reach = block``) for the study, which scores every
+    value and found exposure times of their own 3 - 4 % off without it
+    (``clblur.study.series``); a couple of pixels beyond a patch for calibration, whose
+    flattest patches lie away from edges and whose curve needs the samples near the top
+    (``clblur.calibration.series.ExposureSeries.coded_near_clip``).
+    docs/studies/validation.md, "A JPEG's clipped blocks"."""
     import cv2
 
     hit = (image >= top).any(axis=2).astype(np.uint8)
     if not hit.any():
         return np.zeros(hit.shape, bool)
+    closed = cv2.morphologyEx(hit, cv2.MORPH_CLOSE, np.ones((block, block), np.uint8))
     side = 2 * int(reach) + 1
-    return cv2.dilate(hit, np.ones((side, side), np.uint8)).astype(bool)
+    return cv2.dilate(closed, np.ones((side, side), np.uint8)).astype(bool)
 
 
 # a run of one exact colour along an image edge at least this long may be padding

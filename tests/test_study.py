@@ -628,7 +628,7 @@ def test_jpeg_blocks_around_a_clipped_value_are_left_out(seed, tmp_path):
     write_manifest(tmp_path / "m.json", {"kind": "exposure-series", "images": [
         {"path": f"e{i}.jpg", "exposure": t} for i, t in enumerate(times)]})
     r = study(tmp_path / "m.json").report
-    assert "within 16 pixels of one" in r["clipping"]
+    assert "within 16 pixels of a clipped region" in r["clipping"]
     assert [f["effect"] for f in r["findings"] if f["significant"]] == ["noise"]
     assert not r["leftover"]["structure"], r["leftover"]
 

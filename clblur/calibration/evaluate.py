@@ -131,9 +131,12 @@ def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=DEFAULT_GAPS,
         return codes[i][m, c].astype(np.float64) / series.full_scale
 
     usable = []
-    for k in codes:  # one image's float values at a time
+    for i, k in enumerate(codes):  # one image's float values at a time
         v = k.astype(np.float64) / series.full_scale
         usable.append((v > low) & (v < high))
+        spoiled = series.coded_near_clip(i)  # a JPEG's blocks around a clipped value
+        if spoiled is not None:
+            usable[-1] &= ~spoiled.reshape(-1)[coords, None]
     flat = None if flat_tolerance is None else [
         _local_range(im, coords) <= flat_tolerance * series.full_scale for im in series.images]
     kinds = ("all",) if flat is None else ("all", "flat")

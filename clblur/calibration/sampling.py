@@ -191,6 +191,9 @@ def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float =
     moving = series.moving
     still_spoiled = _box_max(moving.astype(np.uint8), patch).astype(bool) if moving.any() \
         else moving
+    # in a JPEG a clipped value biases its block: no patch reaches into one
+    # (``ExposureSeries.coded_near_clip``; None for lossless storage)
+    spoiled = [series.coded_near_clip(i, r) for i in range(n)]
     sets = []
     seen = falling = 0  # patches valid in two exposures, and those that darken on the way
     for c in range(channels):
@@ -206,6 +209,8 @@ def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float =
             lowest[i] = _box_min(codes, patch)
             highest[i] = _box_max(codes, patch)
             ok[i] = (_normalised(lowest[i], fs) > low) & (_normalised(highest[i], fs) < high)
+            if spoiled[i] is not None:
+                ok[i] &= ~spoiled[i]
         # flatness judged on the image with most valid pixels (best exposed overall)
         ref = int(np.argmax(ok.reshape(n, -1).sum(axis=1)))
         var = _box_mean(_normalised(images[ref][..., c], fs) ** 2, patch) - means[ref] ** 2
@@ -248,18 +253,20 @@ def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float =
         raise InputError(f"channel(s) {missing} have no usable samples (saturated or "
                          "under-exposed everywhere)")
     pixels = _random_pixels(images, fs, footprint, n_pixels, rng, tau_order,
-                            monotone_tolerance, moving)
+                            monotone_tolerance, moving, spoiled)
     return Sampling(sets, footprint, patch, low, high, pixels)
 
 
 def _random_pixels(images: list[np.ndarray], full_scale: float, footprint: np.ndarray,
                    n_pixels: int, rng: np.random.Generator, tau_order: np.ndarray,
-                   monotone_tolerance: float, moving: np.ndarray) -> list[SampleSet]:
+                   monotone_tolerance: float, moving: np.ndarray,
+                   spoiled: list[np.ndarray | None] | None = None) -> list[SampleSet]:
     """``n_pixels`` random pixels outside ``footprint`` (then added to it) and ``moving``,
     every channel; a pixel whose value falls by more than ``monotone_tolerance`` while the
     exposure grows is invalid in that channel, as a patch would be rejected (corrupt or
     moving: no response curve predicts it, and in a least-squares fit a few such values
-    bend the curve)."""
+    bend the curve).  ``spoiled[i]``: H x W, the pixels invalid in image ``i`` besides
+    (a JPEG's blocks around a clipped value), or None."""
     if not isinstance(n_pixels, (int, np.integer)) or n_pixels < 0:
         raise InputError(f"n_pixels must be a non-negative integer, got {n_pixels!r}")
     free = np.flatnonzero(~(footprint | moving).ravel())
@@ -272,6 +279,9 @@ def _random_pixels(images: list[np.ndarray], full_scale: float, footprint: np.nd
         v = np.stack([_normalised(im[rows, cols, c], full_scale)
                       for im in images]).T.astype(np.float64)
         valid = (v > 0.0) & (v < 1.0)
+        for i, mask in enumerate(spoiled or ()):
+            if mask is not None:
+                valid[:, i] &= ~mask[rows, cols]
         valid &= _monotone(v.T, valid.T, tau_order, monotone_tolerance)[:, None]
         out.append(SampleSet(v, valid, np.full(rows.size, c), rows, cols, v, v))
     return out

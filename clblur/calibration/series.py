@@ -34,9 +34,9 @@ from typing import NamedTuple
 import numpy as np
 
 from clblur.errors import InputError, InputTypeError
-from clblur.io import light_channels, read_image, require_file, resolve_inside
+from clblur.io import codec_block, light_channels, read_image, require_file, resolve_inside
 from clblur.manifest import Exposure, Manifest, load_manifest
-from clblur.pixels import imax, series_clip_level
+from clblur.pixels import code_step, imax, near_clip, series_clip_level
 from clblur.registration import Registration, align_series
 
 __all__ = ["IMAGE_SUFFIXES", "ExposureSeries", "check_brightening", "exif_exposure", "exif_iso",
@@ -100,6 +100,14 @@ def photometric_exposure(times, f_numbers=None) -> np.ndarray:
     return t / np.asarray(f_numbers, dtype=np.float64) ** 2
 
 
+# px beyond a JPEG's clipped region left out of calibration: the ringing's first lobes and the
+# subsampled chroma value a decoder's upsampling reads across.  On the Memorial radiance-map
+# bracket (JPEG q90 4:2:0) the nonparametric and EMoR curves came within 2 % of the truth
+# above 0.8 of full scale with 2 or 4 (50 % and 98 % off in blue with none; 8 - 20 % with a
+# whole block every way, which leaves the top few samples; docs/studies/validation.md)
+CODEC_MARGIN = 2
+
+
 @dataclass(frozen=True, eq=False)  # holds arrays: compare series by identity
 class ExposureSeries:
     """A validated stack; construct it with ``load_series`` or ``ExposureSeries.create``."""
@@ -109,10 +117,15 @@ class ExposureSeries:
     f_numbers: np.ndarray | None
     names: list[str]
     registration: Registration | None = None  # set by aligned(): how the images were cut
+    # the side of the blocks a lossy codec coded the images in (a JPEG's 8 or 16 pixels,
+    # ``clblur.io.images.codec_block``); 1 for lossless storage (``coded_near_clip``)
+    block: int = 1
 
     @classmethod
-    def create(cls, images, exposures, f_numbers=None, names=None) -> ExposureSeries:
-        """Validate arrays already in memory (shapes, dtypes, times) and build a series."""
+    def create(cls, images, exposures, f_numbers=None, names=None,
+               block: int = 1) -> ExposureSeries:
+        """Validate arrays already in memory (shapes, dtypes, times) and build a series;
+        ``block``: the side of the blocks a lossy codec coded them in (1: lossless)."""
         images = [_as_hwc(np.asarray(im), i) for i, im in enumerate(images)]
         if len(images) < 2:
             raise InputError(f"an exposure series needs at least 2 images, got {len(images)}")
@@ -139,7 +152,7 @@ class ExposureSeries:
             a, b = order[dup[0]], order[dup[0] + 1]
             raise InputError(f"duplicate exposures: {names[a]} and {names[b]} both have "
                              f"exposure {t[a]:g}" + ("" if fn is None else f" at f/{fn[a]:g}"))
-        return cls(images, t, fn, names)
+        return cls(images, t, fn, names, block=max(1, int(block)))
 
     @property
     def dtype(self) -> np.dtype:
@@ -188,6 +201,17 @@ class ExposureSeries:
                 f"{self.white_level * self.full_scale:g} of {self.full_scale:g}; the valid "
                 "ranges of sampling and evaluation end below it")
 
+    def coded_near_clip(self, index: int, reach: int = 0) -> np.ndarray | None:
+        """H x W bool for images coded in blocks (``block`` > 1, a JPEG): image ``index``'s
+        clipped region as the codec left it (at the series' ``white_level``, any channel,
+        gaps narrower than a block closed; ``clblur.pixels.near_clip``) and
+        ``CODEC_MARGIN + reach`` pixels around it, left out of the samples and the held-out
+        scores; None for lossless storage."""
+        if self.block <= 1:
+            return None
+        top = (self.white_level - 0.5 * code_step(self.dtype)) * self.full_scale
+        return near_clip(self.images[index], top, self.block, CODEC_MARGIN + reach)
+
     def relative_exposures(self) -> np.ndarray:
         """Photometric exposure ``t / N**2`` divided by its maximum (the longest is 1)."""
         x = photometric_exposure(self.exposures, self.f_numbers)
@@ -206,7 +230,8 @@ class ExposureSeries:
         reg = align_series(self.images, self.relative_exposures(), turns=turns)
         images = ([reg.crop(im, i) for i, im in enumerate(self.images)] if reg.moved
                   else self.images)
-        return ExposureSeries(images, self.exposures, self.f_numbers, self.names, reg)
+        return ExposureSeries(images, self.exposures, self.f_numbers, self.names, reg,
+                              self.block)
 
     def subset(self, keep) -> ExposureSeries:
         """The series restricted to the images whose indices are in ``keep`` (order kept); it
@@ -215,7 +240,7 @@ class ExposureSeries:
         keep = [int(i) for i in keep]
         fn = None if self.f_numbers is None else self.f_numbers[keep]
         out = ExposureSeries([self.images[i] for i in keep], self.exposures[keep], fn,
-                             [self.names[i] for i in keep])
+                             [self.names[i] for i in keep], block=self.block)
         out.__dict__["white_level"] = self.white_level  # the cached_property's slot
         if "moving" in self.__dict__:  # what moved in the series moved in its subsets too
             out.__dict__["moving"] = self.moving
@@ -422,7 +447,8 @@ def load_series(source: str | os.PathLike, times=None, align: bool = True) -> Ex
     series = ExposureSeries.create([light_channels(read_image(e.path)) for e in m.images],
                                    [e.exposure for e in m.images],
                                    [e.f_number for e in m.images],
-                                   [e.path.name for e in m.images])
+                                   [e.path.name for e in m.images],
+                                   block=max(codec_block(e.path) for e in m.images))
     return series.aligned() if align else series
 
 

@@ -101,8 +101,9 @@ def groups_from_manifest(manifest: Manifest, max_pixels: int = DEFAULT_PIXELS,
         if notes is not None and (left_out["clip_code"] < 255 or left_out["clipped_sources"]):
             top = left_out["clip_code"]
             near = (f", which bounds its light from below only, or within {block} pixels of "
-                    f"one (the images are coded in {block}-pixel blocks, whose values a "
-                    "decoder's clip biases)" if block > 1 else
+                    f"a clipped region (the images are coded in {block}-pixel blocks: the "
+                    "codec's ringing pulls a clipped plateau's pixels below the clip and "
+                    "shifts its blocks' other values)" if block > 1 else
                     " or beside one, which bounds its light from below only")
             notes["clipping"] = (
                 (f"the series clips at code {top} of 255 (below full scale): targets at or "

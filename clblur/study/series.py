@@ -106,7 +106,7 @@ def series_groups(images: list[np.ndarray], exposures: list[float],
     named by ``names`` (``clblur.calibration.series.check_brightening``).
     ``block``: the side of the blocks a lossy codec coded the images in
     (``clblur.io.images.codec_block``: 8 or 16 for a JPEG), 1 for lossless storage; a source
-    value within that many pixels of a clipped one, in any channel, is left out
+    value within that many pixels of a clipped region, in any channel, is left out
     (:func:`_clipped_near`)."""
     if len(images) != len(exposures) or len(images) < 2:
         raise InputError("an exposure series needs at least 2 images, one exposure each")
@@ -185,12 +185,13 @@ def _clipped_near(image: np.ndarray, top: int, block: int = 1) -> np.ndarray:
     biases, which a series leaves out as sources.  Stored losslessly (``block`` 1): the
     clipped value and its 4-neighbours, which the misregistration effect's shifted taps
     read, each channel on its own.  Coded in blocks (a JPEG): everything within ``block``
-    pixels of it in every channel (``clblur.pixels.near_clip``: the decoder's clip darkens
-    the block's other values)."""
+    pixels of the clipped region as the codec left it, in every channel
+    (``clblur.pixels.near_clip``: the codec's ringing pulls the plateau's pixels below the
+    clip and shifts its blocks' other values)."""
     import cv2
 
     if block > 1:
-        near = near_clip(image, top, block)
+        near = near_clip(image, top, block, reach=block)
         return np.repeat(near[:, :, None], image.shape[2], axis=2)
     cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
     near = cv2.dilate((image >= top).astype(np.uint8), cross)  # each channel on its own
