@@ -134,7 +134,7 @@ def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=DEFAULT_GAPS,
     for i, k in enumerate(codes):  # one image's float values at a time
         v = k.astype(np.float64) / series.full_scale
         usable.append((v > low) & (v < high))
-        spoiled = series.coded_near_clip(i)  # a JPEG's blocks around a clipped value
+        spoiled = series.coded_near_clip(i)  # a JPEG's clipped region as the codec left it
         if spoiled is not None:
             usable[-1] &= ~spoiled.reshape(-1)[coords, None]
     flat = None if flat_tolerance is None else [

@@ -191,8 +191,8 @@ def sample_series(series, n_samples: int = 1000, *, patch: int = 3, low: float =
     moving = series.moving
     still_spoiled = _box_max(moving.astype(np.uint8), patch).astype(bool) if moving.any() \
         else moving
-    # in a JPEG a clipped value biases its block: no patch reaches into one
-    # (``ExposureSeries.coded_near_clip``; None for lossless storage)
+    # in a JPEG no patch reaches into a clipped region as the codec left it, whose ringing
+    # pulls part of it below the clip (``ExposureSeries.coded_near_clip``; None: lossless)
     spoiled = [series.coded_near_clip(i, r) for i in range(n)]
     sets = []
     seen = falling = 0  # patches valid in two exposures, and those that darken on the way
@@ -266,7 +266,7 @@ def _random_pixels(images: list[np.ndarray], full_scale: float, footprint: np.nd
     exposure grows is invalid in that channel, as a patch would be rejected (corrupt or
     moving: no response curve predicts it, and in a least-squares fit a few such values
     bend the curve).  ``spoiled[i]``: H x W, the pixels invalid in image ``i`` besides
-    (a JPEG's blocks around a clipped value), or None."""
+    (a JPEG's clipped region, ``ExposureSeries.coded_near_clip``), or None."""
     if not isinstance(n_pixels, (int, np.integer)) or n_pixels < 0:
         raise InputError(f"n_pixels must be a non-negative integer, got {n_pixels!r}")
     free = np.flatnonzero(~(footprint | moving).ravel())

@@ -130,9 +130,9 @@ def codec_block(path: str | os.PathLike) -> int:
     A baseline or progressive JPEG codes 8 x 8 blocks of each component, and a chroma
     component subsampled 2 : 1 (4:2:2, 4:2:0) covers 16 pixels with its 8; a lossy WebP
     (VP8) codes 16 x 16 macroblocks.  Within such a block every decoded value depends on
-    every coded one, so a value clamped at either end of the code range (the clipped
-    highlight whose ringing the decoder cuts at 255) biases its block's other values
-    (``clblur.study.series``).  Read from the file's headers; 1 where they cannot be read.
+    every coded one, so a clipped highlight's ringing spreads over its blocks
+    (``clblur.pixels.near_clip``).  Read from the file's headers; 1 where they cannot be
+    read.
     """
     path = Path(path)
     fmt = image_format(path)

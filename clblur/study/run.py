@@ -92,7 +92,7 @@ def groups_from_manifest(manifest: Manifest, max_pixels: int = DEFAULT_PIXELS,
             if notes is not None:
                 notes["registration"] = describe(reg, [e.path.name for e in manifest.images])
         left_out: dict = {}
-        # a JPEG's clipped highlight biases its whole block (``series._clipped_near``)
+        # a JPEG's clipped highlight biases the blocks around it (``series._clipped_near``)
         block = max(codec_block(e.path) for e in manifest.images)
         groups = series_groups(imgs, [e.exposure for e in manifest.images],
                                [e.f_number for e in manifest.images], max_pixels=max_pixels,

@@ -164,7 +164,8 @@ def series_groups(images: list[np.ndarray], exposures: list[float],
         # read as false noise, exposure, white-balance and curve findings and as structure
         # left, the paper's own camera included. So such pixels are left out, as
         # calibration leaves them out, with the 4-neighbours the misregistration effect's
-        # shifted taps read; a target at the clip point is censored like 255 (its
+        # shifted taps read (in a JPEG, a block around the clipped region as the codec
+        # left it: ``_clipped_near``); a target at the clip point is censored like 255 (its
         # likelihood the tail beyond it, ``model.gaussian_nll``).
         clipped = _clipped_near(src, top, block)[g.rows, g.cols]
         g.valid &= (g.target < top) & ~clipped
