@@ -24,13 +24,31 @@ from clblur.responses import (
     default_knots,
 )
 
-__all__ = ["SplineFamily", "curve_black_level", "pooled_pairs", "fit_cross_exposure",
-           "PAIR_LOW_CODE", "PAIR_HIGH_CODE"]
+__all__ = ["SplineFamily", "choose_smoothness", "curve_black_level", "pooled_pairs",
+           "fit_cross_exposure", "PAIR_LOW_CODE", "PAIR_HIGH_CODE", "SMOOTHNESS_GRID"]
 
 
 # Pixel values the cross-exposure fit uses, in codes of an 8-bit scale: everything not clipped
 # at either end (the same range the evaluation scores).
 PAIR_LOW_CODE, PAIR_HIGH_CODE = 2.5, 252.5
+
+# The spline's smoothness weights tried by cross-validation, a factor 3 apart, from the fixed
+# weight used before.  At the top the log increments lie close to a straight line in the knot
+# index; the one-standard-error rule takes it on a few series (Canon's red, a linear 16-bit
+# camera), and stiffer weights tried on generated JPEG brackets (to 1.4e6) rose in held-out
+# error on all but one channel, which they took further from the truth.
+SMOOTHNESS_GRID = tuple(0.3 * 3.0**k for k in range(12))
+# Used where a series is too small to cross-validate (fewer spatial tiles than folds, or a
+# training fold with fewer pools than knots).
+DEFAULT_SMOOTHNESS = 0.3
+CV_FOLDS = 5
+# A weight chosen on (folds - 1) / folds of the pixels, applied to all of them: the data term
+# grows with the pixels, so the penalty grows by the square root of that ratio
+FULL_FIT_SCALE = float(np.sqrt(CV_FOLDS / (CV_FOLDS - 1)))
+# The cross-validation's fits stop at a relative cost decrease of 1e-7, not 1e-10: 4 - 5
+# times fewer iterations, the same weight chosen (every channel of the JPEG 4:2:0 bracket of
+# docs/studies/radiance_brackets.py; held-out RMSE within 0.004 codes)
+CV_RTOL = 1e-7
 
 
 class SplineFamily:
@@ -46,6 +64,13 @@ class SplineFamily:
     for a very dark source.  A small second-difference penalty (``smoothness``, on the log
     increments) keeps stretches without data smooth.
 
+    The smoothness is chosen on held-out pixels (:func:`choose_smoothness`) unless given.
+    The data alone cannot pin it: with exposures a whole number of stops apart, a curve
+    whose exposure is multiplied by any function periodic in log2 exposure predicts every
+    pair exactly as well (Grossberg & Nayar 2003's ambiguity), and a weak penalty let the
+    curve wander along it, most where codec error has structure (a JPEG bracket's top 1.3 to
+    4.5 times off in exposure, ``docs/studies/validation.md``).
+
     Samples are single random pixels (``Sampling.pixels``), edges included, so the fit sees
     the values it is scored on; the scored pixels are disjoint from them.  Pairs are pooled
     by (source value, exposure ratio): the squared error of a pool is its count times the
@@ -58,14 +83,15 @@ class SplineFamily:
     default_low = PAIR_LOW_CODE / 255.0
     uses_pixels = True
     refines_times = False  # the times are taken as given (``fit`` ignores refine_times)
+    chosen_from_data = ("smoothness",)  # kept by the evaluation's refits
 
     def fit(self, samples, tau, *, full_scale, refine_times=False, knots: int = 64,
-            smoothness: float = 0.3, max_gap: float = 4.5, **opts) -> FamilyFit:
+            smoothness: float | None = None, max_gap: float = 4.5, **opts) -> FamilyFit:
         if opts:
             raise InputTypeError(f"unknown option(s) for the spline model: {sorted(opts)}")
         if not isinstance(knots, (int, np.integer)) or not 4 <= knots <= 256:
             raise InputError(f"spline knots must be an integer in 4..256, got {knots!r}")
-        if not smoothness >= 0:
+        if smoothness is not None and not smoothness >= 0:
             raise InputError(f"smoothness must be >= 0, got {smoothness!r}")
         src, mean, ratio, count = pooled_pairs(samples.values, samples.valid, tau, max_gap,
                                                full_scale)
@@ -73,13 +99,110 @@ class SplineFamily:
             raise InputError("too few pixel pairs valid in two exposures for the spline model "
                              f"({src.size} pools for {knots} knots)")
         u = default_knots(int(knots))
-        theta = fit_cross_exposure(u, src, mean, ratio, np.sqrt(count) * full_scale,
-                                   smoothness, pedestal=True)
+        chosen = None
+        if smoothness is None:
+            chosen = choose_smoothness(samples, tau, full_scale, int(knots), max_gap)
+            smoothness = chosen["smoothness"] * chosen["scale"]
+        # down from the stiffest weight, as each fold was fitted: a weight chosen by
+        # cross-validation (or passed back by a refit) names the curve of that path
+        stiffer = [g * FULL_FIT_SCALE for g in SMOOTHNESS_GRID]
+        theta = _fit_down(u, src, mean, ratio, np.sqrt(count) * full_scale, smoothness,
+                          stiffer)
         curve = MonotoneSpline(u, theta)
         params = {"knots": int(knots), "smoothness": float(smoothness),
                   "pairs": int(count.sum()), "black_level": curve_black_level(curve)}
+        if chosen is not None:
+            params["smoothness_cv"] = {k: chosen[k] for k in ("rule", "grid", "rmse", "se")}
         curve.meta.update({"params": params})
         return FamilyFit(curve, params, int(knots) - 1, tau)
+
+
+def _fit_down(u, src, mean, ratio, weight, smoothness: float, grid) -> np.ndarray:
+    """``fit_cross_exposure`` at ``smoothness``, started from the fits at every stiffer
+    weight of ``grid`` in turn, the stiffest from the usual starts (the stiff fits have one
+    basin, the weak ones several: a weak fit from the usual starts alone left a JPEG
+    bracket's channel 2 - 4 times off in exposure where this path found the smooth curve)."""
+    theta = None
+    for g in sorted((g for g in grid if g > smoothness * (1 + 1e-9)), reverse=True):
+        theta = fit_cross_exposure(u, src, mean, ratio, weight, g, theta0=theta,
+                                   pedestal=True, rtol=CV_RTOL)
+    return fit_cross_exposure(u, src, mean, ratio, weight, smoothness, theta0=theta,
+                              pedestal=True)
+
+
+def choose_smoothness(samples, tau: np.ndarray, full_scale: float, knots: int = 64,
+                      max_gap: float = 4.5, folds: int = CV_FOLDS,
+                      grid: tuple[float, ...] = SMOOTHNESS_GRID) -> dict:
+    """The spline's smoothness by spatial ``folds``-fold cross-validation, one-standard-error
+    rule.
+
+    The pixels are cut into square tiles (about 50 over the sampled extent, 8 - 64 px a
+    side) dealt at random to the folds, so a held-out pixel's codec block and its
+    neighbours' misregistration are not in the training pixels.  On each fold the curve is
+    fitted down the grid from its stiffest weight (each fit starting from the stiffer one:
+    the stiff fits have one basin, the weak ones several) and scored by the pooled RMSE of
+    predicting the darker image of each held-out pair, the direction calibration ranks
+    models by (``clblur.calibration.compare.selection_score``).  Chosen: the stiffest weight
+    whose mean held-out MSE is within one standard error (over the folds) of the lowest
+    (Hastie, Tibshirani & Friedman, *Elements of Statistical Learning*, 2nd ed., 7.10): where
+    the data cannot tell the curves apart, the smoothest is taken.
+
+    Returns a dict: ``smoothness`` (the grid value chosen), ``scale`` (by which to multiply
+    it for a fit on all the pixels: the penalty against a data term ``folds / (folds - 1)``
+    times larger), ``rule``, ``grid``, ``rmse`` and ``se`` (per grid value, code values;
+    empty where the series is too small to cross-validate and ``DEFAULT_SMOOTHNESS`` is
+    returned).
+    """
+    fallback = {"smoothness": DEFAULT_SMOOTHNESS, "scale": 1.0, "grid": [DEFAULT_SMOOTHNESS],
+                "rmse": [], "se": [], "rule": "fixed (too few pixels to cross-validate)"}
+    fold = _spatial_folds(samples.rows, samples.cols, folds)
+    if fold is None:
+        return fallback
+    u = default_knots(knots)
+    mse = np.full((folds, len(grid)), np.nan)
+    for k in range(folds):
+        train, test = fold != k, fold == k
+        src, mean, ratio, count = pooled_pairs(samples.values[train], samples.valid[train],
+                                               tau, max_gap, full_scale)
+        h_src, h_mean, h_ratio, h_count = pooled_pairs(samples.values[test],
+                                                       samples.valid[test], tau, max_gap,
+                                                       full_scale)
+        darker = h_ratio < 1.0
+        if src.size < knots or not darker.any():
+            return fallback
+        theta = None
+        for g in range(len(grid) - 1, -1, -1):
+            theta = fit_cross_exposure(u, src, mean, ratio, np.sqrt(count) * full_scale,
+                                       grid[g], theta0=theta, pedestal=True, rtol=CV_RTOL)
+            curve = MonotoneSpline(u, theta)
+            with np.errstate(invalid="ignore", over="ignore"):
+                pred = curve.forward(curve.inverse(h_src[darker]) * h_ratio[darker])
+            # a pool's squared error is its count times its mean's error, plus its spread,
+            # which no curve changes
+            mse[k, g] = (np.sum(h_count[darker] * (pred - h_mean[darker]) ** 2)
+                         / h_count[darker].sum() * full_scale**2)
+    mean_mse = mse.mean(axis=0)
+    se = mse.std(axis=0, ddof=1) / np.sqrt(folds)
+    best = int(np.nanargmin(mean_mse))
+    pick = int(np.flatnonzero(mean_mse <= mean_mse[best] + se[best]).max())
+    return {"smoothness": float(grid[pick]), "scale": float(np.sqrt(folds / (folds - 1))),
+            "grid": [float(g) for g in grid], "rmse": np.sqrt(mean_mse).tolist(),
+            "se": se.tolist(), "rule": f"{folds}-fold spatial cross-validation, one standard error"}
+
+
+def _spatial_folds(rows: np.ndarray, cols: np.ndarray, folds: int) -> np.ndarray | None:
+    """A fold index per pixel: square tiles dealt at random (a fixed seed) to ``folds``
+    folds; None when there are fewer tiles than twice the folds."""
+    if rows.size == 0:
+        return None
+    extent = float(rows.max() + 1) * float(cols.max() + 1)
+    tile = int(np.clip(np.sqrt(extent / 50.0), 8, 64))
+    across = int(cols.max()) // tile + 1
+    key = (rows // tile) * across + cols // tile
+    tiles, which = np.unique(key, return_inverse=True)
+    if tiles.size < 2 * folds:
+        return None
+    return (np.random.default_rng(0).permutation(tiles.size) % folds)[which]
 
 
 def curve_black_level(curve: Response, fraction: float = 1e-3) -> float:
@@ -145,13 +268,15 @@ def pooled_pairs(values: np.ndarray, valid: np.ndarray, tau: np.ndarray, max_gap
 
 def fit_cross_exposure(u: np.ndarray, src: np.ndarray, target: np.ndarray, ratio: np.ndarray,
                        weight: np.ndarray, smoothness: float,
-                       theta0: np.ndarray | None = None, pedestal: bool = False) -> np.ndarray:
+                       theta0: np.ndarray | None = None, pedestal: bool = False,
+                       rtol: float = 1e-10) -> np.ndarray:
     """Log increments of the ``MonotoneSpline`` on knots ``u`` minimising
     ``sum weight^2 (I(I^-1(src) ratio) - target)^2`` (analytic Jacobian, trust region).
 
     Starts from ``theta0``, else from the best of three power laws and, with ``pedestal``,
     a straight line above the black level the pairs imply (:func:`_pedestal`); the sum of
-    the increments is pinned softly (the exposure unit is free).
+    the increments is pinned softly (the exposure unit is free).  ``rtol``: the relative
+    decrease of the cost below which the iterations stop.
     """
     k = u.size - 1
     h = np.diff(u)
@@ -208,7 +333,7 @@ def fit_cross_exposure(u: np.ndarray, src: np.ndarray, target: np.ndarray, ratio
     # trial steps may overflow exp(); their non-finite cost rejects them
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
         for start in starts:
-            theta = _levenberg_marquardt(residuals, jacobian, start)
+            theta = _levenberg_marquardt(residuals, jacobian, start, rtol=rtol)
             r = residuals(theta)
             cost = float(r @ r)
             if cost < best_cost:

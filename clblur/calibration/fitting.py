@@ -99,7 +99,7 @@ def transfer(resp: Response, values: np.ndarray, ratio: float) -> np.ndarray:
 def fit(series: ExposureSeries, model: str, *, shared: bool = False, n_samples: int = 1000,
         patch: int = 3, low: float | None = None, high: float | None = None, seed: int = 0,
         refine_times: bool = False, sampling: Sampling | None = None, progress: bool = False,
-        **opts) -> ResponseFit:
+        group_options: list[dict] | None = None, **opts) -> ResponseFit:
     """Fit response family ``model`` (one of ``MODELS``) to ``series``.
 
     ``shared``: one curve for all channels (each sample keeps its own radiance) instead of one
@@ -110,7 +110,10 @@ def fit(series: ExposureSeries, model: str, *, shared: bool = False, n_samples: 
     ``VALID_HIGH`` times the series' ``white_level`` (a camera that clips below full scale).
     ``refine_times``: re-estimate the exposures (uncertain shutter times).  Further keyword
     options go to the family (``order`` for polynomial, ``smoothness``/``levels``/
-    ``time_sigma`` for nonparametric, ``components``/``emor_dir`` for emor).
+    ``time_sigma`` for nonparametric, ``components``/``emor_dir`` for emor, ``smoothness``
+    for spline, chosen by cross-validation when not given).  ``group_options``: one dict of
+    further options per fitted curve (per channel, or one when shared), for a refit that
+    keeps what the first fit chose from the data (``clblur.calibration.evaluate``).
 
     ``params`` of the result: ``shared``; ``per_channel`` (one dict of family parameters per
     fitted curve, e.g. ``black_level``, ``gamma``, ``coefficients``); for ``exp`` also ``k``
@@ -153,9 +156,14 @@ def fit(series: ExposureSeries, model: str, *, shared: bool = False, n_samples: 
             sampling = sampling.with_range(low, high)
         groups = [SampleSet.concat(sampling.per_channel)] if shared else sampling.per_channel
     fits: list[FamilyFit] = []
-    for samples in tqdm(groups, desc=f"fit {model}", disable=not progress, leave=False):
+    if group_options is not None and len(group_options) != len(groups):
+        raise InputError(f"group_options has {len(group_options)} entries for {len(groups)} "
+                         "fitted curve(s)")
+    for g, samples in enumerate(tqdm(groups, desc=f"fit {model}", disable=not progress,
+                                     leave=False)):
+        own = {} if group_options is None else group_options[g]
         fits.append(family.fit(samples, tau, full_scale=series.full_scale,
-                               refine_times=refine_times, **opts))
+                               refine_times=refine_times, **{**own, **opts}))
     if getattr(family, "fits_toe", False) and low > chosen.low:  # below ``low``: the toe
         # the patches and the random pixels over the whole valid range: flat patches are
         # few near the black level (video range: 28 below 10 % of 2000), pixels are not
