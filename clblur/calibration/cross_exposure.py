@@ -68,8 +68,8 @@ class SplineFamily:
     The data alone cannot pin it: with exposures a whole number of stops apart, a curve
     whose exposure is multiplied by any function periodic in log2 exposure predicts every
     pair exactly as well (Grossberg & Nayar 2003's ambiguity), and a weak penalty let the
-    curve wander along it, most where codec error has structure (a JPEG bracket's top 1.3 to
-    4.5 times off in exposure, ``docs/studies/validation.md``).
+    curve wander along it, most where codec error has structure (JPEG copies of a measured
+    radiance map: 20 % to a factor of 150 off in exposure, ``docs/studies/validation.md``).
 
     Samples are single random pixels (``Sampling.pixels``), edges included, so the fit sees
     the values it is scored on; the scored pixels are disjoint from them.  Pairs are pooled
@@ -121,7 +121,8 @@ def _fit_down(u, src, mean, ratio, weight, smoothness: float, grid) -> np.ndarra
     """``fit_cross_exposure`` at ``smoothness``, started from the fits at every stiffer
     weight of ``grid`` in turn, the stiffest from the usual starts (the stiff fits have one
     basin, the weak ones several: a weak fit from the usual starts alone left a JPEG
-    bracket's channel 2 - 4 times off in exposure where this path found the smooth curve)."""
+    bracket's green a factor of 10 - 75 off in exposure where this path found a smooth
+    curve with a lower held-out error)."""
     theta = None
     for g in sorted((g for g in grid if g > smoothness * (1 + 1e-9)), reverse=True):
         theta = fit_cross_exposure(u, src, mean, ratio, weight, g, theta0=theta,
@@ -182,6 +183,8 @@ def choose_smoothness(samples, tau: np.ndarray, full_scale: float, knots: int = 
             mse[k, g] = (np.sum(h_count[darker] * (pred - h_mean[darker]) ** 2)
                          / h_count[darker].sum() * full_scale**2)
     mean_mse = mse.mean(axis=0)
+    if not np.isfinite(mean_mse).any():  # no weight predicted the held-out pixels at all
+        return fallback
     se = mse.std(axis=0, ddof=1) / np.sqrt(folds)
     best = int(np.nanargmin(mean_mse))
     pick = int(np.flatnonzero(mean_mse <= mean_mse[best] + se[best]).max())
