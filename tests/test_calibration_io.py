@@ -373,4 +373,9 @@ def test_refined_times_are_printed_for_the_model_written(tmp_path, capsys):
     assert off["e02.png"] == pytest.approx(0.4, abs=0.1)
     assert all(abs(v) < 0.1 for name, v in off.items() if name != "e02.png"), off
     assert main([*base, "--model", "spline", "-o", str(tmp_path / "s.json")]) == 0
-    assert "the spline model takes the exposure times as given" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "the spline model takes the exposure times as given" in out
+    # the weight chosen from the data is printed with how it was chosen, one per channel
+    line = next(s for s in out.splitlines() if s.startswith("spline smoothness"))
+    assert "cross-validation" in line or "too few pixels" in line
+    assert len(line.split(": ", 1)[1].split(" / ")) == 3

@@ -177,6 +177,11 @@ def run(args: argparse.Namespace) -> int:
         if flat:
             cells += "".join(f" {e['flat']['rmse_darker'][g]:12.2f}" for g in gaps)
         print(f"{n:<14}{cells}  {e['aic']:10.0f}" + ("   <- best" if n == best else ""))
+    if "spline" in result.fits:  # its smoothness is chosen from the data: say what and how
+        per_curve = result.fits["spline"].params["per_channel"]
+        rule = per_curve[0].get("smoothness_cv", {}).get("rule", "as given")
+        print(f"spline smoothness ({rule}): "
+              + " / ".join(f"{p['smoothness']:.3g}" for p in per_curve))
     for name, why in result.skipped.items():
         print(f"skipped {name}: {why}")
     for line in nan_reasons(evaluations[best]):  # say why a column is nan
