@@ -117,18 +117,27 @@ class SplineFamily:
         return FamilyFit(curve, params, int(knots) - 1, tau)
 
 
+def _descend(u, src, mean, ratio, weight, weights, last_rtol: float = CV_RTOL):
+    """``fit_cross_exposure`` at each of ``weights`` (stiffest first) in turn, each fit
+    starting from the one before and the first from the usual starts; yields each fit's log
+    increments.  ``last_rtol``: the last fit's stopping tolerance (the others stop at
+    ``CV_RTOL``)."""
+    theta = None
+    for n, g in enumerate(weights):
+        theta = fit_cross_exposure(u, src, mean, ratio, weight, g, theta0=theta, pedestal=True,
+                                   rtol=last_rtol if n == len(weights) - 1 else CV_RTOL)
+        yield theta
+
+
 def _fit_down(u, src, mean, ratio, weight, smoothness: float, grid) -> np.ndarray:
     """``fit_cross_exposure`` at ``smoothness``, started from the fits at every stiffer
     weight of ``grid`` in turn, the stiffest from the usual starts (the stiff fits have one
     basin, the weak ones several: a weak fit from the usual starts alone left a JPEG
     bracket's green a factor of 10 - 75 off in exposure where this path found a smooth
     curve with a lower held-out error)."""
-    theta = None
-    for g in sorted((g for g in grid if g > smoothness * (1 + 1e-9)), reverse=True):
-        theta = fit_cross_exposure(u, src, mean, ratio, weight, g, theta0=theta,
-                                   pedestal=True, rtol=CV_RTOL)
-    return fit_cross_exposure(u, src, mean, ratio, weight, smoothness, theta0=theta,
-                              pedestal=True)
+    stiffer = sorted((g for g in grid if g > smoothness * (1 + 1e-9)), reverse=True)
+    *_, theta = _descend(u, src, mean, ratio, weight, [*stiffer, smoothness], last_rtol=1e-10)
+    return theta
 
 
 def choose_smoothness(samples, tau: np.ndarray, full_scale: float, knots: int = 64,
@@ -171,10 +180,9 @@ def choose_smoothness(samples, tau: np.ndarray, full_scale: float, knots: int = 
         darker = h_ratio < 1.0
         if src.size < knots or not darker.any():
             return fallback
-        theta = None
-        for g in range(len(grid) - 1, -1, -1):
-            theta = fit_cross_exposure(u, src, mean, ratio, np.sqrt(count) * full_scale,
-                                       grid[g], theta0=theta, pedestal=True, rtol=CV_RTOL)
+        down = range(len(grid) - 1, -1, -1)
+        for g, theta in zip(down, _descend(u, src, mean, ratio, np.sqrt(count) * full_scale,
+                                           [grid[g] for g in down]), strict=True):
             curve = MonotoneSpline(u, theta)
             with np.errstate(invalid="ignore", over="ignore"):
                 pred = curve.forward(curve.inverse(h_src[darker]) * h_ratio[darker])
