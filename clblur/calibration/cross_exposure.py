@@ -192,7 +192,7 @@ def choose_smoothness(samples, tau: np.ndarray, full_scale: float, knots: int = 
                          / h_count[darker].sum() * full_scale**2)
     mean_mse = mse.mean(axis=0)
     if not np.isfinite(mean_mse).any():  # no weight predicted the held-out pixels at all
-        return fallback
+        return {**fallback, "rule": "fixed (no weight predicted the held-out pixels)"}
     se = mse.std(axis=0, ddof=1) / np.sqrt(folds)
     best = int(np.nanargmin(mean_mse))
     pick = int(np.flatnonzero(mean_mse <= mean_mse[best] + se[best]).max())
