@@ -10,10 +10,17 @@ Conventions
 * Leave-one-exposure-out: with ``refit=True`` (default) the model is refitted without image
   ``j`` (same samples, same options) before predicting it, so the target never informed the
   curve.  Pixels inside any sampled patch are never scored (held-out pixels only).
-* Scored values (headline): *every* pixel-channel valid in both images, i.e. codes 3..252 of
+* Scored values (headline): *every* pixel-channel whose source is valid, i.e. codes 3..252 of
   255 (``low < v < high`` with the defaults, ``high`` scaled by the series' ``white_level``
   where its camera clips below full scale; neither clipped at the top nor at code 0..2 in
-  the dark), random pixels, edges and textures included.  A secondary column keeps only
+  the dark), random pixels, edges and textures included, at a source value where the
+  target is seldom clipped: at most ``censored`` (1 %) of the targets at that source value
+  and the values beyond it lie outside the valid range (a monotone fit of the clipped share
+  against the source value, per pair and channel; ``_uncensored``).  A target's own value is
+  not what decides whether it is scored: where it sometimes clips, keeping only the targets
+  that did not selects on their noise, and a fitted curve that bends to that selection then
+  outscored the true curve (the JPEG copies of Memorial, ``docs/studies/validation.md``).
+  The few clipped targets left inside the range are not scored.  A secondary column keeps only
   *flat* pixels: their 3 x 3 neighbourhood spans at most ``flat_tolerance`` of full scale in
   both images (8 DN in uint8), where a sub-pixel misregistration between the exposures cannot
   masquerade as response error.  RMSE in code values of the series' dtype, pooled over pairs
@@ -31,7 +38,7 @@ from clblur.calibration.models import FAMILIES
 from clblur.calibration.series import ExposureSeries
 from clblur.errors import InputError
 
-__all__ = ["DEFAULT_GAPS", "DIRECTIONS", "EVAL_HIGH", "EVAL_LOW", "FLAT_TOLERANCE",
+__all__ = ["CENSORED", "DEFAULT_GAPS", "DIRECTIONS", "EVAL_HIGH", "EVAL_LOW", "FLAT_TOLERANCE",
            "GAP_TOLERANCE", "evaluate", "series_gaps"]
 
 DEFAULT_GAPS = (1.0, 4.0)
@@ -42,6 +49,9 @@ FLAT_TOLERANCE = 0.03
 EVAL_LOW = 2.5 / 255.0
 EVAL_HIGH = 252.5 / 255.0
 DIRECTIONS = ("darker", "brighter")
+# The share of clipped targets a scored source value may have: dropping that few of the
+# targets there moves the mean of the rest by under 0.03 of their noise (a normal's tail).
+CENSORED = 0.01
 
 
 def _local_range(image: np.ndarray, coords: np.ndarray) -> np.ndarray:
@@ -52,6 +62,47 @@ def _local_range(image: np.ndarray, coords: np.ndarray) -> np.ndarray:
     img = image.astype(np.float32)
     spread = cv2.dilate(img, kernel) - cv2.erode(img, kernel)
     return spread.reshape(-1, image.shape[2])[coords]
+
+
+def _uncensored(source: np.ndarray, target: np.ndarray, low: float, high: float,
+                censored: float = CENSORED) -> np.ndarray:
+    """Which values to score: where the target is seldom clipped, judged by the source alone.
+
+    The share of targets at or below ``low`` is fitted as a non-increasing function of the
+    source value, the share at or above ``high`` as a non-decreasing one (isotonic
+    regression over the distinct source values, weighted by their counts, so a few outliers
+    are pooled with their neighbours rather than cutting the range); a source value is kept
+    where both shares are at most ``censored``.  Every target at a kept source value is
+    scored but the clipped ones themselves (at most ``censored`` of them), so what decides
+    is the source, never the target's own noise.
+
+    Args:
+        source: the source image's values, one per pixel-channel: its integer codes, or
+            any values that order as they do.
+        target: the target image's values at the same pixel-channels.
+        low, high: the valid range; a target outside it is clipped.
+        censored: the largest share of clipped targets a kept source value may have.
+
+    Returns:
+        A boolean mask over ``source``: the values to score.
+    """
+    from scipy.optimize import isotonic_regression
+
+    if source.size == 0:
+        return np.zeros(0, dtype=bool)
+    if np.issubdtype(source.dtype, np.integer):  # codes: counted, not sorted (10 MP a pair)
+        which = source.astype(np.intp)
+        count = np.bincount(which)
+    else:
+        which, count = np.unique(source, return_inverse=True, return_counts=True)[1:]
+    seen = count > 0
+    below = np.bincount(which, target <= low, count.size)[seen] / count[seen]
+    above = np.bincount(which, target >= high, count.size)[seen] / count[seen]
+    dark = isotonic_regression(below, weights=count[seen], increasing=False).x
+    bright = isotonic_regression(above, weights=count[seen], increasing=True).x
+    keep = np.zeros(count.size, dtype=bool)
+    keep[seen] = (dark <= censored) & (bright <= censored)
+    return keep[which] & (target > low) & (target < high)
 
 
 def _refit_without(series: ExposureSeries, f: ResponseFit, j: int) -> ResponseFit:
@@ -101,15 +152,16 @@ def series_gaps(series: ExposureSeries, wanted=DEFAULT_GAPS,
 def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=DEFAULT_GAPS, *,
              refit: bool = True, tolerance: float = GAP_TOLERANCE, max_pixels: int | None = None,
              low: float = EVAL_LOW, high: float | None = None,
-             flat_tolerance: float | None = FLAT_TOLERANCE, seed: int = 0,
-             progress: bool = False) -> dict:
+             flat_tolerance: float | None = FLAT_TOLERANCE, censored: float = CENSORED,
+             seed: int = 0, progress: bool = False) -> dict:
     """Held-out RMSE (code values) for each gap in stops, plus the fit's AIC/BIC.
 
     ``max_pixels`` scores a random subset of the held-out pixels (faster; the same subset for
     every pair).  Returns ``{"model", "shared", "rmse": {gap: rmse}, "rmse_per_channel":
     {gap: [...]}, "rmse_darker": {gap: rmse}, "rmse_brighter": {gap: rmse}, "n_values":
     {gap: n}, "n_pairs": {gap: n}, "refit" (False when ``refit`` is False or the series has
-    only 2 images), "valid" ([low, high] of full scale a scored value lies in), "flat_tolerance",
+    only 2 images), "valid" ([low, high] of full scale a scored value lies in), "censored" (the
+    share of clipped targets a scored source value may have), "flat_tolerance",
     "flat": {"rmse", "rmse_darker", "rmse_brighter", "n_values"} (flat pixels only; absent
     when ``flat_tolerance`` is None), "missing": {gap: reason}, "log_likelihood", "n_params",
     "aic", "bic", "rmse_fit"}``; a gap with no pair gets RMSE NaN and its reason in
@@ -122,6 +174,9 @@ def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=DEFAULT_GAPS,
         raise InputError(f"gaps must be positive numbers of stops, got {gaps}")
     if not 0.0 <= low < high <= 1.0:
         raise InputError(f"valid range needs 0 <= low < high <= 1, got {low}, {high}")
+    if not 0.0 <= censored < 1.0:
+        raise InputError(f"censored (the share of clipped targets a scored source value may "
+                         f"have) must be in [0, 1), got {censored}")
     stops = np.log2(series.relative_exposures())
     n, ch = len(series.images), series.channels
     # Leaving an exposure out of a 2-image series leaves nothing to fit: score the full fit
@@ -138,13 +193,13 @@ def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=DEFAULT_GAPS,
     def values(i: int, m: np.ndarray, c: int) -> np.ndarray:
         return codes[i][m, c].astype(np.float64) / series.full_scale
 
-    usable = []
+    valid, intact = [], []
     for i, k in enumerate(codes):  # one image's float values at a time
         v = k.astype(np.float64) / series.full_scale
-        usable.append((v > low) & (v < high))
+        valid.append((v > low) & (v < high))
         spoiled = series.coded_near_clip(i)  # a JPEG's clipped region as the codec left it
-        if spoiled is not None:
-            usable[-1] &= ~spoiled.reshape(-1)[coords, None]
+        intact.append(np.ones(coords.size, dtype=bool) if spoiled is None
+                      else ~spoiled.reshape(-1)[coords])
     flat = None if flat_tolerance is None else [
         _local_range(im, coords) <= flat_tolerance * series.full_scale for im in series.images]
     kinds = ("all",) if flat is None else ("all", "flat")
@@ -160,15 +215,18 @@ def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=DEFAULT_GAPS,
                   leave=False):
         model = _refit_without(series, fit_result, j) if refit else fit_result
         for i, g in sources[j]:
-            ok = usable[i] & usable[j]
+            ok = valid[i] & (intact[i] & intact[j])[:, None]
             pairs[g] += 1
             ratio = 2.0 ** (stops[j] - stops[i])
             direction = "darker" if ratio < 1 else "brighter"
             both_flat = None if flat is None else flat[i] & flat[j]
             for c in range(ch):
-                m = ok[:, c]
+                m = ok[:, c].copy()
+                target = values(j, m, c)
+                scored = _uncensored(codes[i][m, c], target, low, high, censored)
+                m[m] = scored
                 pred = transfer(model.responses[c], values(i, m, c), ratio)
-                err2 = ((pred - values(j, m, c)) * series.full_scale) ** 2
+                err2 = ((pred - target[scored]) * series.full_scale) ** 2
                 sse[g, direction, "all"][c] += float(np.sum(err2))
                 cnt[g, direction, "all"][c] += int(m.sum())
                 if both_flat is not None:
@@ -180,7 +238,8 @@ def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=DEFAULT_GAPS,
         return float(np.sqrt(s / k)) if k else float("nan")
 
     out = {"model": fit_result.model, "shared": fit_result.shared, "refit": refit,
-           "valid": [low, high], "flat_tolerance": flat_tolerance, "rmse": {},
+           "valid": [low, high], "censored": censored, "flat_tolerance": flat_tolerance,
+           "rmse": {},
            "rmse_per_channel": {}, "rmse_darker": {}, "rmse_brighter": {}, "n_values": {},
            "n_pairs": {}, "missing": {}}
     if flat is not None:
@@ -206,8 +265,9 @@ def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=DEFAULT_GAPS,
             out["missing"][key] = (f"no two exposures are {g:g} stops apart (within "
                                    f"{tolerance:g} stop); the gaps in this series are {shown}")
         elif not out["n_values"][key]:
-            out["missing"][key] = (f"no held-out pixel is valid (codes 3..252) in both images "
-                                   f"of any pair {g:g} stops apart")
+            out["missing"][key] = (f"no held-out pixel of any pair {g:g} stops apart is valid "
+                                   f"(codes 3..252) at a source value where the target is "
+                                   f"seldom clipped")
     out.update({"log_likelihood": fit_result.log_likelihood, "n_params": fit_result.n_params,
                 "aic": fit_result.aic, "bic": fit_result.bic, "rmse_fit": fit_result.rmse_fit})
     return out

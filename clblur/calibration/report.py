@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from clblur.calibration.cross_exposure import curve_black_level
-from clblur.calibration.evaluate import EVAL_HIGH, EVAL_LOW, FLAT_TOLERANCE
+from clblur.calibration.evaluate import CENSORED, EVAL_HIGH, EVAL_LOW, FLAT_TOLERANCE
 from clblur.calibration.fitting import LIKELIHOOD_LOW, ResponseFit, fit_radiances
 from clblur.calibration.series import ExposureSeries, photometric_exposure
 from clblur.io import atomic_write, atomic_write_text
@@ -309,14 +309,17 @@ def write_report(folder: str | Path, series: ExposureSeries, fits: dict[str, Res
         full = series.full_scale
         stops = " and ".join(f"{g:g}" for g in gaps) + (" stop" if gaps == [1] else " stops")
         flat_dn = next(iter(evaluations.values())).get("flat_tolerance") or FLAT_TOLERANCE
+        censored = next(iter(evaluations.values())).get("censored", CENSORED)
         lines += [f"*{g}-stop columns are empty: {why}*" for g, why in missing.items()]
         lines += [f"*{name} is not ranked: {why}*" for name, why in (skipped or {}).items()]
         lines += ["## Held-out prediction (code values) and information criteria", "",
                   comparison_table(evaluations, gaps), "",
                   f"RMSE in code values: predicting each image from the images {stops} "
                   f"away through {held_out}; every pixel outside the fitting samples "
-                  f"that is valid (codes {math.ceil(low * full):g}..{math.ceil(high * full) - 1:g}"
-                  f" of {full:g}) in both images, edges and textures included; the "
+                  f"whose source is valid (codes {math.ceil(low * full):g}.."
+                  f"{math.ceil(high * full) - 1:g} of {full:g}) at a source value where at "
+                  f"most {censored:.0%} of the targets are clipped (chosen by the source, "
+                  f"never by the target's own noise), edges and textures included; the "
                   "*flat only* columns keep pixels whose 3 x 3 neighbourhood spans at most "
                   f"{flat_dn * full:.3g} DN in both images (`clblur.calibration.evaluate`).  "
                   "*darker*: the target is the shorter exposure; *brighter*: "

@@ -61,8 +61,10 @@ def register(subparsers) -> None:
                    help="evaluate the full fit instead of refitting without each target "
                         "exposure (faster, slightly optimistic)")
     p.add_argument("--eval-low", type=_number(float, 0, 1), default=EVAL_LOW, metavar="V",
-                   help="scored values must exceed V of full scale in both images "
-                        f"(default {EVAL_LOW:.4f}: codes 3..252 of 255 are valid)")
+                   help="values at or below V of full scale count as clipped black: a "
+                        "scored source must be above it, and is scored where its targets "
+                        f"seldom fall to it (default {EVAL_LOW:.4f}: codes 3..252 of 255 are "
+                        "valid)")
     p.add_argument("--flat-tolerance", type=_number(float, 0, none=True),
                    default=FLAT_TOLERANCE, metavar="V",
                    help="secondary column: pixels whose 3x3 neighbourhood spans at most V of "
