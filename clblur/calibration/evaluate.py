@@ -14,9 +14,9 @@ Conventions
   255 (``low < v < high`` with the defaults, ``high`` scaled by the series' ``white_level``
   where its camera clips below full scale; neither clipped at the top nor at code 0..2 in
   the dark), random pixels, edges and textures included, at a source value where the
-  target is seldom clipped: at most ``censored`` (1 %) of the targets at that source value
-  and the values beyond it lie outside the valid range (a monotone fit of the clipped share
-  against the source value, per pair and channel; ``_uncensored``).  A target's own value is
+  target is seldom clipped: at most ``censored`` (1 %) of its targets lie outside the valid
+  range, by a monotone fit of that share against the source value, per pair and channel
+  (``_uncensored``).  A target's own value is
   not what decides whether it is scored: where it sometimes clips, keeping only the targets
   that did not selects on their noise, and a fitted curve that bends to that selection then
   outscored the true curve (the JPEG copies of Memorial, ``docs/studies/validation.md``).
