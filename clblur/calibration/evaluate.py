@@ -16,11 +16,11 @@ Conventions
   the dark), random pixels, edges and textures included, at a source value where the
   target is seldom clipped: at most ``censored`` (1 %) of its targets lie outside the valid
   range, by a monotone fit of that share against the source value, per pair and channel
-  (``_uncensored``).  A target's own value is
-  not what decides whether it is scored: where it sometimes clips, keeping only the targets
-  that did not selects on their noise, and a fitted curve that bends to that selection then
-  outscored the true curve (the JPEG copies of Memorial, ``docs/studies/validation.md``).
-  The few clipped targets left inside the range are not scored.  A secondary column keeps only
+  (``_uncensored``).  A target's own value is not what decides whether it is scored: where
+  it sometimes clips, keeping only the targets that did not selects on their noise, and a
+  fitted curve that bends to that selection then outscored the true curve (the JPEG copies
+  of Memorial, ``docs/studies/validation.md``).  The few clipped targets left inside the
+  range are not scored.  A secondary column keeps only
   *flat* pixels: their 3 x 3 neighbourhood spans at most ``flat_tolerance`` of full scale in
   both images (8 DN in uint8), where a sub-pixel misregistration between the exposures cannot
   masquerade as response error.  RMSE in code values of the series' dtype, pooled over pairs
@@ -239,9 +239,8 @@ def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=DEFAULT_GAPS,
 
     out = {"model": fit_result.model, "shared": fit_result.shared, "refit": refit,
            "valid": [low, high], "censored": censored, "flat_tolerance": flat_tolerance,
-           "rmse": {},
-           "rmse_per_channel": {}, "rmse_darker": {}, "rmse_brighter": {}, "n_values": {},
-           "n_pairs": {}, "missing": {}}
+           "rmse": {}, "rmse_per_channel": {}, "rmse_darker": {}, "rmse_brighter": {},
+           "n_values": {}, "n_pairs": {}, "missing": {}}
     if flat is not None:
         out["flat"] = {"rmse": {}, "rmse_darker": {}, "rmse_brighter": {}, "n_values": {}}
     present = sorted({round(abs(a - b), 2) for a in stops for b in stops if a > b})
