@@ -254,7 +254,8 @@ def test_the_scored_values_are_chosen_by_the_source_not_by_the_target_s_own_nois
     """A darker target near the black clip: keeping only the targets whose own value is valid
     selects on their noise (their mean sits above the curve's); keeping the source values
     where the target seldom clips does not.  The range holds through a cluster of outliers."""
-    from clblur.calibration.evaluate import EVAL_LOW, _uncensored
+    from clblur.calibration.censoring import uncensored
+    from clblur.calibration.evaluate import EVAL_LOW
 
     rng = np.random.default_rng(5)
     source = np.rint(rng.uniform(3, 60, 400_000)) / 255.0
@@ -262,7 +263,7 @@ def test_the_scored_values_are_chosen_by_the_source_not_by_the_target_s_own_nois
     target = np.rint((expected + rng.normal(0.0, 1.5 / 255.0, source.size)) * 255.0) / 255.0
     target[:300] = 0.0  # a cluster of mid-range outliers (a moving object), clipped black
     source[:300] = 40.0 / 255.0
-    kept = _uncensored(source, target, EVAL_LOW, 252.5 / 255.0)
+    kept = uncensored(source, target, EVAL_LOW, 252.5 / 255.0)
     by_target = target > EVAL_LOW
     bias = {name: float(np.mean((target - expected)[m])) * 255.0
             for name, m in (("source", kept), ("target", by_target))}
@@ -273,6 +274,30 @@ def test_the_scored_values_are_chosen_by_the_source_not_by_the_target_s_own_nois
     inside[:300] = False
     assert kept[inside].all()
     assert not kept[source < 8 / 255.0].any()
+
+
+def test_models_fitted_on_one_sampling_share_the_held_out_values(rng, monkeypatch):
+    """The held-out pixels and each pair's scored values depend on the data alone: with a
+    shared cache they are chosen once for every model, and each model scores as alone."""
+    import importlib
+
+    # the package's ``evaluate`` is the function; the module holds the rule it calls
+    ev = importlib.import_module("clblur.calibration.evaluate")
+    series, _ = make_stack(gamma_offset_curve(0.03, 2.0), rng)
+    first = fit(series, "gamma-offset", n_samples=150)
+    models = [first, fit(series, "exp", sampling=first.sampling)]
+    alone = [evaluate(series, f, gaps=(1,), refit=False) for f in models]
+    calls = []
+    choose = ev.uncensored
+    monkeypatch.setattr(ev, "uncensored", lambda *a: calls.append(1) or choose(*a))
+    cache: dict = {}
+    shared = [evaluate(series, f, gaps=(1,), refit=False, cache=cache) for f in models]
+    assert json.dumps(shared) == json.dumps(alone)
+    assert len(cache) == 1 and len(calls) == 2 * (N_EXPOSURES - 1)  # one per pair, not model
+    # another sampling holds out other pixels: a new entry, not the first one's values
+    evaluate(series, fit(series, "exp", n_samples=150, seed=1), gaps=(1,), refit=False,
+             cache=cache)
+    assert len(cache) == 2
 
 
 def test_the_held_out_score_ranks_the_true_curve_with_the_best_fitted_one():

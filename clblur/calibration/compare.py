@@ -88,6 +88,7 @@ def calibrate(source: ExposureSeries | str | os.PathLike, models=None, *, times=
     low = VALID_LOW if fit_low is None else min(fit_low, VALID_LOW)
     sampling = sample_series(series, n_samples, patch=patch, low=low, seed=seed)
     fits, evaluations, skipped = {}, {}, {}
+    held_out: dict = {}  # the held-out pixels and scored values, made once for every model
     for name in tqdm(names, desc="models", disable=not progress):
         opts = {"emor_dir": emor_dir} if name == "emor" else {}
         try:
@@ -96,7 +97,7 @@ def calibrate(source: ExposureSeries | str | os.PathLike, models=None, *, times=
             evaluations[name] = evaluate(series, fits[name], gaps=gaps, refit=refit,
                                          max_pixels=max_pixels, low=eval_low,
                                          flat_tolerance=flat_tolerance, seed=seed,
-                                         progress=progress)
+                                         progress=progress, cache=held_out)
         except ValueError as e:
             # A family the series cannot support (a spline's knots on a scene of a few grey
             # levels) is left out of the ranking with its reason; the others still compete.

@@ -16,23 +16,26 @@ Conventions
   the dark), random pixels, edges and textures included, at a source value where the
   target is seldom clipped: at most ``censored`` (1 %) of its targets lie outside the valid
   range, by a monotone fit of that share against the source value, per pair and channel
-  (``_uncensored``).  A target's own value is not what decides whether it is scored: where
-  it sometimes clips, keeping only the targets that did not selects on their noise, and a
-  fitted curve that bends to that selection then outscored the true curve (the JPEG copies
-  of Memorial, ``docs/studies/validation.md``).  The few clipped targets left inside the
-  range are not scored.  A secondary column keeps only
-  *flat* pixels: their 3 x 3 neighbourhood spans at most ``flat_tolerance`` of full scale in
-  both images (8 DN in uint8), where a sub-pixel misregistration between the exposures cannot
-  masquerade as response error.  RMSE in code values of the series' dtype, pooled over pairs
-  and channels.
+  (``clblur.calibration.censoring``).  A target's own value is not what decides whether it
+  is scored: where it sometimes clips, keeping only the targets that did not selects on
+  their noise, and a fitted curve that bends to that selection then outscored the true
+  curve (the JPEG copies of Memorial, ``docs/studies/validation.md``).  The few clipped
+  targets left inside the range are not scored.  A secondary column keeps only *flat*
+  pixels: their 3 x 3 neighbourhood spans at most ``flat_tolerance`` of full scale in both
+  images (8 DN in uint8), where a sub-pixel misregistration between the exposures cannot
+  masquerade as response error.  RMSE in code values of the series' dtype, pooled over
+  pairs and channels.
 * A gap with no pair of exposures that far apart gets RMSE NaN and a reason in ``missing``.
 """
 
 from __future__ import annotations
 
+import hashlib
+
 import numpy as np
 from tqdm import tqdm
 
+from clblur.calibration.censoring import CENSORED, uncensored
 from clblur.calibration.fitting import ResponseFit, fit, transfer
 from clblur.calibration.models import FAMILIES
 from clblur.calibration.series import ExposureSeries
@@ -49,9 +52,6 @@ FLAT_TOLERANCE = 0.03
 EVAL_LOW = 2.5 / 255.0
 EVAL_HIGH = 252.5 / 255.0
 DIRECTIONS = ("darker", "brighter")
-# The share of clipped targets a scored source value may have: dropping that few of the
-# targets there moves the mean of the rest by under 0.03 of their noise (a normal's tail).
-CENSORED = 0.01
 
 
 def _local_range(image: np.ndarray, coords: np.ndarray) -> np.ndarray:
@@ -64,45 +64,59 @@ def _local_range(image: np.ndarray, coords: np.ndarray) -> np.ndarray:
     return spread.reshape(-1, image.shape[2])[coords]
 
 
-def _uncensored(source: np.ndarray, target: np.ndarray, low: float, high: float,
-                censored: float = CENSORED) -> np.ndarray:
-    """Which values to score: where the target is seldom clipped, judged by the source alone.
+class _HeldOut:
+    """The held-out pixels of a series and the values scored in each pair and channel.
 
-    The share of targets at or below ``low`` is fitted as a non-increasing function of the
-    source value, the share at or above ``high`` as a non-decreasing one (isotonic
-    regression over the distinct source values, weighted by their counts, so a few outliers
-    are pooled with their neighbours rather than cutting the range); a source value is kept
-    where both shares are at most ``censored``.  Every target at a kept source value is
-    scored but the clipped ones themselves (at most ``censored`` of them), so what decides
-    is the source, never the target's own noise.
-
-    Args:
-        source: the source image's values, one per pixel-channel: its integer codes, or
-            any values that order as they do.
-        target: the target image's values at the same pixel-channels.
-        low, high: the valid range; a target outside it is clipped.
-        censored: the largest share of clipped targets a kept source value may have.
-
-    Returns:
-        A boolean mask over ``source``: the values to score.
+    They depend on the data and the sampling's footprint alone, not on the curve, so every
+    model fitted on one sampling shares them (``evaluate``'s ``cache``): made again for each
+    model, they were most of the evaluation's time on a 10 MP bracket.  The held-out pixels
+    are kept as codes (a byte each for 8-bit series) and made values per pair and channel:
+    as float64 values of every pixel of every image they took 8 times the series.  A pair's
+    scored values are kept as bits, 1.3 MB a channel of a 10 MP pair.
     """
-    from scipy.optimize import isotonic_regression
 
-    if source.size == 0:
-        return np.zeros(0, dtype=bool)
-    if np.issubdtype(source.dtype, np.integer):  # codes: counted, not sorted (10 MP a pair)
-        which = source.astype(np.intp)
-        count = np.bincount(which)
-    else:
-        which, count = np.unique(source, return_inverse=True, return_counts=True)[1:]
-    seen = count > 0
-    below = np.bincount(which, target <= low, count.size)[seen] / count[seen]
-    above = np.bincount(which, target >= high, count.size)[seen] / count[seen]
-    dark = isotonic_regression(below, weights=count[seen], increasing=False).x
-    bright = isotonic_regression(above, weights=count[seen], increasing=True).x
-    keep = np.zeros(count.size, dtype=bool)
-    keep[seen] = (dark <= censored) & (bright <= censored)
-    return keep[which] & (target > low) & (target < high)
+    def __init__(self, series: ExposureSeries, footprint: np.ndarray, max_pixels: int | None,
+                 seed: int, low: float, high: float, flat_tolerance: float | None,
+                 censored: float):
+        self.series = series  # held, so that the id in a cache's key names only this series
+        self.full_scale, self.low, self.high, self.censored = (series.full_scale, low, high,
+                                                               censored)
+        ch = series.channels
+        # held out: what no fit has seen, and what showed one static scene (series.moving)
+        coords = np.flatnonzero(~(footprint | series.moving).ravel())
+        if max_pixels is not None and coords.size > max_pixels:
+            coords = np.sort(np.random.default_rng(seed).choice(coords, max_pixels,
+                                                                replace=False))
+        self.size = coords.size
+        self.codes = [im.reshape(-1, ch)[coords] for im in series.images]
+        self.valid, self.intact = [], []
+        for i, k in enumerate(self.codes):  # one image's float values at a time
+            v = k.astype(np.float64) / series.full_scale
+            self.valid.append((v > low) & (v < high))
+            spoiled = series.coded_near_clip(i)  # a JPEG's clipped region as the codec left it
+            self.intact.append(np.ones(coords.size, dtype=bool) if spoiled is None
+                               else ~spoiled.reshape(-1)[coords])
+        self.flat = None if flat_tolerance is None else [
+            _local_range(im, coords) <= flat_tolerance * series.full_scale
+            for im in series.images]
+        self._scored: dict[tuple[int, int, int], np.ndarray] = {}
+
+    def values(self, i: int, m: np.ndarray, c: int) -> np.ndarray:
+        """Image ``i``'s channel ``c`` at the held-out pixels ``m`` (a mask), normalised."""
+        return self.codes[i][m, c].astype(np.float64) / self.full_scale
+
+    def scored(self, i: int, j: int, c: int) -> np.ndarray:
+        """A mask over the held-out pixels: the values of channel ``c`` scored when image
+        ``j`` is predicted from image ``i`` (the source valid, both images intact, the
+        target seldom clipped at that source value: ``censoring.uncensored``)."""
+        packed = self._scored.get((i, j, c))
+        if packed is not None:
+            return np.unpackbits(packed, count=self.size).view(bool)
+        m = self.valid[i][:, c] & self.intact[i] & self.intact[j]
+        m[m] = uncensored(self.codes[i][m, c], self.values(j, m, c), self.low, self.high,
+                          self.censored)
+        self._scored[i, j, c] = np.packbits(m)
+        return m
 
 
 def _refit_without(series: ExposureSeries, f: ResponseFit, j: int) -> ResponseFit:
@@ -153,18 +167,20 @@ def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=DEFAULT_GAPS,
              refit: bool = True, tolerance: float = GAP_TOLERANCE, max_pixels: int | None = None,
              low: float = EVAL_LOW, high: float | None = None,
              flat_tolerance: float | None = FLAT_TOLERANCE, censored: float = CENSORED,
-             seed: int = 0, progress: bool = False) -> dict:
+             seed: int = 0, progress: bool = False, cache: dict | None = None) -> dict:
     """Held-out RMSE (code values) for each gap in stops, plus the fit's AIC/BIC.
 
     ``max_pixels`` scores a random subset of the held-out pixels (faster; the same subset for
-    every pair).  Returns ``{"model", "shared", "rmse": {gap: rmse}, "rmse_per_channel":
-    {gap: [...]}, "rmse_darker": {gap: rmse}, "rmse_brighter": {gap: rmse}, "n_values":
-    {gap: n}, "n_pairs": {gap: n}, "refit" (False when ``refit`` is False or the series has
-    only 2 images), "valid" ([low, high] of full scale a scored value lies in), "censored" (the
-    share of clipped targets a scored source value may have), "flat_tolerance",
-    "flat": {"rmse", "rmse_darker", "rmse_brighter", "n_values"} (flat pixels only; absent
-    when ``flat_tolerance`` is None), "missing": {gap: reason}, "log_likelihood", "n_params",
-    "aic", "bic", "rmse_fit"}``; a gap with no pair gets RMSE NaN and its reason in
+    every pair). ``cache``: a dict shared by the evaluations of models fitted on one series and
+    sampling (``calibrate`` passes one), so that the held-out pixels and each pair's scored
+    values are made once; None makes them for this call. Returns ``{"model", "shared", "rmse":
+    {gap: rmse}, "rmse_per_channel": {gap: [...]}, "rmse_darker": {gap: rmse}, "rmse_brighter":
+    {gap: rmse}, "n_values": {gap: n}, "n_pairs": {gap: n}, "refit" (False when ``refit`` is
+    False or the series has only 2 images), "valid" ([low, high] of full scale a scored value
+    lies in), "censored" (the share of clipped targets a scored source value may have),
+    "flat_tolerance", "flat": {"rmse", "rmse_darker", "rmse_brighter", "n_values"} (flat pixels
+    only; absent when ``flat_tolerance`` is None), "missing": {gap: reason}, "log_likelihood",
+    "n_params", "aic", "bic", "rmse_fit"}``; a gap with no pair gets RMSE NaN and its reason in
     ``missing``.
     """
     if high is None:  # a camera that clips below full scale: its clipped codes are not light
@@ -182,26 +198,16 @@ def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=DEFAULT_GAPS,
     # Leaving an exposure out of a 2-image series leaves nothing to fit: score the full fit
     # (slightly optimistic) and say so in the result rather than fail.
     refit = refit and n > 2
-    # held out: what no fit has seen, and what showed one static scene (series.moving)
-    coords = np.flatnonzero(~(fit_result.sampling.footprint | series.moving).ravel())
-    if max_pixels is not None and coords.size > max_pixels:
-        coords = np.sort(np.random.default_rng(seed).choice(coords, max_pixels, replace=False))
-    # the held-out pixels as codes (a byte each for 8-bit series), made values per pair and
-    # channel: as float64 values of every pixel of every image they took 8 times the series
-    codes = [im.reshape(-1, ch)[coords] for im in series.images]
-
-    def values(i: int, m: np.ndarray, c: int) -> np.ndarray:
-        return codes[i][m, c].astype(np.float64) / series.full_scale
-
-    valid, intact = [], []
-    for i, k in enumerate(codes):  # one image's float values at a time
-        v = k.astype(np.float64) / series.full_scale
-        valid.append((v > low) & (v < high))
-        spoiled = series.coded_near_clip(i)  # a JPEG's clipped region as the codec left it
-        intact.append(np.ones(coords.size, dtype=bool) if spoiled is None
-                      else ~spoiled.reshape(-1)[coords])
-    flat = None if flat_tolerance is None else [
-        _local_range(im, coords) <= flat_tolerance * series.full_scale for im in series.images]
+    footprint = fit_result.sampling.footprint
+    cache_key = (id(series), hashlib.blake2b(np.packbits(footprint).tobytes()).hexdigest(),
+                 footprint.shape, max_pixels, seed, low, high, flat_tolerance, censored)
+    held = None if cache is None else cache.get(cache_key)
+    if held is None:
+        held = _HeldOut(series, footprint, max_pixels, seed, low, high, flat_tolerance,
+                        censored)
+        if cache is not None:
+            cache[cache_key] = held
+    flat = held.flat
     kinds = ("all",) if flat is None else ("all", "flat")
     sse = {(g, d, k): np.zeros(ch) for g in gaps for d in DIRECTIONS for k in kinds}
     cnt = {(g, d, k): np.zeros(ch, dtype=np.int64) for g in gaps for d in DIRECTIONS
@@ -215,20 +221,16 @@ def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=DEFAULT_GAPS,
                   leave=False):
         model = _refit_without(series, fit_result, j) if refit else fit_result
         for i, g in sources[j]:
-            ok = valid[i] & (intact[i] & intact[j])[:, None]
             pairs[g] += 1
             ratio = 2.0 ** (stops[j] - stops[i])
             direction = "darker" if ratio < 1 else "brighter"
             both_flat = None if flat is None else flat[i] & flat[j]
             for c in range(ch):
-                m = ok[:, c].copy()
-                target = values(j, m, c)
-                scored = _uncensored(codes[i][m, c], target, low, high, censored)
-                m[m] = scored
-                pred = transfer(model.responses[c], values(i, m, c), ratio)
-                err2 = ((pred - target[scored]) * series.full_scale) ** 2
+                m = held.scored(i, j, c)
+                pred = transfer(model.responses[c], held.values(i, m, c), ratio)
+                err2 = ((pred - held.values(j, m, c)) * series.full_scale) ** 2
                 sse[g, direction, "all"][c] += float(np.sum(err2))
-                cnt[g, direction, "all"][c] += int(m.sum())
+                cnt[g, direction, "all"][c] += err2.size
                 if both_flat is not None:
                     fm = both_flat[:, c][m]
                     sse[g, direction, "flat"][c] += float(np.sum(err2[fm]))
