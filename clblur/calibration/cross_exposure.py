@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from clblur.calibration.censoring import CENSORED, uncensored
 from clblur.calibration.forward_families import FamilyFit
 from clblur.errors import InputError, InputTypeError
 from clblur.responses import (
@@ -42,9 +43,16 @@ SMOOTHNESS_GRID = tuple(0.3 * 3.0**k for k in range(12))
 # training fold with fewer pools than knots).
 DEFAULT_SMOOTHNESS = 0.3
 CV_FOLDS = 5
-# A weight chosen on (folds - 1) / folds of the pixels, applied to all of them: the data term
-# grows with the pixels, so the penalty grows by the square root of that ratio
-FULL_FIT_SCALE = float(np.sqrt(CV_FOLDS / (CV_FOLDS - 1)))
+
+
+def _full_fit_scale(folds: int) -> float:
+    """By how much a weight chosen on (folds - 1) / folds of the pixels grows when it is
+    applied to all of them: the data term grows with the pixels, so the penalty grows by the
+    square root of that ratio."""
+    return float(np.sqrt(folds / (folds - 1)))
+
+
+FULL_FIT_SCALE = _full_fit_scale(CV_FOLDS)
 # The cross-validation's fits stop at a relative cost decrease of 1e-7, not 1e-10: 4 - 5
 # times fewer iterations, the same weight chosen (every channel of the JPEG 4:2:0 bracket of
 # docs/studies/radiance_brackets.py; held-out RMSE within 0.004 codes)
@@ -152,7 +160,9 @@ def choose_smoothness(samples, tau: np.ndarray, full_scale: float, knots: int = 
     fitted down the grid from its stiffest weight (each fit starting from the stiffer one:
     the stiff fits have one basin, the weak ones several) and scored by the pooled RMSE of
     predicting the darker image of each held-out pair, the direction calibration ranks
-    models by (``clblur.calibration.compare.selection_score``).  Chosen: the stiffest weight
+    models by (``clblur.calibration.compare.selection_score``), on the pairs the evaluation
+    would score: chosen by the source, never by the target's own noise
+    (``pooled_pairs(..., censored=CENSORED)``).  Chosen: the stiffest weight
     whose mean held-out MSE is within one standard error (over the folds) of the lowest
     (Hastie, Tibshirani & Friedman, *Elements of Statistical Learning*, 2nd ed., 7.10): where
     the data cannot tell the curves apart, the smoothest is taken.
@@ -174,9 +184,10 @@ def choose_smoothness(samples, tau: np.ndarray, full_scale: float, knots: int = 
         train, test = fold != k, fold == k
         src, mean, ratio, count = pooled_pairs(samples.values[train], samples.valid[train],
                                                tau, max_gap, full_scale)
+        # held-out pairs chosen by the source, as the evaluation scores them
         h_src, h_mean, h_ratio, h_count = pooled_pairs(samples.values[test],
                                                        samples.valid[test], tau, max_gap,
-                                                       full_scale)
+                                                       full_scale, censored=CENSORED)
         darker = h_ratio < 1.0
         if src.size < knots or not darker.any():
             return fallback
@@ -196,7 +207,7 @@ def choose_smoothness(samples, tau: np.ndarray, full_scale: float, knots: int = 
     se = mse.std(axis=0, ddof=1) / np.sqrt(folds)
     best = int(np.nanargmin(mean_mse))
     pick = int(np.flatnonzero(mean_mse <= mean_mse[best] + se[best]).max())
-    return {"smoothness": float(grid[pick]), "scale": float(np.sqrt(folds / (folds - 1))),
+    return {"smoothness": float(grid[pick]), "scale": _full_fit_scale(folds),
             "grid": [float(g) for g in grid], "rmse": np.sqrt(mean_mse).tolist(),
             "se": se.tolist(), "rule": f"{folds}-fold spatial cross-validation, one standard error"}
 
@@ -242,12 +253,20 @@ def curve_black_level(curve: Response, fraction: float = 1e-3) -> float:
 
 
 def pooled_pairs(values: np.ndarray, valid: np.ndarray, tau: np.ndarray, max_gap: float,
-                 full_scale: float, levels: int = 1024):
+                 full_scale: float, levels: int = 1024, censored: float | None = None):
     """Pool ordered exposure pairs of each sample by (source value, ratio).
 
     ``values``/``valid``: (P, n) normalised values and validity (see ``SampleSet``).  Returns
     ``(source value, mean target value, ratio tau_j / tau_i, count)`` per pool.  Source values
     are exact codes for 8-bit data and binned to ``levels`` otherwise.
+
+    A pair is used where both values lie inside ``PAIR_LOW_CODE``..``PAIR_HIGH_CODE``, or,
+    with ``censored`` (for scoring held-out pixels), where the source does and lies at a
+    value whose targets clip at most that share of the time
+    (``clblur.calibration.censoring.uncensored``), the clipped targets themselves left out:
+    then the target's own noise does not decide which pairs are pooled.  A target invalid
+    for another reason than its value (a JPEG's clipped region as the codec left it) is left
+    out either way.
     """
     n = values.shape[1]
     lo, hi = PAIR_LOW_CODE / 255.0, PAIR_HIGH_CODE / 255.0
@@ -264,7 +283,12 @@ def pooled_pairs(values: np.ndarray, valid: np.ndarray, tau: np.ndarray, max_gap
     ratios, which = np.unique(log_ratio, return_inverse=True)
     ratios = 2.0 ** ratios
     for r_index, (i, j) in zip(which, pairs, strict=True):
-        both = ok[:, i] & ok[:, j]
+        if censored is None:
+            both = ok[:, i] & ok[:, j]
+        else:
+            spoiled = ~valid[:, j] & (values[:, j] > lo) & (values[:, j] < hi)
+            both = ok[:, i] & ~spoiled
+            both[both] = uncensored(values[both, i], values[both, j], lo, hi, censored)
         q = np.clip(np.rint(values[both, i] * (bins - 1)), 0, bins - 1).astype(np.int64)
         keys.append(q + bins * int(r_index))
         targets.append(values[both, j])
