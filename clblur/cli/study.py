@@ -41,13 +41,11 @@ def run(args: argparse.Namespace) -> int:
     from clblur.calibration.series import folder_series
     from clblur.io import check_output
     from clblur.manifest import load_manifest
-    from clblur.study.run import DEFAULT_PIXELS, study
+    from clblur.study.run import DEFAULT_PIXELS, check_report_name, study
 
     # every output checked before the study runs (it takes minutes); study() refuses an
     # output that would replace an input
-    if Path(args.report).suffix.lower() == ".md":
-        raise InputError(f"--report {args.report}: name the JSON report (.json); its .md "
-                         "summary is written beside it")
+    check_report_name(args.report, "--report")
     check_output(args.report, args.manifest, args.times)
     check_output(Path(args.report).with_suffix(".md"), args.manifest, args.times)
     if args.splits < 1:

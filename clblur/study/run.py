@@ -32,8 +32,8 @@ from clblur.study.select import Selection, select
 from clblur.study.series import series_groups
 from clblur.study.stacks import stack_group
 
-__all__ = ["DEFAULT_PIXELS", "StudyResult", "groups_from_manifest", "split_summary", "study",
-           "study_groups"]
+__all__ = ["DEFAULT_PIXELS", "StudyResult", "check_report_name", "groups_from_manifest",
+           "split_summary", "study", "study_groups"]
 
 DEFAULT_PIXELS = 60000  # target pixels used in all (split evenly over pairs/stacks/steps)
 
@@ -201,6 +201,13 @@ def split_summary(chosen: list[list[str]]) -> dict:
             "per_split": chosen}
 
 
+def check_report_name(report: str | os.PathLike, option: str = "report") -> None:
+    """Refuse a report named ``.md``: its summary, written beside it, would replace it."""
+    if Path(report).suffix.lower() == ".md":
+        raise InputError(f"{option} {report}: name the JSON report (.json); its .md summary "
+                         "is written beside it")
+
+
 def study(manifest: str | os.PathLike | Manifest, *, report: str | os.PathLike | None = None,
           figures_dir: str | os.PathLike | None = None, max_pixels: int = DEFAULT_PIXELS,
           alpha: float = 0.05, progress: bool = False, splits: int = 1,
@@ -216,9 +223,7 @@ def study(manifest: str | os.PathLike | Manifest, *, report: str | os.PathLike |
     if report is not None:  # refuse before the work, not after
         if not Path(report).parent.is_dir():
             raise InputError(f"output folder does not exist: {Path(report).parent}")
-        if Path(report).suffix.lower() == ".md":  # the summary would replace the report
-            raise InputError(f"report {report}: name the JSON report (.json); its .md "
-                             "summary is written beside it")
+        check_report_name(report)
         refuse_overwrite(report, *inputs)
         refuse_overwrite(Path(report).with_suffix(".md"), *inputs)
     if figures_dir is not None:  # its figures have fixed names
