@@ -14,6 +14,9 @@ Conventions
   ``exposure``.
   Empty cells keep the command line's value; ``flow``/``psf``/response-file paths are relative
   to the manifest's folder.
+* Response per image: the manifest cell, else ``--response``, else the file's own
+  (``clblur.io.response_for_file``: ``linear`` for an EXR, which holds scene-linear light,
+  ``exp`` for the rest), as ``clblur blur`` chooses it.
 * Checked before any work (``plan_jobs``; ``InputError``, nothing written): the options, every
   manifest cell (the error names the manifest, its line and the column), the manifest's CSV
   itself (a quote left open), that each image has a motion, and that each image, flow file and
@@ -62,7 +65,14 @@ from clblur.batch_state import (
     response_file,
 )
 from clblur.errors import InputError
-from clblur.io import IMAGE_FORMATS, atomic_write_text, read_psf, require_file, resolve_inside
+from clblur.io import (
+    IMAGE_FORMATS,
+    atomic_write_text,
+    read_psf,
+    require_file,
+    resolve_inside,
+    response_for_file,
+)
 from clblur.motion import anchor_value, check_exposure, parse_motion, psf, time_weights
 from clblur.pixels import validate_saturation
 from clblur.responses import check_spec
@@ -326,6 +336,8 @@ def plan_jobs(in_dir: Path, out_dir: Path, defaults: Job, flow_dir: Path | None 
                 job = replace(job, flow=str(flow))
         if name in rows:
             job = _row_job(job, rows[name], f"manifest {manifest}", roots, out_dir)
+        if job.response is None:  # neither a cell nor --response: the file's own
+            job = replace(job, response=response_for_file(src))
         if job.motion is None and job.flow is None and job.psf is None:
             if flow_dir is not None:
                 raise InputError(f"no flow for {name}: {flow_dir / src.stem}.npy or .flo not "

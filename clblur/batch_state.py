@@ -42,7 +42,7 @@ class Job:
     motion: tuple[float, float] | None = None
     flow: str | None = None
     psf: str | None = None
-    response: str = "exp"
+    response: str | None = None  # None: the image file's (``clblur.io.response_for_file``)
     anchor: str = "center"
     samples: int | None = None
     saturation: float = 1.0
@@ -89,9 +89,10 @@ def _file_digest(path: str) -> list | None:
     return [st.st_size, _digests[ident]]
 
 
-def response_file(spec: str) -> str | None:
-    """The file a response spec names, or None for a built-in curve (``exp:2``, ``srgb``)."""
-    if spec.split(":", 1)[0] in BUILTIN_RESPONSES:
+def response_file(spec: str | None) -> str | None:
+    """The file a response spec names, or None for a built-in curve (``exp:2``, ``srgb``) or
+    none given (the image file's own, ``clblur.io.response_for_file``)."""
+    if spec is None or spec.split(":", 1)[0] in BUILTIN_RESPONSES:
         return None
     return spec
 

@@ -44,6 +44,7 @@ from clblur.io import (
     is_tiff,
     open_image,
     read_flow,
+    response_for_file,
     write_image,
 )
 from clblur.motion import anchor_value
@@ -250,7 +251,7 @@ def _progress(total: int, enabled: bool):
 
 
 # --------------------------------------------------------------------------- files
-def blur_file(src: str | os.PathLike, dst: str | os.PathLike, motion, response="exp", *,
+def blur_file(src: str | os.PathLike, dst: str | os.PathLike, motion, response=None, *,
               anchor: str = "center", samples: int | None = None, weights=None,
               backend: str = "auto", saturation: float = 1.0, device: str | None = None,
               memory_budget: int | None = None, progress: bool = False,
@@ -261,7 +262,9 @@ def blur_file(src: str | os.PathLike, dst: str | os.PathLike, motion, response="
     (BigTIFF above 2 GiB) written window by window.  Other formats are held whole.  The output
     goes to a temporary file beside ``dst`` that is renamed into place only when complete, so
     ``dst`` is either absent, the previous file, or the finished result.  ``motion``: as for
-    ``blur_tiled`` (a flow may be a ``.npy``/``.flo`` path).
+    ``blur_tiled`` (a flow may be a ``.npy``/``.flo`` path).  ``response``: None takes the
+    file's (``clblur.io.response_for_file``: ``linear`` for an EXR, which holds scene-linear
+    light, else ``exp``).
     """
     dst = check_output(dst, src, *([motion] if isinstance(motion, (str, os.PathLike)) else []),
                        suffixes=tuple(IMAGE_FORMATS))
@@ -291,6 +294,8 @@ def blur_file(src: str | os.PathLike, dst: str | os.PathLike, motion, response="
     if not is_tiff(dst) and dst.suffix.lower() != ".exr" and np.dtype(image.dtype).kind == "f":
         raise InputError(f"{dst.suffix} cannot hold float images; write .tif, .tiff or .exr "
                          "instead")
+    if response is None:
+        response = response_for_file(src)
     options = dict(response=response, anchor=anchor, samples=samples, weights=weights,
                    backend=backend, saturation=saturation, device=device, tile=tile,
                    memory_budget=max(budget - whole, 1), progress=progress, exposure=exposure)

@@ -305,6 +305,36 @@ def test_inverse_depth_and_the_exr_default_response(tmp_path, rng):
     assert exr.read_image(out).max() > 1 and exr.read_image(out).min() < 0
 
 
+def test_batch_and_blur_file_take_an_exr_as_linear_light(tmp_path, rng):
+    """`clblur batch` chooses the response per image as `clblur blur` does: an EXR in the
+    folder goes through `linear` (a highlight of 8 and a negative stay), a PNG beside it
+    through `exp`; a manifest cell still decides its image.  `blur_file` takes the same
+    default."""
+    from clblur.tiling import blur_file
+
+    rgb = rng.uniform(-0.1, 1, (16, 24, 3)).astype(np.float32)
+    rgb[5, 5] = 8.0
+    src = tmp_path / "in"
+    src.mkdir()
+    for name in ("hdr.exr", "cell.exr"):
+        exr.write_image(src / name, rgb)
+    png = (rng.uniform(0, 1, (16, 24, 3)) * 255).astype(np.uint8)
+    write_image(src / "ldr.png", png)
+    (tmp_path / "m.csv").write_text("image,response\ncell.exr,srgb\n")
+    out = tmp_path / "out"
+    assert main(["batch", str(src), str(out), "--motion", "5,1", "--manifest",
+                 str(tmp_path / "m.csv"), "--backend", "numpy", "--quiet"]) == 0
+    for name, spec in (("hdr.exr", "linear"), ("cell.exr", "srgb")):
+        np.testing.assert_allclose(exr.read_image(out / name),
+                                   clblur.blur(rgb, (5, 1), spec, backend="numpy"), atol=1e-6)
+    assert exr.read_image(out / "hdr.exr").max() > 1
+    np.testing.assert_array_equal(read_image(out / "ldr.png"),
+                                  clblur.blur(png, (5, 1), "exp", backend="numpy"))
+    blur_file(src / "hdr.exr", tmp_path / "one.exr", (5, 1), backend="numpy")
+    np.testing.assert_array_equal(exr.read_image(tmp_path / "one.exr"),
+                                  exr.read_image(out / "hdr.exr"))
+
+
 def test_bad_exr_colour_is_one_line(tmp_path, capfd):
     """A truncated file, UINT colour (IDs) and NaN colour: one line naming the file, exit 2
     (the library had printed its own two lines before ours)."""

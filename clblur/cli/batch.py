@@ -66,7 +66,8 @@ def run(args: argparse.Namespace) -> int:
                    memory_budget=args.memory_budget)
     # fail now, not once per image (plan_jobs checks the rest: motion, PSF, manifest cells)
     parse_size(args.memory_budget)
-    check_response(args.response)
+    if args.response is not None:  # else each image's own (linear for an EXR)
+        check_response(args.response)
     if args.scheduler is not None:
         parse_scheduler(args.scheduler)
     check_device(args)

@@ -32,7 +32,7 @@ def register(sub) -> None:
                                   "bounding box), pixel aspect ratio, compression and "
                                   "float16 colour are kept by an EXR output")
     add_motion_options(p, required=True)
-    add_blur_options(p, linear_for_exr=True)
+    add_blur_options(p)
     add_memory_option(p, "bound memory use")
     add_vector_options(p, "--flow")
     add_path_option(p)

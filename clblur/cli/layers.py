@@ -34,7 +34,7 @@ def register(sub) -> None:
                         "H x W x 2, .flo or EXR, in the --vectors convention); in a multilayer "
                         "EXR, FILE.exr:PREFIX names a layer (image: PREFIX.R/G/B/A, e.g. "
                         "Ball.Combined; vectors: PREFIX.Vector.X/Y/Z/W with --vectors blender)")
-    add_blur_options(p, linear_for_exr=True)
+    add_blur_options(p)
     add_vector_options(p, "the layers' vector files")
     add_path_option(p)
     p.add_argument("--overscan", type=int, default=None, metavar="PX",

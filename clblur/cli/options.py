@@ -37,15 +37,13 @@ def _finite(x: float) -> bool:
     return x == x and abs(x) != float("inf")
 
 
-def add_blur_options(p: argparse.ArgumentParser, linear_for_exr: bool = False) -> None:
-    """Options shared by every command that blurs (blur, blur-layers, batch).
-    ``linear_for_exr``: the response defaults to ``linear`` for an EXR input
-    (:func:`default_response`), else to ``exp``."""
-    p.add_argument("--response", default=None if linear_for_exr else "exp", metavar="SPEC",
+def add_blur_options(p: argparse.ArgumentParser) -> None:
+    """Options shared by every command that blurs (blur, blur-layers, batch).  The response
+    defaults to the input's (:func:`default_response`: ``linear`` for an EXR, else ``exp``)."""
+    p.add_argument("--response", default=None, metavar="SPEC",
                    help="linear, exp, exp:K, gamma:G, srgb, or a response JSON file "
-                        "(default: " + ("linear for an EXR input, which holds scene-linear "
-                                        "light, else " if linear_for_exr else "") +
-                        "exp, the paper's Eq. 3)")
+                        "(default: linear for an EXR input, which holds scene-linear light, "
+                        "else exp, the paper's Eq. 3)")
     p.add_argument("--anchor", choices=list(ANCHORS), default="center",
                    help="shutter time the static image shows (default: center)")
     p.add_argument("--samples", type=int, default=None, metavar="N",
@@ -208,11 +206,12 @@ def check_response(spec: str, option: str = "--response", channels: int | None =
 
 
 def default_response(args: argparse.Namespace, image_file: str) -> None:
-    """Set ``--response`` where it was left out: ``linear`` for an EXR input (scene-linear
-    light: a bounded response would clip its highlights at full scale and its negatives at
-    0), else ``exp``, the paper's Eq. 3."""
+    """Set ``--response`` where it was left out, by the input's format
+    (``clblur.io.response_for_file``: ``linear`` for an EXR, else ``exp``)."""
+    from clblur.io import response_for_file
+
     if args.response is None:
-        args.response = "linear" if str(image_file).lower().endswith(".exr") else "exp"
+        args.response = response_for_file(image_file)
 
 
 def blur_options(args: argparse.Namespace) -> dict:

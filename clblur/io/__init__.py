@@ -32,6 +32,7 @@ from clblur.io.images import (
     light_channels,
     probe_image,
     read_image,
+    response_for_file,
     write_image,
 )
 from clblur.io.paths import (
@@ -57,4 +58,5 @@ __all__ = ["FLO_MAGIC", "IMAGE_FORMATS", "MappedRaster", "OrientedRaster", "Tiff
            "check_output", "create_tiff", "data_dir", "describe_size", "exr_layout", "gopro_frames",
            "image_format", "is_tiff", "light_channels", "open_flow", "open_image", "probe_image",
            "read_flow", "read_depth", "read_image", "read_psf", "refuse_overwrite",
-           "require_file", "resolve_inside", "tmp_beside", "write_flow", "write_image"]
+           "require_file", "resolve_inside", "response_for_file", "tmp_beside", "write_flow",
+           "write_image"]

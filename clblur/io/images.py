@@ -33,7 +33,8 @@ from clblur.io.atomic import atomic_write
 from clblur.io.paths import require_file
 
 __all__ = ["exr_layout", "IMAGE_FORMATS", "MAX_DECODE_PIXELS", "ImageHeader", "codec_block",
-           "image_format", "light_channels", "probe_image", "read_image", "write_image"]
+           "image_format", "light_channels", "probe_image", "read_image", "response_for_file",
+           "write_image"]
 
 # extension -> format name; read_image/write_image dispatch on the name
 IMAGE_FORMATS = {".png": "png", ".tif": "tiff", ".tiff": "tiff", ".jpg": "jpeg",
@@ -52,6 +53,14 @@ def image_format(path: str | os.PathLike) -> str:
         raise InputError(f"{path}: unknown image extension {suffix or '(none)'!r}; use one of "
                          f"{', '.join(IMAGE_FORMATS)}")
     return IMAGE_FORMATS[suffix]
+
+
+def response_for_file(path: str | os.PathLike) -> str:
+    """The response an image file's values go through when none is given: ``linear`` for an
+    EXR (scene-linear light: a bounded response would clip its highlights at full scale and
+    its negatives at 0), else ``exp``, the paper's Eq. 3.  The one rule for every command
+    and for ``clblur.tiling.blur_file``."""
+    return "linear" if IMAGE_FORMATS.get(Path(path).suffix.lower()) == "exr" else "exp"
 
 
 @dataclass(frozen=True)
