@@ -68,8 +68,8 @@ class _HeldOut:
     """The held-out pixels of a series and the values scored in each pair and channel.
 
     They depend on the data and the sampling's footprint alone, not on the curve, so every
-    model fitted on one sampling shares them (``evaluate``'s ``cache``): made again for each
-    model, they were most of the evaluation's time on a 10 MP bracket.  The held-out pixels
+    model fitted on one sampling shares them (``evaluate``'s ``cache``) rather than making
+    them again, a few passes over 10 M values a pair on a 10 MP bracket.  The held-out pixels
     are kept as codes (a byte each for 8-bit series) and made values per pair and channel:
     as float64 values of every pixel of every image they took 8 times the series.  A pair's
     scored values are kept as bits, 1.3 MB a channel of a 10 MP pair.
