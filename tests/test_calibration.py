@@ -276,33 +276,6 @@ def test_the_scored_values_are_chosen_by_the_source_not_by_the_target_s_own_nois
     assert not kept[source < 8 / 255.0].any()
 
 
-def test_the_spline_s_held_out_pools_are_chosen_by_the_source_as_the_evaluation_s():
-    """The spline's cross-validation scores its held-out folds on pooled pairs.  Pooled where
-    both values are valid, a darker target near the black clip keeps only the targets whose
-    noise lifted them (the pools' mean sits above the curve's); pooled where the source says
-    the target seldom clips (the evaluation's rule), it does not."""
-    from clblur.calibration.censoring import CENSORED
-    from clblur.calibration.cross_exposure import pooled_pairs
-
-    rng = np.random.default_rng(5)
-    bright = np.rint(rng.uniform(3, 60, 200_000)) / 255.0
-    expected = bright / 4.0  # two stops darker, a linear camera
-    dark = np.clip(np.rint((expected + rng.normal(0.0, 1.5 / 255.0, bright.size)) * 255.0),
-                   0, 255) / 255.0
-    values = np.stack([dark, bright], axis=1)
-    valid = (values > 0.0) & (values < 1.0)
-    bias = {}
-    for rule, censored in (("target", None), ("source", CENSORED)):
-        src, mean, ratio, count = pooled_pairs(values, valid, np.array([0.25, 1.0]), 4.5,
-                                               255.0, censored=censored)
-        darker = ratio < 1.0
-        bias[rule] = float(np.sum(count[darker] * (mean - src * ratio)[darker])
-                           / count[darker].sum()) * 255.0
-        assert count[~darker].sum() > 0  # the brighter direction is pooled either way
-    assert bias["target"] > 0.1, bias
-    assert abs(bias["source"]) < 0.03, bias
-
-
 def test_models_fitted_on_one_sampling_share_the_held_out_values(rng, monkeypatch):
     """The held-out pixels and each pair's scored values depend on the data alone: with a
     shared cache they are chosen once for every model, and each model scores as alone."""

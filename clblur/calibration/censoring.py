@@ -4,9 +4,10 @@ Where the darker (or brighter) image of a pair sometimes clips, keeping only the
 did not selects on their noise: their mean sits above (below) what the true curve predicts,
 and a fitted curve that bends to that selection outscores the true curve
 (``docs/studies/validation.md``, "Held-out values chosen by the source, not by the target's
-own noise").  The held-out evaluation (``clblur.calibration.evaluate``) and the spline's
-cross-validation (``clblur.calibration.cross_exposure.choose_smoothness``) both choose their
-scored values here.
+own noise").  The held-out evaluation (``clblur.calibration.evaluate``) chooses its scored
+values here.  The spline's cross-validation does not: tried, it moved the spline's curve
+further from the truth on a lossless gamma-2.2 bracket (validation.md, "The spline's
+cross-validation on the evaluation's pairs: tried, not kept").
 """
 
 from __future__ import annotations

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from clblur.calibration.censoring import CENSORED, uncensored
 from clblur.calibration.forward_families import FamilyFit
 from clblur.errors import InputError, InputTypeError
 from clblur.responses import (
@@ -160,9 +159,7 @@ def choose_smoothness(samples, tau: np.ndarray, full_scale: float, knots: int = 
     fitted down the grid from its stiffest weight (each fit starting from the stiffer one:
     the stiff fits have one basin, the weak ones several) and scored by the pooled RMSE of
     predicting the darker image of each held-out pair, the direction calibration ranks
-    models by (``clblur.calibration.compare.selection_score``), on the pairs the evaluation
-    would score: chosen by the source, never by the target's own noise
-    (``pooled_pairs(..., censored=CENSORED)``).  Chosen: the stiffest weight
+    models by (``clblur.calibration.compare.selection_score``).  Chosen: the stiffest weight
     whose mean held-out MSE is within one standard error (over the folds) of the lowest
     (Hastie, Tibshirani & Friedman, *Elements of Statistical Learning*, 2nd ed., 7.10): where
     the data cannot tell the curves apart, the smoothest is taken.
@@ -184,10 +181,9 @@ def choose_smoothness(samples, tau: np.ndarray, full_scale: float, knots: int = 
         train, test = fold != k, fold == k
         src, mean, ratio, count = pooled_pairs(samples.values[train], samples.valid[train],
                                                tau, max_gap, full_scale)
-        # held-out pairs chosen by the source, as the evaluation scores them
         h_src, h_mean, h_ratio, h_count = pooled_pairs(samples.values[test],
                                                        samples.valid[test], tau, max_gap,
-                                                       full_scale, censored=CENSORED)
+                                                       full_scale)
         darker = h_ratio < 1.0
         if src.size < knots or not darker.any():
             return fallback
@@ -253,20 +249,12 @@ def curve_black_level(curve: Response, fraction: float = 1e-3) -> float:
 
 
 def pooled_pairs(values: np.ndarray, valid: np.ndarray, tau: np.ndarray, max_gap: float,
-                 full_scale: float, levels: int = 1024, censored: float | None = None):
+                 full_scale: float, levels: int = 1024):
     """Pool ordered exposure pairs of each sample by (source value, ratio).
 
     ``values``/``valid``: (P, n) normalised values and validity (see ``SampleSet``).  Returns
     ``(source value, mean target value, ratio tau_j / tau_i, count)`` per pool.  Source values
     are exact codes for 8-bit data and binned to ``levels`` otherwise.
-
-    A pair is used where both values lie inside ``PAIR_LOW_CODE``..``PAIR_HIGH_CODE``, or,
-    with ``censored`` (for scoring held-out pixels), where the source does and lies at a
-    value whose targets clip at most that share of the time
-    (``clblur.calibration.censoring.uncensored``), the clipped targets themselves left out:
-    then the target's own noise does not decide which pairs are pooled.  A target invalid
-    for another reason than its value (a JPEG's clipped region as the codec left it) is left
-    out either way.
     """
     n = values.shape[1]
     lo, hi = PAIR_LOW_CODE / 255.0, PAIR_HIGH_CODE / 255.0
@@ -283,12 +271,7 @@ def pooled_pairs(values: np.ndarray, valid: np.ndarray, tau: np.ndarray, max_gap
     ratios, which = np.unique(log_ratio, return_inverse=True)
     ratios = 2.0 ** ratios
     for r_index, (i, j) in zip(which, pairs, strict=True):
-        if censored is None:
-            both = ok[:, i] & ok[:, j]
-        else:
-            spoiled = ~valid[:, j] & (values[:, j] > lo) & (values[:, j] < hi)
-            both = ok[:, i] & ~spoiled
-            both[both] = uncensored(values[both, i], values[both, j], lo, hi, censored)
+        both = ok[:, i] & ok[:, j]
         q = np.clip(np.rint(values[both, i] * (bins - 1)), 0, bins - 1).astype(np.int64)
         keys.append(q + bins * int(r_index))
         targets.append(values[both, j])
