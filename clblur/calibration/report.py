@@ -15,8 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
+from clblur.calibration.censoring import CENSORED
 from clblur.calibration.cross_exposure import curve_black_level
-from clblur.calibration.evaluate import CENSORED, EVAL_HIGH, EVAL_LOW, FLAT_TOLERANCE
+from clblur.calibration.evaluate import EVAL_HIGH, EVAL_LOW, FLAT_TOLERANCE
 from clblur.calibration.fitting import LIKELIHOOD_LOW, ResponseFit, fit_radiances
 from clblur.calibration.series import ExposureSeries, photometric_exposure
 from clblur.io import atomic_write, atomic_write_text
