@@ -759,3 +759,61 @@ def test_the_evaluation_s_refits_keep_the_chosen_smoothness(monkeypatch):
     evaluate(series, result, gaps=(1,))
     assert len(calls) == 3
     assert weights[3:] == chosen * len(series.images)
+
+
+def test_the_spline_s_pools_count_clipped_targets_as_censored(rng):
+    """A pool whose darker targets sometimes clip at the bottom: averaging only the targets
+    that did not clip keeps the bright ones (their mean sits above the true curve's); trimmed
+    symmetrically, the clipped ones counted, the mean is where the curve puts it.  A pool
+    whose targets clip more often than ``TRIM_LIMIT`` is left out; one that never clips
+    gives the plain mean of its targets."""
+    from clblur.calibration.cross_exposure import TRIM_LIMIT, pooled_pairs
+
+    n, sd = 200_000, 1.5
+    source = rng.integers(8, 41, n).astype(np.float64)  # codes of the longer exposure
+    target = np.clip(np.rint(source / 4.0 + rng.normal(0.0, sd, n)), 0, 255)  # 2 stops down
+    values = np.stack([target, source], axis=1) / 255.0
+    valid = (values > 0.0) & (values < 1.0)
+    src, mean, ratio, count = pooled_pairs(values, valid, np.array([0.25, 1.0]), 4.5, 255.0)
+    down = ratio < 1.0
+    code, got, kept = np.rint(src[down] * 255), mean[down] * 255, count[down]
+    clipped = np.array([np.mean(target[source == c] <= 2.5) for c in range(8, 41)])
+    assert clipped.max() > 0.5 and (clipped[(clipped > 0.05) & (clipped <= TRIM_LIMIT)].size
+                                    >= 3)  # the lowest pools clip, some of them often
+    assert set(code) == {c for c, share in zip(range(8, 41), clipped, strict=True)
+                         if share <= TRIM_LIMIT}
+    assert np.abs(got - code / 4.0).max() < 0.1, np.c_[code, got - code / 4.0]
+    # the biased alternative, for scale: the unclipped targets alone
+    low = code.min()
+    alone = target[(source == low) & (target > 2.5)].mean()
+    assert alone - low / 4.0 > 0.4
+    # the count is what was averaged: the clipped ones and as many from the top trimmed
+    for c, k in zip(code, kept, strict=True):
+        pool = target[source == c]
+        assert k == pool.size - 2 * np.sum(pool <= 2.5), c
+    # a pool that never clips: the plain mean of its targets
+    assert got[code == 40][0] == pytest.approx(target[source == 40].mean(), abs=1e-9)
+
+
+@pytest.mark.parametrize("smoothness", [27.0, 1e6])
+def test_the_spline_s_stiff_limit_is_a_gamma_curve(smoothness):
+    """The penalty is on each segment's log slope against log value, so a power law costs
+    nothing: on a gamma-2.2 camera's bracket (8 bits, read noise, clipped at full scale) the
+    spline predicts one stop up and down within a few hundredths of a code of the true curve
+    at any weight.  With the penalty on the log increments against the knot index, as
+    before, a stiff spline (1e6) was 11 - 13 codes off, and at the weight the
+    cross-validation took, 27, 0.7 - 1.0."""
+    from bracket_scenes import exposure, scene
+
+    from clblur.calibration.fitting import transfer
+
+    rng = np.random.default_rng(0)
+    radiance = scene(120, 160, 0)
+    times = (8.0, 4.0, 2.0, 1.0, 0.5, 0.25)
+    series = ExposureSeries.create([exposure(radiance, t, rng) for t in times], times)
+    curve = fit(series, "spline", smoothness=smoothness).responses[0]
+    v = np.linspace(0.05, 0.9, 80)
+    for ratio in (0.5, 2.0):
+        want = v * ratio ** (1 / 2.2)
+        keep = (want > 0.03) & (want < 0.9)
+        assert np.abs(transfer(curve, v, ratio) - want)[keep].max() * 255 < 0.4

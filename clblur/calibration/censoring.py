@@ -5,9 +5,10 @@ did not selects on their noise: their mean sits above (below) what the true curv
 and a fitted curve that bends to that selection outscores the true curve
 (``docs/studies/validation.md``, "Held-out values chosen by the source, not by the target's
 own noise").  The held-out evaluation (``clblur.calibration.evaluate``) chooses its scored
-values here.  The spline's cross-validation does not: tried, it moved the spline's curve
-further from the truth on a lossless gamma-2.2 bracket (validation.md, "The spline's
-cross-validation on the evaluation's pairs: tried, not kept").
+values here.  The spline's fit and its cross-validation, which pool pixels by source value,
+use the clipped targets instead: each pool trimmed symmetrically
+(``clblur.calibration.cross_exposure.pooled_pairs``; validation.md, "Clipped targets
+counted in the spline's pools").
 """
 
 from __future__ import annotations
