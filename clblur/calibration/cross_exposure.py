@@ -411,7 +411,9 @@ def _power_law_curvature(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     ``theta`` are the log increments on knots ``u``; a segment's log slope is ``theta_m - log
     h_m``.  A power law's log slope is linear in log value (exactly in the limit of short
-    segments; 0.04 off on the first, which starts at 0), so where the data do not reach, a
+    segments; on the first rows, whose segments start at or near 0, the penalty of
+    ``x = v ** g`` on 64 knots is 0.011 for g = 2.2 and 0.28 for g = 0.4, against 1.35 and
+    0.19 on the log increments against the knot index), so where the data do not reach, a
     stiff spline continues as a gamma curve.  Each row is the change of the divided first
     difference times the geometric mean of the two spacings, which for even spacing is the
     plain second difference: the weights keep the scale they had.
