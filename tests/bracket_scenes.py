@@ -23,8 +23,10 @@ def scene(h: int, w: int, seed: int) -> np.ndarray:
     return lum[..., None] * tint / np.float32(np.median(lum))
 
 
-def exposure(radiance: np.ndarray, t: float, rng, pedestal: float = 0.0) -> np.ndarray:
-    """8-bit codes of a gamma-2.2 camera with read noise and a pedestal, clipped."""
+def exposure(radiance: np.ndarray, t: float, rng, pedestal: float = 0.0,
+             noise: float = 0.004) -> np.ndarray:
+    """8-bit codes of a gamma-2.2 camera with read noise (``noise``, fraction of full scale)
+    and a pedestal, clipped."""
     v = np.clip(radiance * t, 0, 1) ** (1 / 2.2) + pedestal
-    v = v + rng.normal(0, 0.004, v.shape)
+    v = v + rng.normal(0, noise, v.shape)
     return np.clip(np.rint(v * 255), 0, 255).astype(np.uint8)

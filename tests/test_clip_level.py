@@ -10,16 +10,17 @@ from bracket_scenes import exposure, scene
 
 from clblur.calibration import calibrate
 from clblur.calibration.fitting import transfer
+from clblur.calibration.sampling import sample_series
 from clblur.calibration.series import ExposureSeries
 from clblur.pixels import clip_level
 
 TIMES = (8.0, 4.0, 2.0, 1.0, 0.5, 0.25)
 
 
-def series_frames(clip: int | None, seed: int = 0) -> list[np.ndarray]:
+def series_frames(clip: int | None, seed: int = 0, noise: float = 0.004) -> list[np.ndarray]:
     rng = np.random.default_rng(seed)
     radiance = scene(120, 160, seed)
-    frames = [exposure(radiance, t, rng) for t in TIMES]
+    frames = [exposure(radiance, t, rng, noise=noise) for t in TIMES]
     return frames if clip is None else [np.minimum(f, clip) for f in frames]
 
 
@@ -82,6 +83,42 @@ def test_the_spline_leaves_the_clip_point_out():
         assert np.abs(got[keep] - want[keep]).max() * 255 < 1.5
     rmse = {m: cal.evaluations[m]["rmse_darker"][1] for m in ("spline", "gamma-offset")}
     assert rmse["spline"] < 1.5 * rmse["gamma-offset"], rmse
+
+
+def test_the_spline_counts_the_pile_as_censored():
+    """Targets on a pile below full scale are clipped, as targets at full scale are: the
+    spline's pools just below the pile keep their trimmed mean, not their darker targets
+    only.  Left out, they put the curve 1.5 codes below the truth near the pile with 3 codes
+    of noise; counted as censored, 0.25 (``/tmp`` study in validation.md)."""
+    from clblur.calibration.cross_exposure import pooled_pairs
+
+    frames = series_frames(230, noise=0.012)
+    clipped = ExposureSeries.create(frames, TIMES)
+    top = clipped.white_level - 0.5 / 255
+    pixels = [p.with_range(2.5 / 255, top) for p in sample_series(clipped, 1000).pixels]
+    tau = clipped.relative_exposures()
+    for clip_high, censored in ((None, False), (top, True)):
+        errors, counts = [], []
+        for p in pixels:
+            src, mean, ratio, count = pooled_pairs(p.values, p.valid, tau, 4.5, 255,
+                                                   clip_high=clip_high)
+            truth = src * ratio ** (1 / 2.2)  # the camera is a gamma-2.2 curve
+            # pools whose targets lie within 15 codes (5 noise sigmas) below the pile
+            close = (truth > 215 / 255) & (truth < 228 / 255)
+            errors.append(mean[close] - truth[close])
+            counts.append(count[close])
+        bias = float(np.average(np.concatenate(errors), weights=np.concatenate(counts)) * 255)
+        if censored:
+            assert abs(bias) < 0.5, bias
+        else:  # the pile's targets left out: the pools keep their darker targets only
+            assert bias < -1.0, bias
+    cal = calibrate(clipped, ["spline"], refit=False)
+    near = np.linspace(170, 228, 59) / 255  # the top 60 codes below the pile
+    for c, curve in enumerate(cal.fits["spline"].responses):
+        # one stop down from them, and one stop up to them
+        for v, ratio in ((near, 0.5), (near / 2 ** (1 / 2.2), 2.0)):
+            err = np.abs(transfer(curve, v, ratio) - v * ratio ** (1 / 2.2)).max() * 255
+            assert err < 0.6, (c, ratio, err)
 
 
 def test_the_study_censors_the_clip_point():

@@ -104,22 +104,26 @@ class SplineFamily:
     chosen_from_data = ("smoothness",)  # kept by the evaluation's refits
 
     def fit(self, samples, tau, *, full_scale, refine_times=False, knots: int = 64,
-            smoothness: float | None = None, max_gap: float = 4.5, **opts) -> FamilyFit:
+            smoothness: float | None = None, max_gap: float = 4.5,
+            clip_high: float | None = None, **opts) -> FamilyFit:
         if opts:
             raise InputTypeError(f"unknown option(s) for the spline model: {sorted(opts)}")
         if not isinstance(knots, (int, np.integer)) or not 4 <= knots <= 256:
             raise InputError(f"spline knots must be an integer in 4..256, got {knots!r}")
         if smoothness is not None and not smoothness >= 0:
             raise InputError(f"smoothness must be >= 0, got {smoothness!r}")
+        if clip_high is not None and not 0.0 < clip_high <= 1.0:
+            raise InputError(f"clip_high must be in (0, 1], got {clip_high!r}")
         src, mean, ratio, count = pooled_pairs(samples.values, samples.valid, tau, max_gap,
-                                               full_scale)
+                                               full_scale, clip_high=clip_high)
         if src.size < knots:
             raise InputError("too few pixel pairs valid in two exposures for the spline model "
                              f"({src.size} pools for {knots} knots)")
         u = default_knots(int(knots))
         chosen = None
         if smoothness is None:
-            chosen = choose_smoothness(samples, tau, full_scale, int(knots), max_gap)
+            chosen = choose_smoothness(samples, tau, full_scale, int(knots), max_gap,
+                                       clip_high=clip_high)
             smoothness = chosen["smoothness"] * chosen["scale"]
         # down from the stiffest weight, as each fold was fitted: a weight chosen by
         # cross-validation (or passed back by a refit) names the curve of that path
@@ -160,7 +164,8 @@ def _fit_down(u, src, mean, ratio, weight, smoothness: float, grid) -> np.ndarra
 
 def choose_smoothness(samples, tau: np.ndarray, full_scale: float, knots: int = 64,
                       max_gap: float = 4.5, folds: int = CV_FOLDS,
-                      grid: tuple[float, ...] = SMOOTHNESS_GRID) -> dict:
+                      grid: tuple[float, ...] = SMOOTHNESS_GRID,
+                      clip_high: float | None = None) -> dict:
     """The spline's smoothness by spatial ``folds``-fold cross-validation, one-standard-error
     rule.
 
@@ -191,10 +196,10 @@ def choose_smoothness(samples, tau: np.ndarray, full_scale: float, knots: int = 
     for k in range(folds):
         train, test = fold != k, fold == k
         src, mean, ratio, count = pooled_pairs(samples.values[train], samples.valid[train],
-                                               tau, max_gap, full_scale)
+                                               tau, max_gap, full_scale, clip_high=clip_high)
         h_src, h_mean, h_ratio, h_count = pooled_pairs(samples.values[test],
                                                        samples.valid[test], tau, max_gap,
-                                                       full_scale)
+                                                       full_scale, clip_high=clip_high)
         darker = h_ratio < 1.0
         if src.size < knots or not darker.any():
             return fallback
@@ -260,7 +265,7 @@ def curve_black_level(curve: Response, fraction: float = 1e-3) -> float:
 
 
 def pooled_pairs(values: np.ndarray, valid: np.ndarray, tau: np.ndarray, max_gap: float,
-                 full_scale: float, levels: int = 1024):
+                 full_scale: float, levels: int = 1024, clip_high: float | None = None):
     """Pool ordered exposure pairs of each sample by (source value, ratio), clipped targets
     counted as censored.
 
@@ -277,7 +282,11 @@ def pooled_pairs(values: np.ndarray, valid: np.ndarray, tau: np.ndarray, max_gap
     1986, 1435 - 1460, here on the replicates a pool holds).  A pool with more than
     ``TRIM_LIMIT`` of its targets censored is left out.  A target invalid for another reason
     (a JPEG's coded clipped region, ``ExposureSeries.coded_near_clip``, with a value inside
-    the range; a camera's pile below full scale) is left out.
+    the range) is left out.
+
+    ``clip_high``: for a camera that clips below full scale (``ExposureSeries.white_level``),
+    the normalised value from which a target is clipped high, in place of ``PAIR_HIGH_CODE``:
+    its pile is censored like full scale, and a source must lie below it.
 
     ``values``/``valid``: (P, n) normalised values and validity (see ``SampleSet``).  Returns
     ``(source value, mean target value, ratio tau_j / tau_i, count)`` per pool, ``count``
@@ -286,6 +295,8 @@ def pooled_pairs(values: np.ndarray, valid: np.ndarray, tau: np.ndarray, max_gap
     """
     n = values.shape[1]
     lo, hi = PAIR_LOW_CODE / 255.0, PAIR_HIGH_CODE / 255.0
+    if clip_high is not None:
+        hi = min(hi, clip_high)
     inside = (values > lo) & (values < hi)
     source_ok = valid & inside
     # a target counts where it is valid and inside the range, or clipped at either end (a

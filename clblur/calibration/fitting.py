@@ -135,6 +135,7 @@ def fit(series: ExposureSeries, model: str, *, shared: bool = False, n_samples: 
                                  high=high, seed=seed)
     chosen = sampling
     tau = series.relative_exposures()
+    pile = {}  # where a camera clips below full scale, the family's censoring level
     if getattr(family, "uses_pixels", False):  # random single pixels, their own valid range
         if not sampling.pixels:
             raise InputError(f"the {model} model needs random pixel samples (sample_series "
@@ -150,6 +151,9 @@ def fit(series: ExposureSeries, model: str, *, shared: bool = False, n_samples: 
             # PAIR_HIGH_CODE does at full scale, 3.38)
             top = series.white_level - 0.5 / series.full_scale
             pixels = [p.with_range(family.default_low, top) for p in pixels]
+            # a target on the pile is clipped, as one at full scale is: censored, so the
+            # pools just below it are not left with their darker targets only
+            pile = {"clip_high": top}
         groups = [SampleSet.concat(pixels)] if shared else pixels
     else:
         if (low, high) != (sampling.low, sampling.high):
@@ -163,7 +167,7 @@ def fit(series: ExposureSeries, model: str, *, shared: bool = False, n_samples: 
                                      leave=False)):
         own = {} if group_options is None else group_options[g]
         fits.append(family.fit(samples, tau, full_scale=series.full_scale,
-                               refine_times=refine_times, **{**own, **opts}))
+                               refine_times=refine_times, **{**pile, **own, **opts}))
     if getattr(family, "fits_toe", False) and low > chosen.low:  # below ``low``: the toe
         # the patches and the random pixels over the whole valid range: flat patches are
         # few near the black level (video range: 28 below 10 % of 2000), pixels are not
