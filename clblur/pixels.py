@@ -34,8 +34,8 @@ from clblur.errors import InputError, InputTypeError
 from clblur.responses import Response
 
 __all__ = ["SUPPORTED_DTYPES", "clip_level", "code_step", "full_scale_exposure", "imax",
-           "linearisation_table", "linearise", "near_clip", "normalise", "quantise",
-           "series_clip_level",
+           "linearisation_table", "linearise", "near_clip", "normalise", "pile_floor",
+           "quantise", "series_clip_level",
            "series_padding", "top_value", "validate_saturation"]
 
 SUPPORTED_DTYPES = (np.uint8, np.uint16, np.float32, np.float64)
@@ -161,11 +161,73 @@ def clip_level(brightest: np.ndarray, darker: np.ndarray | None = None) -> float
     return level
 
 
-def series_clip_level(images: list[np.ndarray], exposures) -> float:
+# A clipped pixel can read below its pile where noise was added after the clip (a film
+# scanner's, or a generator that adds read noise to code values and then clips them).  A bin
+# of 1/255 of full scale belongs to that spread when at least this share of the surely
+# clipped pixels reads in it and every bin up to the pile does too: Memorial's scans put
+# 0.02 - 0.03 % of them one code below 255, read noise of 1 code 6 % and 0.6 % one and two
+# codes below.  Fewer surely clipped pixels than the minimum say nothing.
+_SPREAD_SHARE = 1e-3
+_SPREAD_PIXELS = 500
+
+
+def pile_floor(images: list[np.ndarray], exposures,
+               padding: list[np.ndarray] | None = None) -> float:
+    """The lowest value (fraction of full scale, on a grid of 1/255) that a clipped pixel of
+    an exposure series reads; 1.0 where its clipped pixels read only the top code, or where
+    too few are surely clipped to tell (float images: 1.0).
+
+    A pixel at a channel's top code in one image is clipped there, so it is clipped in every
+    longer exposure too (at least 1.2 times longer).  Where noise was added after the clip,
+    those pixels spread below the top in the longer image, and a value in that spread may be
+    a clipped pixel, not light: as a source its light is far above what it reads (two pools
+    of such pixels at code 252 put a spline fit 10 - 65 codes off at its top), as a target it
+    reads below what the curve predicts.  The spread is the run of bins below the top that
+    each hold ``_SPREAD_SHARE`` of those pixels (outliers of a misregistered edge or a moving
+    object far below it are not contiguous with it).  ``padding``: per image, pixels that
+    hold no light (``series_padding``), left out; computed when not given.  The lowest such
+    level over the channels is returned.  Lossless images only: a JPEG's clipped region is
+    spread by its codec in blocks, and ``near_clip`` leaves that out."""
+    if images[0].dtype.kind != "u" or len(images) < 2:
+        return 1.0
+    h = np.asarray(exposures, np.float64)
+    order = np.argsort(h)  # shortest first
+    pairs = [(d, b) for d, b in zip(order[:-1], order[1:], strict=True) if h[b] >= 1.2 * h[d]]
+    if not pairs:
+        return 1.0
+    if padding is None:
+        padding = series_padding(images, exposures)
+    full = imax(images[0].dtype)
+    level = 1.0
+    for c in range(images[0].shape[2]):
+        top = max(int(im[..., c].max()) for im in images)
+        read = [images[b][..., c][(images[d][..., c] >= top) & ~padding[d] & ~padding[b]]
+                for d, b in pairs]
+        values = np.concatenate(read).astype(np.int64)
+        if values.size < _SPREAD_PIXELS:
+            continue
+        bins = np.bincount(values * 255 // int(full), minlength=256)
+        peak = top * 255 // int(full)
+        if bins[peak] < bins.max():  # the surely clipped pixels are not piled at the top
+            continue
+        lowest = peak
+        while lowest > 0 and bins[lowest - 1] >= _SPREAD_SHARE * values.size:
+            lowest -= 1
+        level = min(level, lowest / 255.0)
+    return level
+
+
+def series_clip_level(images: list[np.ndarray], exposures, lossless: bool = True,
+                      padding: list[np.ndarray] | None = None) -> float:
     """:func:`clip_level` of an exposure series: its longest exposure, which clips the most,
-    checked on the next longest (``exposures`` in any consistent unit)."""
+    checked on the next longest (``exposures`` in any consistent unit); for ``lossless``
+    images, lowered to the :func:`pile_floor` where noise spreads the pile below its code
+    (``padding`` as it takes it)."""
     order = np.argsort(np.asarray(exposures, np.float64))[::-1]
-    return clip_level(images[order[0]], images[order[1]] if len(order) > 1 else None)
+    level = clip_level(images[order[0]], images[order[1]] if len(order) > 1 else None)
+    if lossless:
+        level = min(level, pile_floor(images, exposures, padding))
+    return level
 
 
 def near_clip(image: np.ndarray, top: float, block: int, reach: int) -> np.ndarray:

@@ -665,7 +665,10 @@ def test_a_jpeg_bracket_s_clipped_regions_do_not_bend_the_curve_s_top(seed, shar
         return worst
 
     assert worst_top(series) < 0.15
-    blind = ExposureSeries.create(series.images, times, block=1)  # the codec not known
+    blind = ExposureSeries.create(series.images, times, block=1)  # the codec not known ...
+    # ... and the clipped pixels' spread not read as clipping (``pile_floor``, which on its
+    # own keeps the top within 0.04 - 0.08 on seeds 1 and 2)
+    blind.__dict__["white_level"] = 1.0
     assert worst_top(blind) > 0.3
 
 
@@ -796,14 +799,15 @@ def test_the_spline_s_pools_count_clipped_targets_as_censored(rng):
     assert got[code == 40][0] == pytest.approx(target[source == 40].mean(), abs=1e-9)
 
 
-@pytest.mark.parametrize("smoothness", [27.0, 1e6])
-def test_the_spline_s_stiff_limit_is_a_gamma_curve(smoothness):
+@pytest.mark.parametrize(("smoothness", "bound"), [(27.0, 0.6), (1e6, 0.1)])
+def test_the_spline_s_stiff_limit_is_a_gamma_curve(smoothness, bound):
     """The penalty is on each segment's log slope against log value, so a power law costs
     nothing: on a gamma-2.2 camera's bracket (8 bits, read noise, clipped at full scale) the
-    spline predicts one stop up and down within a few hundredths of a code of the true curve
-    at any weight.  With the penalty on the log increments against the knot index, as
-    before, a stiff spline (1e6) was 11 - 13 codes off, and at the weight the
-    cross-validation took, 27, 0.7 - 1.0."""
+    stiff spline (1e6) predicts one stop up and down within 0.04 - 0.07 of a code of the true
+    curve, and at the weight the cross-validation took before, 27, within 0.4 (its largest
+    errors at codes 13 - 32, where a weak weight follows the noise).  With the penalty on the
+    log increments against the knot index, as before, the stiff spline was 11 - 13 codes
+    off, and at 27, 0.7 - 1.0."""
     from bracket_scenes import exposure, scene
 
     from clblur.calibration.fitting import transfer
@@ -817,4 +821,4 @@ def test_the_spline_s_stiff_limit_is_a_gamma_curve(smoothness):
     for ratio in (0.5, 2.0):
         want = v * ratio ** (1 / 2.2)
         keep = (want > 0.03) & (want < 0.9)
-        assert np.abs(transfer(curve, v, ratio) - want)[keep].max() * 255 < 0.4
+        assert np.abs(transfer(curve, v, ratio) - want)[keep].max() * 255 < bound

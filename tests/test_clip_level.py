@@ -17,10 +17,11 @@ from clblur.pixels import clip_level
 TIMES = (8.0, 4.0, 2.0, 1.0, 0.5, 0.25)
 
 
-def series_frames(clip: int | None, seed: int = 0, noise: float = 0.004) -> list[np.ndarray]:
+def series_frames(clip: int | None, seed: int = 0, noise: float = 0.004,
+                  exact_clip: bool = False) -> list[np.ndarray]:
     rng = np.random.default_rng(seed)
     radiance = scene(120, 160, seed)
-    frames = [exposure(radiance, t, rng, noise=noise) for t in TIMES]
+    frames = [exposure(radiance, t, rng, noise=noise, exact_clip=exact_clip) for t in TIMES]
     return frames if clip is None else [np.minimum(f, clip) for f in frames]
 
 
@@ -59,7 +60,7 @@ def test_calibration_leaves_the_clip_point_out():
     sampling = cal.fits["exp"].sampling
     for s in sampling.per_channel:
         assert s.highest[s.valid].max() < 230 / 255  # normalised: no sampled value clipped
-    plain = ExposureSeries.create(series_frames(None), TIMES)
+    plain = ExposureSeries.create(series_frames(None, exact_clip=True), TIMES)
     assert plain.white_level == 1.0
     assert calibrate(plain, ["exp"], refit=False).evaluations["exp"]["valid"][1] == \
         pytest.approx(252.5 / 255)
@@ -119,6 +120,53 @@ def test_the_spline_counts_the_pile_as_censored():
         for v, ratio in ((near, 0.5), (near / 2 ** (1 / 2.2), 2.0)):
             err = np.abs(transfer(curve, v, ratio) - v * ratio ** (1 / 2.2)).max() * 255
             assert err < 0.6, (c, ratio, err)
+
+
+def test_clipped_pixels_that_read_below_the_pile_are_clipping():
+    """Noise added after the clip (this generator's, a film scanner's) spreads a clipped
+    pixel below full scale: the series clips where its surely clipped pixels start to read,
+    for calibration and the study alike; exact clipping, far outliers, padding and a JPEG's
+    codec spread leave the level alone."""
+    from clblur.pixels import pile_floor, series_clip_level
+    from clblur.study.series import clip_code
+
+    exact = series_frames(None, exact_clip=True)
+    noisy = series_frames(None)  # read noise of 1 code, after the clip
+    wide = series_frames(None, noise=0.012)  # 3 codes
+    assert pile_floor(exact, TIMES) == 1.0
+    floor = pile_floor(noisy, TIMES)
+    assert 250 / 255 <= floor <= 253 / 255  # 2 - 5 noise sigmas below the pile
+    assert pile_floor(wide, TIMES) <= floor - 4 / 255
+    assert ExposureSeries.create(noisy, TIMES).white_level == floor
+    assert ExposureSeries.create(exact, TIMES).white_level == 1.0
+    assert clip_code(noisy, list(TIMES)) == round(255 * floor)
+    from clblur.study.series import series_groups
+
+    for g in series_groups(noisy, list(TIMES), max_pixels=4000):  # the study censors there
+        assert not (g.valid & (g.target >= round(255 * floor))).any()
+    assert clip_code(noisy, list(TIMES), block=8) == 255  # a JPEG's spread: near_clip's
+    assert series_clip_level(noisy, TIMES, lossless=False) == 1.0
+    # a few surely clipped pixels far below the pile (a misregistered edge, a moving object)
+    # are not a spread
+    odd = [f.copy() for f in exact]
+    sure = np.flatnonzero((exact[1][..., 0] == 255).ravel())[::40]
+    odd[0].reshape(-1, 3)[sure, 0] = 180
+    assert pile_floor(odd, TIMES) == 1.0
+    # a border padded with pure blue is no clipped light
+    assert pile_floor(_padded(exact), TIMES) == 1.0
+
+
+def test_the_spline_reads_a_spread_pile_as_clipped():
+    """With the noise after the clip, values of 252 - 254 that are clipped light entered the
+    spline as sources: 10 - 65 codes off at its top (validation.md, "Clipped pixels that
+    read below the pile")."""
+    cal = calibrate(ExposureSeries.create(series_frames(None, noise=0.012), TIMES), ["spline"],
+                    refit=False)
+    near = np.linspace(170, 248, 79) / 255
+    for c, curve in enumerate(cal.fits["spline"].responses):
+        for v, ratio in ((near, 0.5), (near / 2 ** (1 / 2.2), 2.0)):
+            err = np.abs(transfer(curve, v, ratio) - v * ratio ** (1 / 2.2)).max() * 255
+            assert err < 1.0, (c, ratio, err)
 
 
 def test_the_study_censors_the_clip_point():

@@ -36,7 +36,7 @@ import numpy as np
 from clblur.errors import InputError, InputTypeError
 from clblur.io import codec_block, light_channels, read_image, require_file, resolve_inside
 from clblur.manifest import Exposure, Manifest, load_manifest
-from clblur.pixels import code_step, imax, near_clip, series_clip_level
+from clblur.pixels import clip_level, code_step, imax, near_clip, series_clip_level
 from clblur.registration import Registration, align_series
 
 __all__ = ["IMAGE_SUFFIXES", "ExposureSeries", "check_brightening", "exif_exposure", "exif_iso",
@@ -173,8 +173,11 @@ class ExposureSeries:
     @cached_property
     def white_level(self) -> float:
         """The value (fraction of full scale) at which the series clips
-        (``clblur.pixels.series_clip_level``); 1.0 for clipping at full scale."""
-        return series_clip_level(self.images, self.relative_exposures())
+        (``clblur.pixels.series_clip_level``): 1.0 for clipping at full scale; lower for a
+        camera that piles its highlights up below it, or, stored lossless, whose clipped
+        pixels read below the pile (noise added after the clip, ``pile_floor``)."""
+        return series_clip_level(self.images, self.relative_exposures(),
+                                 lossless=self.block <= 1)
 
     @cached_property
     def moving(self) -> np.ndarray:
@@ -197,9 +200,16 @@ class ExposureSeries:
         """A line saying that the series clips below full scale, or None."""
         if self.white_level >= 1.0:
             return None
-        return (f"clips below full scale: the longest exposure piles up at code "
-                f"{self.white_level * self.full_scale:g} of {self.full_scale:g}; the valid "
-                "ranges of sampling and evaluation end below it")
+        code = f"{self.white_level * self.full_scale:g} of {self.full_scale:g}"
+        order = np.argsort(self.relative_exposures())[::-1]
+        pile = clip_level(self.images[order[0]],
+                          self.images[order[1]] if len(order) > 1 else None)
+        if pile <= self.white_level:
+            return (f"clips below full scale: the longest exposure piles up at code {code}; "
+                    "the valid ranges of sampling and evaluation end below it")
+        return (f"clips at code {code}: noise added after the clip spreads its pile at "
+                f"{pile * self.full_scale:g} down to there; the valid ranges of sampling and "
+                "evaluation end below it")
 
     def coded_near_clip(self, index: int, reach: int = 0) -> np.ndarray | None:
         """H x W bool for images coded in blocks (``block`` > 1, a JPEG): image ``index``'s

@@ -106,8 +106,9 @@ def groups_from_manifest(manifest: Manifest, max_pixels: int = DEFAULT_PIXELS,
                     "shifts its blocks' other values)" if block > 1 else
                     " or beside one, which bounds its light from below only")
             notes["clipping"] = (
-                (f"the series clips at code {top} of 255 (below full scale): targets at or "
-                 "above it are censored; " if top < 255 else "")
+                (f"the series clips at code {top} of 255 (a pile below full scale, or "
+                 "clipped pixels that read below it: noise added after the clip): targets "
+                 "at or above it are censored; " if top < 255 else "")
                 + f"{100 * left_out['clipped_sources']:.1f} % of the sampled values have a "
                   f"source at code {top}{near}, and are left out")
         if notes is not None and left_out["padding"]:

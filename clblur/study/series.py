@@ -38,11 +38,15 @@ from clblur.study.variants import SHIFTS
 __all__ = ["clip_code", "series_groups"]
 
 
-def clip_code(images: list[np.ndarray], exposures: list[float]) -> int:
+def clip_code(images: list[np.ndarray], exposures: list[float], block: int = 1,
+              padding: list[np.ndarray] | None = None) -> int:
     """The 8-bit code at which a series clips (``clblur.pixels.series_clip_level`` of its
-    8-bit codes): 255, or lower for a camera that clips below full scale."""
+    8-bit codes): 255, or lower for a camera that clips below full scale or, stored
+    lossless (``block`` 1), whose clipped pixels read below the pile (noise added after the
+    clip, ``clblur.pixels.pile_floor``; ``padding`` as it takes it)."""
     codes = [as_hwc(im, f"image {i}") for i, im in enumerate(images)]
-    return round(255 * series_clip_level(codes, exposures))
+    return round(255 * series_clip_level(codes, exposures, lossless=block <= 1,
+                                         padding=padding))
 
 
 # px: the side of the patches whose means bound a black level (:func:`_black_bound`)
@@ -121,12 +125,12 @@ def series_groups(images: list[np.ndarray], exposures: list[float],
     if any(im.shape != imgs[0].shape for im in imgs):
         raise InputError(f"series images differ in shape: "
                          f"{sorted({im.shape for im in imgs})}")
-    top = clip_code(imgs, h)
-    names = [f"image {i}" for i in range(len(images))] if names is None else names
-    check_brightening(imgs, h, [names[i] for i in order], top / 255)
     # a constant border a registration padded a frame with holds no light: its pixels are
     # neither targets nor sources, and its zeros do not bound a black level
     pads = series_padding(imgs, h)
+    top = clip_code(imgs, h, block, pads)
+    names = [f"image {i}" for i in range(len(images))] if names is None else names
+    check_brightening(imgs, h, [names[i] for i in order], top / 255)
     floors = [_black_bound(im, p) for im, p in zip(imgs, pads, strict=True)]
     # what does not show one static scene (a walker, branches in the wind, a border one
     # frame lacks) is no measurement of the camera: left out, as calibration leaves it out
