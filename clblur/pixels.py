@@ -169,6 +169,9 @@ def clip_level(brightest: np.ndarray, darker: np.ndarray | None = None) -> float
 # codes below.  Fewer surely clipped pixels than the minimum say nothing.
 _SPREAD_SHARE = 1e-3
 _SPREAD_PIXELS = 500
+# how far below the top code (bins of 1/255) a pile spread both ways by noise is looked for:
+# 4 noise sigmas of 3 codes
+_PILE_REACH = 12
 
 
 def pile_floor(images: list[np.ndarray], exposures,
@@ -177,7 +180,9 @@ def pile_floor(images: list[np.ndarray], exposures,
     an exposure series reads; 1.0 where its clipped pixels read only the top code, or where
     too few are surely clipped to tell (float images: 1.0).
 
-    A pixel at a channel's top code in one image is clipped there, so it is clipped in every
+    A pixel at a channel's pile in one image (its top code; or, where noise spreads a pile
+    below full scale both ways, the longest image's most common value near the top, the
+    top code then being the spread's upper tail) is clipped there, so it is clipped in every
     longer exposure too (at least 1.2 times longer).  Where noise was added after the clip,
     those pixels spread below the top in the longer image, and a value in that spread may be
     a clipped pixel, not light: as a source its light is far above what it reads (two pools
@@ -197,20 +202,26 @@ def pile_floor(images: list[np.ndarray], exposures,
         return 1.0
     if padding is None:
         padding = series_padding(images, exposures)
-    full = imax(images[0].dtype)
+    full = int(imax(images[0].dtype))
     level = 1.0
     for c in range(images[0].shape[2]):
-        top = max(int(im[..., c].max()) for im in images)
-        read = [images[b][..., c][(images[d][..., c] >= top) & ~padding[d] & ~padding[b]]
+        # the pile's bin: the top code's, or, where noise spreads a pile below full scale
+        # both ways, the most common bin of the longest image within _PILE_REACH of the top
+        # code (which is then the spread's upper tail)
+        top = max(int(im[..., c].max()) for im in images) * 255 // full
+        longest = np.bincount(images[order[-1]][..., c].ravel().astype(np.int64) * 255 // full,
+                              minlength=256)
+        peak = top - _PILE_REACH + int(np.argmax(longest[top - _PILE_REACH:top + 1]))
+        start = -(-peak * full // 255)  # the lowest code in the pile's bin
+        read = [images[b][..., c][(images[d][..., c] >= start) & ~padding[d] & ~padding[b]]
                 for d, b in pairs]
         values = np.concatenate(read).astype(np.int64)
         if values.size < _SPREAD_PIXELS:
             continue
-        bins = np.bincount(values * 255 // int(full), minlength=256)
-        peak = top * 255 // int(full)
-        if bins[peak] < bins.max():  # the surely clipped pixels are not piled at the top
+        bins = np.bincount(values * 255 // full, minlength=256)
+        if abs(int(np.argmax(bins)) - peak) > 1:  # the surely clipped pixels are not piled
             continue
-        lowest = peak
+        lowest = int(np.argmax(bins))
         while lowest > 0 and bins[lowest - 1] >= _SPREAD_SHARE * values.size:
             lowest -= 1
         level = min(level, lowest / 255.0)

@@ -24,13 +24,17 @@ def scene(h: int, w: int, seed: int) -> np.ndarray:
 
 
 def exposure(radiance: np.ndarray, t: float, rng, pedestal: float = 0.0,
-             noise: float = 0.004, exact_clip: bool = False) -> np.ndarray:
+             noise: float = 0.004, exact_clip: bool = False,
+             gains: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> np.ndarray:
     """8-bit codes of a gamma-2.2 camera with read noise (``noise``, fraction of full scale)
     and a pedestal, clipped.  The noise is added after the light clips, so a clipped pixel
-    can read a few codes below full scale (``clblur.pixels.pile_floor``); ``exact_clip``:
-    every clipped pixel reads full scale, as a sensor's converter clips."""
-    v = np.clip(radiance * t, 0, 1) ** (1 / 2.2) + pedestal
+    can read a few codes below its pile (``clblur.pixels.pile_floor``); ``exact_clip``:
+    every clipped pixel reads the pile, as a sensor's converter clips.  ``gains``: per
+    channel, applied after the clip (a white balance that puts a channel's pile below full
+    scale)."""
+    gain = np.asarray(gains, np.float64)
+    v = np.clip(radiance * t, 0, 1) ** (1 / 2.2) * gain + pedestal
     v = v + rng.normal(0, noise, v.shape)
-    if exact_clip:
-        v = np.where(radiance * t >= 1.0, 1.0, v)
+    if exact_clip:  # the converter clips signal and noise alike at the pile
+        v = np.minimum(np.where(radiance * t >= 1.0, gain + pedestal, v), gain + pedestal)
     return np.clip(np.rint(v * 255), 0, 255).astype(np.uint8)

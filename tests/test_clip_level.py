@@ -156,6 +156,32 @@ def test_clipped_pixels_that_read_below_the_pile_are_clipping():
     assert pile_floor(_padded(exact), TIMES) == 1.0
 
 
+def test_a_pile_below_full_scale_spread_both_ways_is_found():
+    """A white balance applied after the clip puts red's pile at 217 and blue's at 235, and
+    noise added after it spreads each pile both ways, so a channel's top code is the upper
+    tail of its spread, not its pile: found from the longest image's most common value near
+    the top.  Unfound, calibration took the spread for light: 84 codes off in red."""
+    from clblur.pixels import pile_floor
+
+    gains = (217 / 255, 1.0, 235 / 255)
+    rng = np.random.default_rng(0)
+    radiance = scene(120, 160, 0)
+    noisy = [exposure(radiance, t, rng, noise=0.005, gains=gains) for t in TIMES]
+    exact = [exposure(radiance, t, rng, noise=0.005, gains=gains, exact_clip=True)
+             for t in TIMES]
+    assert ExposureSeries.create(exact, TIMES).white_level == pytest.approx(217 / 255)
+    floor = pile_floor(noisy, TIMES)
+    assert 211 / 255 <= floor <= 215 / 255  # 2 - 5 noise sigmas below red's pile
+    series = ExposureSeries.create(noisy, TIMES)
+    assert series.white_level == floor
+    cal = calibrate(series, ["gamma-offset"], refit=False)
+    v = np.linspace(40, 200, 81) / 255
+    for c, (curve, g) in enumerate(zip(cal.fits["gamma-offset"].responses, gains,
+                                       strict=True)):
+        want = v * 2 ** (-1 / 2.2)  # one stop down, any gain after the curve
+        assert np.abs(transfer(curve, v, 0.5) - want).max() * 255 < 0.5, (c, g)
+
+
 def test_the_spline_reads_a_spread_pile_as_clipped():
     """With the noise after the clip, values of 252 - 254 that are clipped light entered the
     spline as sources: 10 - 65 codes off at its top (validation.md, "Clipped pixels that
