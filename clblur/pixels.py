@@ -169,8 +169,8 @@ def clip_level(brightest: np.ndarray, darker: np.ndarray | None = None) -> float
 # codes below.  Fewer surely clipped pixels than the minimum say nothing.
 _SPREAD_SHARE = 1e-3
 _SPREAD_PIXELS = 500
-# how far below the top code (bins of 1/255) a pile spread both ways by noise is looked for:
-# 4 noise sigmas of 3 codes
+# how far below the top code (bins of 1/255) a pile spread both ways by noise is looked for,
+# and the longest spread below a pile read as noise: 4 noise sigmas of 3 codes
 _PILE_REACH = 12
 
 
@@ -209,9 +209,12 @@ def pile_floor(images: list[np.ndarray], exposures,
         # both ways, the most common bin of the longest image within _PILE_REACH of the top
         # code (which is then the spread's upper tail)
         top = max(int(im[..., c].max()) for im in images) * 255 // full
+        if top < 16:  # as for clip_level: no highlights to clip
+            continue
         longest = np.bincount(images[order[-1]][..., c].ravel().astype(np.int64) * 255 // full,
                               minlength=256)
-        peak = top - _PILE_REACH + int(np.argmax(longest[top - _PILE_REACH:top + 1]))
+        reach = max(0, top - _PILE_REACH)
+        peak = reach + int(np.argmax(longest[reach:top + 1]))
         start = -(-peak * full // 255)  # the lowest code in the pile's bin
         read = [images[b][..., c][(images[d][..., c] >= start) & ~padding[d] & ~padding[b]]
                 for d, b in pairs]
@@ -221,9 +224,11 @@ def pile_floor(images: list[np.ndarray], exposures,
         bins = np.bincount(values * 255 // full, minlength=256)
         if abs(int(np.argmax(bins)) - peak) > 1:  # the surely clipped pixels are not piled
             continue
-        lowest = int(np.argmax(bins))
+        peak = lowest = int(np.argmax(bins))
         while lowest > 0 and bins[lowest - 1] >= _SPREAD_SHARE * values.size:
             lowest -= 1
+        if peak - lowest > _PILE_REACH:  # a run that long is the scene's, not noise on a pile
+            continue
         level = min(level, lowest / 255.0)
     return level
 

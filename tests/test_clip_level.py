@@ -154,6 +154,13 @@ def test_clipped_pixels_that_read_below_the_pile_are_clipping():
     assert pile_floor(odd, TIMES) == 1.0
     # a border padded with pure blue is no clipped light
     assert pile_floor(_padded(exact), TIMES) == 1.0
+    # nothing clips: a dim bracket, and one whose brightest codes are a handful (where the
+    # most common value near the top is 0 and every pixel would have passed for clipped)
+    rng = np.random.default_rng(5)
+    dim = [exposure(np.minimum(scene(120, 160, 0), 0.1), t, rng) for t in TIMES]
+    assert max(int(f.max()) for f in dim) < 250 and pile_floor(dim, TIMES) == 1.0
+    tiny = [(rng.integers(0, 5, (60, 80, 3)) * k).astype(np.uint8) for k in (1, 2)]
+    assert pile_floor(tiny, (1.0, 2.0)) == 1.0
 
 
 def test_a_pile_below_full_scale_spread_both_ways_is_found():
