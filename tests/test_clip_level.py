@@ -89,8 +89,9 @@ def test_the_spline_leaves_the_clip_point_out():
 def test_the_spline_counts_the_pile_as_censored():
     """Targets on a pile below full scale are clipped, as targets at full scale are: the
     spline's pools just below the pile keep their trimmed mean, not their darker targets
-    only.  Left out, they put the curve 1.5 codes below the truth near the pile with 3 codes
-    of noise; counted as censored, 0.25 (``/tmp`` study in validation.md)."""
+    only.  Left out, they put the curve 0.7 - 1.1 codes off the truth near the pile with 3
+    codes of noise; counted as censored, 0.06 - 0.29 (validation.md, "A pile below full
+    scale, censored in the spline's pools too")."""
     from clblur.calibration.cross_exposure import pooled_pairs
 
     frames = series_frames(230, noise=0.012)
@@ -128,7 +129,7 @@ def test_clipped_pixels_that_read_below_the_pile_are_clipping():
     for calibration and the study alike; exact clipping, far outliers, padding and a JPEG's
     codec spread leave the level alone."""
     from clblur.pixels import pile_floor, series_clip_level
-    from clblur.study.series import clip_code
+    from clblur.study.series import clip_code, series_groups
 
     exact = series_frames(None, exact_clip=True)
     noisy = series_frames(None)  # read noise of 1 code, after the clip
@@ -140,8 +141,6 @@ def test_clipped_pixels_that_read_below_the_pile_are_clipping():
     assert ExposureSeries.create(noisy, TIMES).white_level == floor
     assert ExposureSeries.create(exact, TIMES).white_level == 1.0
     assert clip_code(noisy, list(TIMES)) == round(255 * floor)
-    from clblur.study.series import series_groups
-
     for g in series_groups(noisy, list(TIMES), max_pixels=4000):  # the study censors there
         assert not (g.valid & (g.target >= round(255 * floor))).any()
     assert clip_code(noisy, list(TIMES), block=8) == 255  # a JPEG's spread: near_clip's
@@ -167,7 +166,8 @@ def test_a_pile_below_full_scale_spread_both_ways_is_found():
     """A white balance applied after the clip puts red's pile at 217 and blue's at 235, and
     noise added after it spreads each pile both ways, so a channel's top code is the upper
     tail of its spread, not its pile: found from the longest image's most common value near
-    the top.  Unfound, calibration took the spread for light: 84 codes off in red."""
+    the top.  Unfound, calibration took the spread for light (on a bracket like this one,
+    84 codes off in red: validation.md, "Clipped pixels that read below the pile")."""
     from clblur.pixels import pile_floor
 
     gains = (217 / 255, 1.0, 235 / 255)
