@@ -222,12 +222,13 @@ def pile_floor(images: list[np.ndarray], exposures,
         if values.size < _SPREAD_PIXELS:
             continue
         bins = np.bincount(values * 255 // full, minlength=256)
-        if abs(int(np.argmax(bins)) - peak) > 1:  # the surely clipped pixels are not piled
+        piled = int(np.argmax(bins))  # where the surely clipped pixels read most often
+        if abs(piled - peak) > 1:  # ... not at the pile: they are not piled
             continue
-        peak = lowest = int(np.argmax(bins))
+        lowest = piled
         while lowest > 0 and bins[lowest - 1] >= _SPREAD_SHARE * values.size:
             lowest -= 1
-        if peak - lowest > _PILE_REACH:  # a run that long is the scene's, not noise on a pile
+        if piled - lowest > _PILE_REACH:  # a run that long is the scene's, not noise on a pile
             continue
         level = min(level, lowest / 255.0)
     return level
