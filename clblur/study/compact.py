@@ -149,7 +149,8 @@ def _assemble(g: Group, blocks: list, nc: int, variants: dict) -> Group:
                 g.r2[take], g.block[take] if g.block is not None else None,
                 g.fold[take] if g.fold is not None else None, g.source_clipped,
                 None if g.images is None else g.images[take],
-                None if g.censored is None else censored, g.top)
+                None if g.censored is None else censored, g.top,
+                None if g.surround is None else g.surround[take])
     out.__dict__["stats"] = stats
     out.__dict__["variants"] = {
         e: {v: {key: per_channel(hs) for key, hs in hist.items()} for v, hist in d.items()}

@@ -96,6 +96,10 @@ class Group:
     # None: nothing censored
     censored: np.ndarray | None = None
     top: float = 255.0  # the clip code of the targets
+    # (n,) the brightness of each target pixel's surround: the mean code of the target image
+    # over a wide neighbourhood (``histograms.surround_codes``), for the leftover test's
+    # alternative by surround (``clblur.study.leftover``); None: not known
+    surround: np.ndarray | None = None
 
     def time_norm(self, i: int) -> np.ndarray:
         """Row sums of time term ``i`` (the same for every channel), cached."""
@@ -146,7 +150,8 @@ class Group:
                      [h[idx] for h in self.hist_sq], self.r2[idx], self.block[idx],
                      self.fold[idx], self.source_clipped,
                      None if self.images is None else self.images[idx],
-                     None if self.censored is None else self.censored[idx], self.top)
+                     None if self.censored is None else self.censored[idx], self.top,
+                     None if self.surround is None else self.surround[idx])
 
 
 def shape(p: dict[str, float], factor: float = 1.0) -> ExpShape:

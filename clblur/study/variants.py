@@ -153,7 +153,9 @@ def _concat(gs: list[Group]) -> Group:
               any(g.source_clipped for g in gs),
               np.concatenate([g.images for g in gs])
               if all(g.images is not None for g in gs) else None,
-              _censored(gs), first.top)
+              _censored(gs), first.top,
+              np.concatenate([g.surround for g in gs])
+              if all(g.surround is not None for g in gs) else None)
     var = first.__dict__.get("variants", {})
     g.__dict__["variants"] = {
         e: {k: {key: stack(lambda g, e=e, k=k, key=key: g.__dict__["variants"][e][k][key])
