@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import clblur
-from clblur.camera import Camera, random_scene
+from clblur.camera import Camera, local_tone, random_scene
 from clblur.io import read_image, write_image
 from clblur.manifest import write_manifest
 from clblur.study import EFFECT_NAMES, pair_group, study, study_groups
@@ -580,20 +580,9 @@ def test_a_cause_outside_the_vocabulary_is_reported_as_structure_left(amplitude)
         assert "What the model leaves: no structure" in markdown(r)
 
 
-def _local_tone(light: np.ndarray, strength: float, sigma: float) -> np.ndarray:
-    """Local tone mapping of a capture's light (H x W x 3): each pixel's light times
-    ``exp(strength tanh(ln(0.18) - L))``, ``L`` the log of the light's mean over the
-    channels, Gaussian-blurred by ``sigma`` px: a region darker than mid-grey lifted, one
-    brighter held down, as a camera's shadow and highlight correction (Canon's Auto
-    Lighting Optimizer, Nikon's Active D-Lighting) and a phone's HDR rendering do."""
-    from scipy.ndimage import gaussian_filter
-
-    surround = gaussian_filter(np.log(light.mean(axis=2)), sigma)
-    return light * np.exp(strength * np.tanh(np.log(0.18) - surround))[..., None]
-
-
 def test_local_tone_mapping_is_reported_as_depending_on_the_surround():
-    # A camera that renders each region by its own brightness gives one light two codes in
+    # A camera that renders each region by its own brightness (``camera.local_tone``: a
+    # dark region lifted, a bright one held down) gives one light two codes in
     # two surrounds: no effect of the vocabulary and no curve per channel holds that.  The
     # nearest named effects take part of it (`exposure_times`, `response_shape`), and the
     # leftover test's alternative by surround, against the one by code, finds the rest and
@@ -607,7 +596,7 @@ def test_local_tone_mapping_is_reported_as_depending_on_the_surround():
     cam = Camera(response="gamma:2.2", noise_a=2e-4, noise_b=2e-6)
     scene = random_scene(rng, (48, 64), 3, low=0.03, high=0.8)
     times = [2.0 ** -k for k in range(6)]
-    frames = [cam.capture(_local_tone(scene * t, 0.5, 4.0) / t, t, rng=rng) for t in times]
+    frames = [cam.capture(local_tone(scene * t, 0.5, 4.0) / t, t, rng=rng) for t in times]
     r = study_groups("exposure-series", series_groups(frames, times)).report
     left = r["leftover"]
     by_surround = left["by_surround"]
