@@ -23,6 +23,22 @@ def scene(h: int, w: int, seed: int) -> np.ndarray:
     return lum[..., None] * tint / np.float32(np.median(lum))
 
 
+def objects_scene(h: int, w: int, seed: int) -> np.ndarray:
+    """Radiance of flat objects on a smooth background, H x W x 3: 40 rectangles 8 - 60 px
+    of their own level (log-normal, about 4 stops) over a background that varies on a 64 px
+    scale, so that many flat pixels differ from their wide surround (the surround check of
+    ``clblur.calibration.surround``)."""
+    rng = np.random.default_rng(seed)
+    small = rng.normal(size=(h // 64 + 2, w // 64 + 2)).astype(np.float32)
+    log_l = cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC)[:h, :w]
+    for _ in range(40):
+        y, x = rng.integers(0, h - 8), rng.integers(0, w - 8)
+        log_l[y:y + rng.integers(8, 60), x:x + rng.integers(8, 60)] = rng.normal(0, 1.3)
+    lum = np.exp(1.2 * log_l)
+    tint = np.array([0.8, 1.0, 1.2], np.float32)
+    return (lum[..., None] * tint / np.float32(np.median(lum))).astype(np.float64)
+
+
 def exposure(radiance: np.ndarray, t: float, rng, pedestal: float = 0.0,
              noise: float = 0.004, exact_clip: bool = False,
              gains: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> np.ndarray:

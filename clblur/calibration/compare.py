@@ -10,11 +10,21 @@ from dataclasses import dataclass, field
 import numpy as np
 from tqdm import tqdm
 
-from clblur.calibration.evaluate import EVAL_LOW, FLAT_TOLERANCE, evaluate, series_gaps
+from clblur.calibration.censoring import CENSORED
+from clblur.calibration.evaluate import (
+    EVAL_HIGH,
+    EVAL_LOW,
+    FLAT_TOLERANCE,
+    darker_pairs,
+    evaluate,
+    held_out,
+    series_gaps,
+)
 from clblur.calibration.fitting import ResponseFit, fit
 from clblur.calibration.models import MODELS, EmorBasis
 from clblur.calibration.sampling import VALID_LOW, sample_series
 from clblur.calibration.series import ExposureSeries, check_brightening, load_series
+from clblur.calibration.surround import surround_dependence
 from clblur.errors import InputError
 
 __all__ = ["Calibration", "available_models", "calibrate", "nan_reasons", "selection_score"]
@@ -34,6 +44,12 @@ class Calibration:
     def responses(self):
         """The best model's responses, one per channel."""
         return self.fits[self.best].responses
+
+    @property
+    def surround(self) -> dict | None:
+        """Whether the best model's held-out error depends on the surround (local tone
+        mapping; ``clblur.calibration.surround``), None where no pair was scored."""
+        return self.evaluations[self.best].get("surround")
 
     def table(self) -> list[dict]:
         """One row per model: held-out RMSE per gap and direction, AIC, BIC."""
@@ -88,7 +104,7 @@ def calibrate(source: ExposureSeries | str | os.PathLike, models=None, *, times=
     low = VALID_LOW if fit_low is None else min(fit_low, VALID_LOW)
     sampling = sample_series(series, n_samples, patch=patch, low=low, seed=seed)
     fits, evaluations, skipped = {}, {}, {}
-    held_out: dict = {}  # the held-out pixels and scored values, made once for every model
+    held_cache: dict = {}  # the held-out pixels and scored values, made once for every model
     for name in tqdm(names, desc="models", disable=not progress):
         opts = {"emor_dir": emor_dir} if name == "emor" else {}
         try:
@@ -97,7 +113,7 @@ def calibrate(source: ExposureSeries | str | os.PathLike, models=None, *, times=
             evaluations[name] = evaluate(series, fits[name], gaps=gaps, refit=refit,
                                          max_pixels=max_pixels, low=eval_low,
                                          flat_tolerance=flat_tolerance, seed=seed,
-                                         progress=progress, cache=held_out)
+                                         progress=progress, cache=held_cache)
         except ValueError as e:
             # A family the series cannot support (a spline's knots on a scene of a few grey
             # levels) is left out of the ranking with its reason; the others still compete.
@@ -113,6 +129,13 @@ def calibrate(source: ExposureSeries | str | os.PathLike, models=None, *, times=
         raise InputError("no model could be scored on held-out pixels: "
                          + "; ".join(nan_reasons(evaluations[fitted[0]])))
     best = min(fitted, key=lambda n: selection_score(evaluations[n]))
+    # what no curve can hold: an error that depends on the surround (local tone mapping)
+    pairs = darker_pairs(series, gaps)
+    if pairs:
+        held = held_out(series, fits[best], max_pixels=max_pixels, seed=seed, low=eval_low,
+                        high=EVAL_HIGH * series.white_level, flat_tolerance=flat_tolerance,
+                        censored=CENSORED, cache=held_cache)
+        evaluations[best]["surround"] = surround_dependence(series, fits[best], held, pairs)
     return Calibration(series, fits, evaluations, best, skipped)
 
 

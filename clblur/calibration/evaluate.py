@@ -42,7 +42,7 @@ from clblur.calibration.series import ExposureSeries
 from clblur.errors import InputError
 
 __all__ = ["CENSORED", "DEFAULT_GAPS", "DIRECTIONS", "EVAL_HIGH", "EVAL_LOW", "FLAT_TOLERANCE",
-           "GAP_TOLERANCE", "evaluate", "series_gaps"]
+           "GAP_TOLERANCE", "HeldOut", "darker_pairs", "evaluate", "held_out", "series_gaps"]
 
 DEFAULT_GAPS = (1.0, 4.0)
 GAP_TOLERANCE = 0.25  # stops: a pair of exposures counts for a gap this close to it
@@ -64,7 +64,7 @@ def _local_range(image: np.ndarray, coords: np.ndarray) -> np.ndarray:
     return spread.reshape(-1, image.shape[2])[coords]
 
 
-class _HeldOut:
+class HeldOut:
     """The held-out pixels of a series and the values scored in each pair and channel.
 
     They depend on the data and the sampling's footprint alone, not on the curve, so every
@@ -87,7 +87,7 @@ class _HeldOut:
         if max_pixels is not None and coords.size > max_pixels:
             coords = np.sort(np.random.default_rng(seed).choice(coords, max_pixels,
                                                                 replace=False))
-        self.size = coords.size
+        self.coords, self.size = coords, coords.size  # flat indices into the image
         self.codes = [im.reshape(-1, ch)[coords] for im in series.images]
         self.valid, self.intact = [], []
         for i, k in enumerate(self.codes):  # one image's float values at a time
@@ -163,6 +163,34 @@ def series_gaps(series: ExposureSeries, wanted=DEFAULT_GAPS,
     return tuple(out)
 
 
+def held_out(series: ExposureSeries, fit_result: ResponseFit, *, max_pixels: int | None,
+             seed: int, low: float, high: float, flat_tolerance: float | None,
+             censored: float, cache: dict | None = None) -> HeldOut:
+    """The held-out values of ``series`` for fits on ``fit_result``'s sampling, made once
+    per ``cache`` (a dict shared by the models fitted on one sampling; None: made here)."""
+    footprint = fit_result.sampling.footprint
+    cache_key = (id(series), hashlib.blake2b(np.packbits(footprint).tobytes()).hexdigest(),
+                 footprint.shape, max_pixels, seed, low, high, flat_tolerance, censored)
+    held = None if cache is None else cache.get(cache_key)
+    if held is None:
+        held = HeldOut(series, footprint, max_pixels, seed, low, high, flat_tolerance,
+                       censored)
+        if cache is not None:
+            cache[cache_key] = held
+    return held
+
+
+def darker_pairs(series: ExposureSeries, gaps, tolerance: float = GAP_TOLERANCE
+                 ) -> list[tuple[int, int]]:
+    """(source, target) of every pair ``gaps`` stops apart (within ``tolerance``) whose
+    target is the darker image, as ``evaluate`` scores them."""
+    stops = np.log2(series.relative_exposures())
+    n = stops.size
+    return [(i, j) for j in range(n) for i in range(n)
+            if stops[i] > stops[j] and any(abs(stops[i] - stops[j] - float(g)) <= tolerance
+                                           for g in gaps)]
+
+
 def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=DEFAULT_GAPS, *,
              refit: bool = True, tolerance: float = GAP_TOLERANCE, max_pixels: int | None = None,
              low: float = EVAL_LOW, high: float | None = None,
@@ -198,15 +226,8 @@ def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=DEFAULT_GAPS,
     # Leaving an exposure out of a 2-image series leaves nothing to fit: score the full fit
     # (slightly optimistic) and say so in the result rather than fail.
     refit = refit and n > 2
-    footprint = fit_result.sampling.footprint
-    cache_key = (id(series), hashlib.blake2b(np.packbits(footprint).tobytes()).hexdigest(),
-                 footprint.shape, max_pixels, seed, low, high, flat_tolerance, censored)
-    held = None if cache is None else cache.get(cache_key)
-    if held is None:
-        held = _HeldOut(series, footprint, max_pixels, seed, low, high, flat_tolerance,
-                        censored)
-        if cache is not None:
-            cache[cache_key] = held
+    held = held_out(series, fit_result, max_pixels=max_pixels, seed=seed, low=low, high=high,
+                    flat_tolerance=flat_tolerance, censored=censored, cache=cache)
     flat = held.flat
     kinds = ("all",) if flat is None else ("all", "flat")
     sse = {(g, d, k): np.zeros(ch) for g in gaps for d in DIRECTIONS for k in kinds}

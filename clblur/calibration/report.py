@@ -20,6 +20,7 @@ from clblur.calibration.cross_exposure import curve_black_level
 from clblur.calibration.evaluate import EVAL_HIGH, EVAL_LOW, FLAT_TOLERANCE
 from clblur.calibration.fitting import LIKELIHOOD_LOW, ResponseFit, fit_radiances
 from clblur.calibration.series import ExposureSeries, photometric_exposure
+from clblur.calibration.surround import describe as describe_surround
 from clblur.io import atomic_write, atomic_write_text
 from clblur.registration import summary
 
@@ -327,6 +328,12 @@ def write_report(folder: str | Path, series: ExposureSeries, fits: dict[str, Res
                   "the longer; *both*: pooled.  AIC/BIC: forward residuals of the sampled "
                   "patches with values in [0.1, 0.98] of full scale, the same for every "
                   "model (Gaussian noise; see `clblur.calibration.fitting`).", ""]
+    if evaluations.get(best, {}).get("surround") is not None:
+        lines += ["## Does the error depend on the surround?", "",
+                  describe_surround(evaluations[best]["surround"], series.channels) + " ("
+                  "`clblur.calibration.surround`: the chosen model's held-out error on flat "
+                  "pixels, by the code and by the brightness of the pixel's surround, "
+                  "cross-fitted on a checkerboard of blocks.)", ""]
     lines += ["## The series", "", series_table(series), "",
               "## Contrast of the fitted curves", "", curve_table(series, fits), "",
               "## Figures", "",

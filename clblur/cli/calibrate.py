@@ -184,6 +184,10 @@ def run(args: argparse.Namespace) -> int:
         rule = per_curve[0].get("smoothness_cv", {}).get("rule", "as given")
         print(f"spline smoothness ({rule}): "
               + " / ".join(f"{p['smoothness']:.3g}" for p in per_curve))
+    if result.surround is not None:  # what no curve holds: local tone mapping
+        from clblur.calibration.surround import describe
+
+        print(describe(result.surround, result.series.channels))
     for name, why in result.skipped.items():
         print(f"skipped {name}: {why}")
     for line in nan_reasons(evaluations[best]):  # say why a column is nan

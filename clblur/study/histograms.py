@@ -18,18 +18,13 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from clblur.calibration.surround import surround_codes
 from clblur.camera import normalised_radius2
 from clblur.errors import InputError, InputTypeError
 from clblur.sampling import bilinear_corners
 from clblur.study.model import CODES, Group, censored_ends
 
-__all__ = ["SURROUND_SCALE", "Spread", "Taps", "as_hwc", "build_group", "sample_grid",
-           "shifted", "surround_codes"]
-
-# the width (Gaussian sigma) of a pixel's surround, as a share of the image diagonal: wide
-# enough to hold a region's brightness rather than an edge's (13 px on a 240 x 360 study
-# image), as local tone mapping adapts to a region (``clblur.study.leftover``)
-SURROUND_SCALE = 1.0 / 32.0
+__all__ = ["Spread", "Taps", "as_hwc", "build_group", "sample_grid", "shifted"]
 
 
 @dataclass(frozen=True)
@@ -59,19 +54,6 @@ class Spread:
 
 # entries of one chunk's spread code table (rows x offsets) in _spread_hists
 _SPREAD_ENTRIES = 1 << 22
-
-
-def surround_codes(image: np.ndarray) -> np.ndarray:
-    """The brightness of every pixel's surround: the mean code over the channels of
-    ``image`` (H x W x C), Gaussian-weighted with sigma ``SURROUND_SCALE`` times the image
-    diagonal (edges mirrored).  H x W float64."""
-    import cv2
-
-    h, w = image.shape[:2]
-    mean = image.reshape(h, w, -1).mean(axis=2, dtype=np.float64).astype(np.float32)
-    sigma = SURROUND_SCALE * math.hypot(h, w)
-    return cv2.GaussianBlur(mean, (0, 0), sigma, borderType=cv2.BORDER_REFLECT).astype(
-        np.float64)
 
 
 def sample_grid(shape: tuple[int, int], max_pixels: int) -> tuple[np.ndarray, np.ndarray]:

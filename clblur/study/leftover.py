@@ -32,8 +32,9 @@ Conventions
 -----------
 Codes are the study's 8-bit codes.  Bins: ``CODE_BIN`` codes for the pooled alternative,
 ``GROUP_BIN`` per group, ``CODE_BIN`` by ``SURROUND_BIN`` codes of the surround (the mean
-code over the channels, Gaussian-weighted over ``histograms.SURROUND_SCALE`` of the image
-diagonal); a bin with fewer than ``MIN_COUNT`` valid values in a fold keeps offset 0 there.
+code over the channels, Gaussian-weighted over ``SURROUND_SCALE`` of the image diagonal:
+``clblur.calibration.surround``, which calibration's own check shares); a bin with fewer
+than ``MIN_COUNT`` valid values in a fold keeps offset 0 there.
 The alternatives share the study's false-positive rate (Bonferroni: ``alpha / 3`` each,
 ``alpha / 2`` where the groups know no surrounds).
 """

@@ -97,8 +97,8 @@ class Group:
     censored: np.ndarray | None = None
     top: float = 255.0  # the clip code of the targets
     # (n,) the brightness of each target pixel's surround: the mean code of the target image
-    # over a wide neighbourhood (``histograms.surround_codes``), for the leftover test's
-    # alternative by surround (``clblur.study.leftover``); None: not known
+    # over a wide neighbourhood (``clblur.calibration.surround.surround_codes``), for the
+    # leftover test's alternative by surround (``clblur.study.leftover``); None: not known
     surround: np.ndarray | None = None
 
     def time_norm(self, i: int) -> np.ndarray:

@@ -1,0 +1,106 @@
+"""Calibration's check for local tone mapping (``clblur.calibration.surround``): a bracket
+whose codes depend on each region's brightness is reported, plain brackets (noisy, JPEG,
+misregistered, or fitted with a wrong curve) are not."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+from bracket_scenes import exposure, objects_scene
+from scipy import ndimage
+
+from clblur.calibration import ExposureSeries
+from clblur.calibration.compare import calibrate
+from clblur.calibration.report import write_report
+from clblur.calibration.surround import SURROUND_SCALE, describe, surround_codes
+from clblur.camera import local_tone
+
+
+def bracket(seed: int, strength: float = 0.0, noise: float = 0.004, jpeg: int = 0,
+            shift: float = 0.0, sharpen: float = 0.0, h: int = 240, w: int = 320
+            ) -> ExposureSeries:
+    """Five exposures one stop apart of ``objects_scene``, gamma-2.2 codes; ``strength``:
+    local tone mapping (``camera.local_tone``, surround blurred by 10 px); ``jpeg``: stored
+    at that quality; ``shift``: each frame's light moved by up to that many pixels;
+    ``sharpen``: an unsharp mask of that amount (sigma 1.5 px) on the codes, as a camera's
+    JPEG engine sharpens."""
+    rng = np.random.default_rng(seed)
+    radiance = objects_scene(h, w, seed)
+    times = 2.0 ** np.arange(5) / 8.0
+    images = []
+    for t in times:
+        light = radiance * t
+        if strength:
+            light = local_tone(light, strength, 10.0)
+        if shift:
+            dy, dx = rng.uniform(-shift, shift, 2)
+            light = ndimage.shift(light, (dy, dx, 0), order=1, mode="nearest")
+        im = exposure(light, 1.0, rng, noise=noise)
+        if sharpen:
+            f = im.astype(np.float32)
+            f += sharpen * (f - cv2.GaussianBlur(f, (0, 0), 1.5))
+            im = np.clip(np.rint(f), 0, 255).astype(np.uint8)
+        if jpeg:
+            im = cv2.imdecode(cv2.imencode(".jpg", im, [cv2.IMWRITE_JPEG_QUALITY, jpeg])[1],
+                              cv2.IMREAD_UNCHANGED)
+        images.append(im)
+    return ExposureSeries.create(images, times)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_local_tone_mapping_is_reported(seed, tmp_path):
+    cal = calibrate(bracket(seed, strength=0.3), ["gamma-offset"])
+    r = cal.surround
+    assert r["dependent"], describe(r)
+    assert r["statistic"] > 4 and r["offset_codes"] > 0.6
+    # where: the largest offsets beyond the code's own are codes wide, in a named surround
+    top = r["largest"][0]
+    assert abs(top["offset_codes"]) > 1.5 and top["surround_codes"][1] > top["surround_codes"][0]
+    text = describe(r)
+    assert "DEPENDS" in text and "local tone mapping" in text
+    report = write_report(tmp_path / "rep", cal.series, cal.fits, cal.evaluations, cal.best)
+    assert "## Does the error depend on the surround?" in report.read_text()
+    assert "Auto Lighting Optimizer" in report.read_text()
+
+
+@pytest.mark.parametrize("case", [
+    {"model": "gamma-offset"},
+    {"model": "gamma-offset", "noise": 0.016},  # high ISO: few pixels are flat in codes
+    {"model": "gamma-offset", "jpeg": 85},
+    {"model": "gamma-offset", "shift": 0.5},  # a registration left half a pixel off
+    {"model": "gamma-offset", "sharpen": 1.0},  # halos in codes, at the edges' scale
+    {"model": "exp"},  # a curve that cannot fit: its error depends on the code, not the surround
+])
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_bracket_without_local_tone_mapping_is_not_reported(case, seed):
+    opts = {k: v for k, v in case.items() if k != "model"}
+    cal = calibrate(bracket(seed, **opts), [case["model"]])
+    r = cal.surround
+    assert not r["dependent"], describe(r)
+    assert r["values"] > 50_000  # enough flat values to have looked, noisy or not
+    assert r["offset_codes"] < 0.25
+    assert "DEPENDS" not in describe(r)
+
+
+def test_a_significant_trace_below_the_least_offset_is_named_a_trace():
+    r = {"dependent": False, "statistic": 3.3, "p_value": 6e-4, "alpha": 1e-3,
+         "offset_codes": 0.06, "min_offset_codes": 0.5, "values": 18_000_000, "blocks": 144,
+         "pairs": 27, "largest": []}
+    assert describe(r).startswith("Surround: a trace only.")
+    r.update(p_value=0.01, statistic=2.3)
+    assert describe(r).startswith("Surround: no dependence.")
+
+
+def test_surround_codes_reduced_for_a_wide_sigma_match_the_exact_gaussian():
+    rng = np.random.default_rng(3)
+    h, w = 1200, 1600  # sigma 62.5 px: blurred on a copy reduced 7 times
+    small = rng.uniform(0, 255, (h // 40, w // 40, 3)).astype(np.float32)
+    image = cv2.resize(small, (w, h), interpolation=cv2.INTER_NEAREST)  # hard-edged blocks
+    got = surround_codes(image)
+    exact = cv2.GaussianBlur(image.mean(axis=2), (0, 0), SURROUND_SCALE * math.hypot(h, w),
+                             borderType=cv2.BORDER_REFLECT)
+    assert got.shape == (h, w)
+    assert np.abs(got - exact).max() < 1.0  # codes of 255, against contrast of 255
