@@ -20,13 +20,13 @@ from clblur.camera import local_tone
 
 
 def bracket(seed: int, strength: float = 0.0, noise: float = 0.004, jpeg: int = 0,
-            shift: float = 0.0, sharpen: float = 0.0, h: int = 240, w: int = 320
-            ) -> ExposureSeries:
+            shift: float = 0.0, sharpen: float = 0.0, bits: int = 8, h: int = 240,
+            w: int = 320) -> ExposureSeries:
     """Five exposures one stop apart of ``objects_scene``, gamma-2.2 codes; ``strength``:
     local tone mapping (``camera.local_tone``, surround blurred by 10 px); ``jpeg``: stored
     at that quality; ``shift``: each frame's light moved by up to that many pixels;
     ``sharpen``: an unsharp mask of that amount (sigma 1.5 px) on the codes, as a camera's
-    JPEG engine sharpens."""
+    JPEG engine sharpens; ``bits``: 16 for uint16 codes (noise ``noise / 2``)."""
     rng = np.random.default_rng(seed)
     radiance = objects_scene(h, w, seed)
     times = 2.0 ** np.arange(5) / 8.0
@@ -38,6 +38,10 @@ def bracket(seed: int, strength: float = 0.0, noise: float = 0.004, jpeg: int = 
         if shift:
             dy, dx = rng.uniform(-shift, shift, 2)
             light = ndimage.shift(light, (dy, dx, 0), order=1, mode="nearest")
+        if bits == 16:
+            v = np.clip(light, 0, 1) ** (1 / 2.2) + rng.normal(0, noise / 2, light.shape)
+            images.append(np.clip(np.rint(v * 65535), 0, 65535).astype(np.uint16))
+            continue
         im = exposure(light, 1.0, rng, noise=noise)
         if sharpen:
             f = im.astype(np.float32)
@@ -83,6 +87,15 @@ def test_a_bracket_without_local_tone_mapping_is_not_reported(case, seed):
     assert r["values"] > 50_000  # enough flat values to have looked, noisy or not
     assert r["offset_codes"] < 0.25
     assert "DEPENDS" not in describe(r)
+
+
+@pytest.mark.parametrize("strength", [0.0, 0.3])
+def test_a_16_bit_bracket_is_judged_in_its_own_codes(strength):
+    r = calibrate(bracket(1, strength=strength, bits=16), ["gamma-offset"]).surround
+    assert r["min_offset_codes"] == pytest.approx(0.5 * 257)
+    assert r["dependent"] == bool(strength), describe(r)
+    if strength:  # the same lift as in 8 bits, in 16-bit codes
+        assert r["offset_codes"] > 0.6 * 257 and r["largest"][0]["codes"][1] > 256
 
 
 def test_a_significant_trace_below_the_least_offset_is_named_a_trace():

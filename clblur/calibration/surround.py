@@ -260,7 +260,7 @@ def describe(result: dict, channels: int = 3) -> str:
             f"{result['pairs']} pair(s), {result['values']} values, {result['blocks']} "
             f"blocks): t = {result['statistic']:.2f}, p = {result['p_value']:.2g}, "
             f"offsets {result['offset_codes']:.2f} codes root mean square beyond the code's "
-            f"own (counts from {result['min_offset_codes']:.2g})")
+            f"own (counts from {result['min_offset_codes']:.3g})")
     if not result["dependent"]:
         if result["p_value"] < result["alpha"]:  # many values see a trace no blur would
             return ("Surround: a trace only. The " + head + ": significant on this many "
