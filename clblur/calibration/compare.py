@@ -83,7 +83,9 @@ def calibrate(source: ExposureSeries | str | os.PathLike, models=None, *, times=
     scored at 2 and 4).  A model the series cannot support is
     skipped, its reason in ``Calibration.skipped``, unless it is the only one asked for.
     ``align``: register a series read from ``source`` (``load_series``); a given
-    ``ExposureSeries`` is taken as it is (``ExposureSeries.aligned`` registers one)."""
+    ``ExposureSeries`` is taken as it is (``ExposureSeries.aligned`` registers one).  The best
+    model's held-out error is then tested for a dependence on the surround, which no curve
+    holds (local tone mapping; ``clblur.calibration.surround``): ``Calibration.surround``."""
     # checked before the series is read and registered
     if gaps is not None and (not len(gaps) or not all(np.isfinite(g) and g > 0 for g in gaps)):
         raise InputError(f"gaps must be positive numbers of stops, got {list(gaps)}")
