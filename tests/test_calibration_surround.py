@@ -20,10 +20,13 @@ from clblur.camera import local_tone
 
 
 def bracket(seed: int, strength: float = 0.0, noise: float = 0.004, jpeg: int = 0,
-            shift: float = 0.0, sharpen: float = 0.0, bits: int = 8, h: int = 240,
+            shift: float = 0.0, sharpen: float = 0.0, bits: int = 8,
+            tone_sigma: float = 10.0, edge_aware: bool = False, h: int = 240,
             w: int = 320) -> ExposureSeries:
     """Five exposures one stop apart of ``objects_scene``, gamma-2.2 codes; ``strength``:
-    local tone mapping (``camera.local_tone``, surround blurred by 10 px); ``jpeg``: stored
+    local tone mapping (``camera.local_tone``, surround blurred by ``tone_sigma`` px;
+    ``edge_aware``: its surround a bilateral filter of the log light instead, which stops at
+    edges, as cameras' halo-free tone mapping does); ``jpeg``: stored
     at that quality; ``shift``: each frame's light moved by up to that many pixels;
     ``sharpen``: an unsharp mask of that amount (sigma 1.5 px) on the codes, as a camera's
     JPEG engine sharpens; ``bits``: 16 for uint16 codes (noise ``noise / 2``)."""
@@ -33,8 +36,12 @@ def bracket(seed: int, strength: float = 0.0, noise: float = 0.004, jpeg: int = 
     images = []
     for t in times:
         light = radiance * t
-        if strength:
-            light = local_tone(light, strength, 10.0)
+        if strength and edge_aware:
+            level = np.log(np.maximum(light.mean(axis=2), 1e-6)).astype(np.float32)
+            surround = cv2.bilateralFilter(level, -1, 0.7, tone_sigma)
+            light = light * np.exp(strength * np.tanh(np.log(0.18) - surround))[..., None]
+        elif strength:
+            light = local_tone(light, strength, tone_sigma)
         if shift:
             dy, dx = rng.uniform(-shift, shift, 2)
             light = ndimage.shift(light, (dy, dx, 0), order=1, mode="nearest")

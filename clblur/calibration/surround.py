@@ -40,9 +40,15 @@ Test
   over the blocks (pixels in a block may be correlated, blocks nearly independent), one-
   sided, Student's t with ``B - 1`` degrees of freedom.
 * Reported when ``p < alpha`` *and* the gain per value, as a root mean square offset, is at
-  least ``MIN_OFFSET`` codes of 255 (scaled to the series' depth): a trace of a tenth of a
-  code (a wrong curve's error changes faster than the base's knots follow) can be
-  significant on millions of pixels and is harmless to a blur.
+  least ``MIN_OFFSET`` codes of 255 (scaled to the series' depth), half a code, the most the
+  rounding to codes moves a value itself: a trace of a tenth of a code (a wrong curve's
+  error changes faster than the base's knots follow) can be significant on millions of
+  pixels and is harmless to a blur.  A significant trace below it is named as one.
+* Limit: an edge-aware tone mapping (its surround stops at edges, as cameras' halo-free
+  ones do) lifts a flat region by a function of that region's own level, which a curve
+  holds; what no curve holds lies at the edges, which the flat test leaves out.  Such a
+  bracket shows as a trace (``docs/studies/validation.md``, "Calibration's check for local
+  tone mapping").
 """
 
 from __future__ import annotations
@@ -264,8 +270,9 @@ def describe(result: dict, channels: int = 3) -> str:
     if not result["dependent"]:
         if result["p_value"] < result["alpha"]:  # many values see a trace no blur would
             return ("Surround: a trace only. The " + head + ": significant on this many "
-                    "values, but below the least offset that counts; no local tone mapping "
-                    "worth the name.")
+                    "values, but below the least offset that counts: no local tone mapping "
+                    "worth the name on flat pixels (an edge-aware one, which follows each "
+                    "region's own level, can show there as no more than such a trace).")
         return ("Surround: no dependence. The " + head + ". The error at a code does not "
                 "depend on the surround: no sign of local tone mapping.")
     spots = []

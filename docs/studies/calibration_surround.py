@@ -1,13 +1,14 @@
 """Calibration's check for local tone mapping, on generated brackets: found where it is, not
 where it is not.
 
-    python docs/studies/calibration_surround.py            # about 2 minutes on 2 cores
+    python docs/studies/calibration_surround.py            # about 3 minutes on 2 cores
     python docs/studies/calibration_surround.py --seeds 1
 
 Each bracket is ``tests/test_calibration_surround.py``'s: five one-stop exposures (240 x
 320) of flat objects on a smooth background, gamma-2.2 codes with read noise; a case adds
-local tone mapping (``clblur.camera.local_tone`` at a strength, surround blurred by 10 px)
-or one of the plain brackets' disturbances (high-ISO noise, JPEG storage, half a pixel of
+local tone mapping (``clblur.camera.local_tone`` at a strength, surround blurred by 10 px,
+or by 3 or 40 px, or an edge-aware surround: a bilateral filter of the log light) or one of
+the plain brackets' disturbances (high-ISO noise, JPEG storage, half a pixel of
 misregistration, an unsharp mask on the codes, a curve that cannot fit).  For each the script
 runs ``clblur.calibration.calibrate`` with the model named and prints the surround check
 (``clblur.calibration.surround``): t, the root mean square offset beyond the code's own, the
@@ -34,6 +35,12 @@ CASES = {
     "local tone 0.3": ({"strength": 0.3}, "gamma-offset"),
     "local tone 0.5": ({"strength": 0.5}, "gamma-offset"),
     "local tone 0.3, JPEG 85": ({"strength": 0.3, "jpeg": 85}, "gamma-offset"),
+    "local tone 0.3, surround 3 px": ({"strength": 0.3, "tone_sigma": 3.0}, "gamma-offset"),
+    "local tone 0.3, surround 40 px": ({"strength": 0.3, "tone_sigma": 40.0}, "gamma-offset"),
+    "local tone 0.3, edge-aware 10 px": ({"strength": 0.3, "edge_aware": True},
+                                         "gamma-offset"),
+    "local tone 0.3, edge-aware 30 px": ({"strength": 0.3, "edge_aware": True,
+                                          "tone_sigma": 30.0}, "gamma-offset"),
     "noise 4 codes": ({"noise": 0.016}, "gamma-offset"),
     "JPEG 85": ({"jpeg": 85}, "gamma-offset"),
     "shift 0.5 px": ({"shift": 0.5}, "gamma-offset"),
