@@ -91,7 +91,7 @@ def test_a_bracket_without_local_tone_mapping_is_not_reported(case, seed):
     cal = calibrate(bracket(seed, **opts), [case["model"]])
     r = cal.surround
     assert not r["dependent"], describe(r)
-    assert r["values"] > 50_000  # enough flat values to have looked, noisy or not
+    assert r["tested"] and r["contrast_values"] > 20_000  # looked, noisy or not
     assert r["offset_codes"] < 0.25
     assert "DEPENDS" not in describe(r)
 
@@ -105,8 +105,22 @@ def test_a_16_bit_bracket_is_judged_in_its_own_codes(strength):
         assert r["offset_codes"] > 0.6 * 257 and r["largest"][0]["codes"][1] > 256
 
 
+def test_a_scene_whose_codes_all_share_one_surround_is_not_tested():
+    """A fine texture averages to one surround everywhere: no code is seen in two surrounds,
+    so the check cannot tell and says so rather than "no dependence"."""
+    rng = np.random.default_rng(0)
+    light = cv2.GaussianBlur(np.exp(rng.normal(0, 1, (240, 320))), (0, 0), 3) / 3
+    times = [0.25, 0.5, 1.0]
+    images = [np.clip(np.rint(np.clip(light * t, 0, 1) ** (1 / 2.2) * 255
+                              + rng.normal(0, 1, light.shape)), 0, 255).astype(np.uint8)
+              for t in times]
+    r = calibrate(ExposureSeries.create(images, times), ["gamma-offset"]).surround
+    assert not r["tested"] and not r["dependent"] and r["values"] > 50_000
+    assert describe(r, 1).startswith("Surround: not tested. Only 0 flat held-out values")
+
+
 def test_a_significant_trace_below_the_least_offset_is_named_a_trace():
-    r = {"dependent": False, "statistic": 3.3, "p_value": 6e-4, "alpha": 1e-3,
+    r = {"tested": True, "dependent": False, "statistic": 3.3, "p_value": 6e-4, "alpha": 1e-3,
          "offset_codes": 0.06, "min_offset_codes": 0.5, "values": 18_000_000, "blocks": 144,
          "pairs": 27, "largest": []}
     assert describe(r).startswith("Surround: a trace only.")

@@ -66,7 +66,8 @@ if TYPE_CHECKING:
     from clblur.calibration.evaluate import HeldOut
     from clblur.calibration.series import ExposureSeries
 
-__all__ = ["ALPHA", "CODE_BIN", "GRID", "KNOT_STEP", "MAX_PIXELS", "MIN_COUNT", "MIN_OFFSET",
+__all__ = ["ALPHA", "CODE_BIN", "GRID", "KNOT_STEP", "MAX_PIXELS", "MIN_CONTRAST", "MIN_COUNT",
+           "MIN_OFFSET",
            "SURROUND_BIN", "SURROUND_SCALE", "describe", "surround_codes",
            "surround_dependence"]
 
@@ -81,6 +82,9 @@ GRID = 12
 MIN_COUNT = 20
 MIN_OFFSET = 0.5  # codes of 255
 MAX_PIXELS = 2_000_000
+# values whose code the series shows in two or more surrounds (cells of ``MIN_COUNT`` in
+# both folds) that a test needs; fewer: "not tested"
+MIN_CONTRAST = 2000
 ALPHA = 1e-3
 
 
@@ -175,7 +179,9 @@ def surround_dependence(series: ExposureSeries, fit_result: ResponseFit, held: H
             codes of 255, that counts.
 
     Returns:
-        A dict: ``dependent`` (bool: significant and at least ``min_offset``), ``statistic``,
+        A dict: ``tested`` (bool: at least ``MIN_CONTRAST`` values have a code the series
+        shows in two or more surrounds, ``contrast_values``), ``dependent`` (bool: tested,
+        significant and at least ``min_offset``), ``statistic``,
         ``p_value``, ``offset_codes`` (the held-out gain as a root mean square offset, code
         values of the series), ``min_offset_codes``, ``values``, ``blocks``, ``pairs``, and
         ``largest`` (up to five cells: source, target, channel, codes, surround codes, the
@@ -197,6 +203,7 @@ def surround_dependence(series: ExposureSeries, fit_result: ResponseFit, held: H
     gain = np.zeros(GRID * GRID)
     count = np.zeros(GRID * GRID)
     cells: list[dict] = []
+    contrast = 0
     surrounds: dict[int, np.ndarray] = {}
     local: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     for k in {k for pair in pairs for k in pair}:
@@ -229,6 +236,10 @@ def surround_dependence(series: ExposureSeries, fit_result: ResponseFit, held: H
             # the pooled offsets beyond the code's own (each fold's on its own base), for
             # the report
             cnt_a = alt[0][1] + alt[1][1]
+            # what the test can see: codes met in two or more surrounds, in both folds
+            seen = [(a[1] >= MIN_COUNT).reshape(nb, ns) for a in alt]
+            both = (seen[0].sum(axis=1) >= 2) & (seen[1].sum(axis=1) >= 2)
+            contrast += int(cnt_a.reshape(nb, ns)[both][(seen[0] & seen[1])[both]].sum())
             beyond = (alt[0][0] * alt[0][1] + alt[1][0] * alt[1][1]) / np.maximum(cnt_a, 1.0)
             for cell in np.flatnonzero(cnt_a >= 2 * MIN_COUNT):
                 cells.append({"source": series.names[i], "target": series.names[j],
@@ -253,10 +264,11 @@ def surround_dependence(series: ExposureSeries, fit_result: ResponseFit, held: H
                         "surround_codes": [s * SURROUND_BIN * step,
                                            min((s + 1) * SURROUND_BIN * step, full + 1.0)],
                         "offset_codes": x["beyond"], "values": x["values"]})
-    return {"dependent": bool(p < alpha and offset >= least), "statistic": t, "p_value": p,
-            "alpha": alpha, "offset_codes": offset, "min_offset_codes": least,
-            "values": values, "blocks": int(d.size), "pairs": len(pairs),
-            "largest": largest}
+    tested = contrast >= MIN_CONTRAST
+    return {"tested": tested, "dependent": bool(tested and p < alpha and offset >= least),
+            "statistic": t, "p_value": p, "alpha": alpha, "offset_codes": offset,
+            "min_offset_codes": least, "values": values, "contrast_values": contrast,
+            "blocks": int(d.size), "pairs": len(pairs), "largest": largest}
 
 
 def describe(result: dict, channels: int = 3) -> str:
@@ -267,6 +279,11 @@ def describe(result: dict, channels: int = 3) -> str:
             f"blocks): t = {result['statistic']:.2f}, p = {result['p_value']:.2g}, "
             f"offsets {result['offset_codes']:.2f} codes root mean square beyond the code's "
             f"own (counts from {result['min_offset_codes']:.3g})")
+    if not result.get("tested", True):
+        return (f"Surround: not tested. Only {result.get('contrast_values', 0)} flat held-out "
+                f"values (of {result['values']}) have a code that the series shows in two or "
+                f"more surrounds, {MIN_CONTRAST} needed: too few to tell whether the camera's "
+                "rendering depends on the neighbourhood (local tone mapping).")
     if not result["dependent"]:
         if result["p_value"] < result["alpha"]:  # many values see a trace no blur would
             return ("Surround: a trace only. The " + head + ": significant on this many "
