@@ -21,17 +21,22 @@ from clblur.camera import local_tone
 
 def bracket(seed: int, strength: float = 0.0, noise: float = 0.004, jpeg: int = 0,
             shift: float = 0.0, sharpen: float = 0.0, bits: int = 8,
-            tone_sigma: float = 10.0, edge_aware: bool = False, h: int = 240,
-            w: int = 320) -> ExposureSeries:
+            tone_sigma: float = 10.0, edge_aware: bool = False, texture: float = 0.0,
+            h: int = 240, w: int = 320) -> ExposureSeries:
     """Five exposures one stop apart of ``objects_scene``, gamma-2.2 codes; ``strength``:
     local tone mapping (``camera.local_tone``, surround blurred by ``tone_sigma`` px;
     ``edge_aware``: its surround a bilateral filter of the log light instead, which stops at
-    edges, as cameras' halo-free tone mapping does); ``jpeg``: stored
+    edges, as cameras' halo-free tone mapping does); ``texture``: the light times
+    ``exp(texture n)``, ``n`` unit noise blurred by 1.5 px (a fine texture on every object);
+    ``jpeg``: stored
     at that quality; ``shift``: each frame's light moved by up to that many pixels;
     ``sharpen``: an unsharp mask of that amount (sigma 1.5 px) on the codes, as a camera's
     JPEG engine sharpens; ``bits``: 16 for uint16 codes (noise ``noise / 2``)."""
     rng = np.random.default_rng(seed)
     radiance = objects_scene(h, w, seed)
+    if texture:
+        n = cv2.GaussianBlur(rng.normal(0, 1, (h, w)).astype(np.float32), (0, 0), 1.5)
+        radiance = radiance * np.exp(texture * n / n.std())[..., None]
     times = 2.0 ** np.arange(5) / 8.0
     images = []
     for t in times:
