@@ -44,11 +44,15 @@ Test
   rounding to codes moves a value itself: a trace of a tenth of a code (a wrong curve's
   error changes faster than the base's knots follow) can be significant on millions of
   pixels and is harmless to a blur.  A significant trace below it is named as one.
+* Only codes that the series shows in two or more surrounds can tell; fewer than
+  ``MIN_CONTRAST`` such values and the verdict is "not tested", not "no dependence".
 * Limit: an edge-aware tone mapping (its surround stops at edges, as cameras' halo-free
   ones do) lifts a flat region by a function of that region's own level, which a curve
-  holds; what no curve holds lies at the edges, which the flat test leaves out.  Such a
-  bracket shows as a trace (``docs/studies/validation.md``, "Calibration's check for local
-  tone mapping").
+  holds; what no curve holds lies at edges and in textures, which the flat test leaves out.
+  Such a bracket shows as a trace (``docs/studies/validation.md``, "Calibration's check for
+  local tone mapping").  Textures are left out on purpose: there a camera's noise
+  reduction, stronger in the darker frame, flattens the texture, which lifts a pixel darker
+  than its surround and lowers a brighter one, the same signature as a local lift.
 """
 
 from __future__ import annotations
