@@ -162,6 +162,11 @@ def _base(k: np.ndarray, u: np.ndarray, e: np.ndarray, nk: int) -> np.ndarray:
     return np.linalg.solve(a, rhs)
 
 
+def _at(knots: np.ndarray, k: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """The piecewise-linear function with values ``knots`` at interval ``k``, place ``u``."""
+    return knots[k] * (1 - u) + knots[k + 1] * u
+
+
 def _offsets(key: np.ndarray, r: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
     """Mean of ``r`` per cell (0 where fewer than ``MIN_COUNT`` values), and the counts."""
     cnt = np.bincount(key, minlength=size).astype(np.float64)
@@ -210,30 +215,30 @@ def surround_dependence(series: ExposureSeries, fit_result: ResponseFit, held: H
     contrast = 0
     surrounds: dict[int, np.ndarray] = {}
     local: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    tau = series.relative_exposures()
     for k in {k for pair in pairs for k in pair}:
         local[k] = _local(series.images[k], coords, FLAT_TOLERANCE * full)
     for i, j in pairs:
         if j not in surrounds:
             surrounds[j] = surround_codes(series.images[j]).reshape(-1)[coords]
-        ratio = float(series.relative_exposures()[j] / series.relative_exposures()[i])
+        ratio = float(tau[j] / tau[i])
         sbin_all = np.clip((surrounds[j] / step // SURROUND_BIN).astype(np.int64), 0, ns - 1)
         for c in range(series.channels):
             m = held.scored(i, j, c)[sel] & local[i][1][:, c] & local[j][1][:, c]
             if not m.any():
                 continue
-            source = held.codes[i][sel][m, c].astype(np.float64)
-            target = held.codes[j][sel][m, c].astype(np.float64)
+            source = held.codes[i][sel[m], c].astype(np.float64)
+            target = held.codes[j][sel[m], c].astype(np.float64)
             e = transfer(fit_result.responses[c], source / full, ratio) * full - target
             kb, u = _knots(local[i][0][m, c], step)
             ka = (kb * int(KNOT_STEP) // int(CODE_BIN)) * ns + sbin_all[m]
             f, b = fold[m], block[m]
             on = [f == 0, f == 1]
             knots = [_base(kb[o], u[o], e[o], nk) for o in on]
-            resid = [e[o] - (knots[k][kb[o]] * (1 - u[o]) + knots[k][kb[o] + 1] * u[o])
-                     for k, o in enumerate(on)]
+            resid = [e[o] - _at(knots[k], kb[o], u[o]) for k, o in enumerate(on)]
             alt = [_offsets(ka[o], resid[k], nb * ns) for k, o in enumerate(on)]
             for k, o in enumerate(on):  # score fold k with the other fold's fit
-                rb = e[o] - (knots[1 - k][kb[o]] * (1 - u[o]) + knots[1 - k][kb[o] + 1] * u[o])
+                rb = e[o] - _at(knots[1 - k], kb[o], u[o])
                 d = rb**2 - (rb - alt[1 - k][0][ka[o]]) ** 2
                 gain += np.bincount(b[o], d, minlength=gain.size)
                 count += np.bincount(b[o], minlength=count.size)
@@ -243,7 +248,7 @@ def surround_dependence(series: ExposureSeries, fit_result: ResponseFit, held: H
             # what the test can see: codes met in two or more surrounds, in both folds
             seen = [(a[1] >= MIN_COUNT).reshape(nb, ns) for a in alt]
             both = (seen[0].sum(axis=1) >= 2) & (seen[1].sum(axis=1) >= 2)
-            contrast += int(cnt_a.reshape(nb, ns)[both][(seen[0] & seen[1])[both]].sum())
+            contrast += int(cnt_a.reshape(nb, ns)[seen[0] & seen[1] & both[:, None]].sum())
             beyond = (alt[0][0] * alt[0][1] + alt[1][0] * alt[1][1]) / np.maximum(cnt_a, 1.0)
             for cell in np.flatnonzero(cnt_a >= 2 * MIN_COUNT):
                 cells.append({"source": series.names[i], "target": series.names[j],
