@@ -10,9 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from tqdm import tqdm
 
-from clblur.calibration.censoring import CENSORED
 from clblur.calibration.evaluate import (
-    EVAL_HIGH,
     EVAL_LOW,
     FLAT_TOLERANCE,
     darker_pairs,
@@ -135,8 +133,7 @@ def calibrate(source: ExposureSeries | str | os.PathLike, models=None, *, times=
     pairs = darker_pairs(series, gaps)
     if pairs:
         held = held_out(series, fits[best], max_pixels=max_pixels, seed=seed, low=eval_low,
-                        high=EVAL_HIGH * series.white_level, flat_tolerance=flat_tolerance,
-                        censored=CENSORED, cache=held_cache)
+                        flat_tolerance=flat_tolerance, cache=held_cache)
         evaluations[best]["surround"] = surround_dependence(series, fits[best], held, pairs)
     return Calibration(series, fits, evaluations, best, skipped)
 

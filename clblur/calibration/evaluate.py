@@ -42,7 +42,8 @@ from clblur.calibration.series import ExposureSeries
 from clblur.errors import InputError
 
 __all__ = ["CENSORED", "DEFAULT_GAPS", "DIRECTIONS", "EVAL_HIGH", "EVAL_LOW", "FLAT_TOLERANCE",
-           "GAP_TOLERANCE", "HeldOut", "darker_pairs", "evaluate", "held_out", "series_gaps"]
+           "GAP_TOLERANCE", "HeldOut", "darker_pairs", "evaluate", "held_out", "local_range",
+           "series_gaps"]
 
 DEFAULT_GAPS = (1.0, 4.0)
 GAP_TOLERANCE = 0.25  # stops: a pair of exposures counts for a gap this close to it
@@ -54,7 +55,7 @@ EVAL_HIGH = 252.5 / 255.0
 DIRECTIONS = ("darker", "brighter")
 
 
-def _local_range(image: np.ndarray, coords: np.ndarray) -> np.ndarray:
+def local_range(image: np.ndarray, coords: np.ndarray) -> np.ndarray:
     """Max minus min over each pixel's 3 x 3 neighbourhood (code values), at ``coords``."""
     import cv2
 
@@ -97,7 +98,7 @@ class HeldOut:
             self.intact.append(np.ones(coords.size, dtype=bool) if spoiled is None
                                else ~spoiled.reshape(-1)[coords])
         self.flat = None if flat_tolerance is None else [
-            _local_range(im, coords) <= flat_tolerance * series.full_scale
+            local_range(im, coords) <= flat_tolerance * series.full_scale
             for im in series.images]
         self._scored: dict[tuple[int, int, int], np.ndarray] = {}
 
@@ -164,10 +165,14 @@ def series_gaps(series: ExposureSeries, wanted=DEFAULT_GAPS,
 
 
 def held_out(series: ExposureSeries, fit_result: ResponseFit, *, max_pixels: int | None,
-             seed: int, low: float, high: float, flat_tolerance: float | None,
-             censored: float, cache: dict | None = None) -> HeldOut:
+             seed: int, low: float = EVAL_LOW, high: float | None = None,
+             flat_tolerance: float | None = FLAT_TOLERANCE, censored: float = CENSORED,
+             cache: dict | None = None) -> HeldOut:
     """The held-out values of ``series`` for fits on ``fit_result``'s sampling, made once
-    per ``cache`` (a dict shared by the models fitted on one sampling; None: made here)."""
+    per ``cache`` (a dict shared by the models fitted on one sampling; None: made here);
+    ``high`` None: ``EVAL_HIGH`` times the series' ``white_level``, as ``evaluate``."""
+    if high is None:  # a camera that clips below full scale: its clipped codes are not light
+        high = EVAL_HIGH * series.white_level
     footprint = fit_result.sampling.footprint
     cache_key = (id(series), hashlib.blake2b(np.packbits(footprint).tobytes()).hexdigest(),
                  footprint.shape, max_pixels, seed, low, high, flat_tolerance, censored)
@@ -211,8 +216,8 @@ def evaluate(series: ExposureSeries, fit_result: ResponseFit, gaps=DEFAULT_GAPS,
     "n_params", "aic", "bic", "rmse_fit"}``; a gap with no pair gets RMSE NaN and its reason in
     ``missing``.
     """
-    if high is None:  # a camera that clips below full scale: its clipped codes are not light
-        high = EVAL_HIGH * series.white_level
+    if high is None:
+        high = EVAL_HIGH * series.white_level  # as held_out, checked before any work
     gaps = tuple(float(g) for g in gaps)
     if not gaps or any(g <= 0 for g in gaps):
         raise InputError(f"gaps must be positive numbers of stops, got {gaps}")

@@ -63,7 +63,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy import stats
 
-from clblur.calibration.evaluate import FLAT_TOLERANCE
+from clblur.calibration.evaluate import FLAT_TOLERANCE, local_range
 from clblur.calibration.fitting import ResponseFit, transfer
 
 if TYPE_CHECKING:
@@ -133,10 +133,7 @@ def _local(image: np.ndarray, coords: np.ndarray, tolerance: float
     box = cv2.boxFilter(img, -1, (3, 3), normalize=False,
                         borderType=cv2.BORDER_REFLECT).reshape(img.shape)
     neighbours = (box - img).reshape(-1, c)[coords] / 8.0
-    smooth = box / 9.0
-    kernel = np.ones((3, 3), np.uint8)
-    spread = (cv2.dilate(smooth, kernel) - cv2.erode(smooth, kernel)).reshape(-1, c)[coords]
-    return neighbours, spread <= tolerance
+    return neighbours, local_range(box / 9.0, coords) <= tolerance
 
 
 def _knots(source: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
