@@ -174,6 +174,7 @@ def _check_estimate(effect: str, est: dict, truth: float) -> None:
             est["scale"] == pytest.approx(1 / truth, abs=0.03)
 
 
+@pytest.mark.slow
 def test_null_data_give_no_finding_on_95_percent_of_seeds():
     # half of the seeds are PSF pairs, so psf_orientation is tested too (40 seeds of
     # 48 x 64 scenes: python bench/bench_study.py null, bench/results_study_null.md)
@@ -500,6 +501,7 @@ def test_black_level_is_found_per_channel():
     assert r["extended"]["heldout_rmse"] < MARGIN * r["baseline"]["heldout_rmse"]
 
 
+@pytest.mark.slow
 def test_black_level_is_found_beside_a_free_response_shape():
     # a linear sensor 7.65 codes above black with shot noise (raw data): a free response
     # shape absorbs much of a pedestal over the codes the data span, and a joint fit started
@@ -521,6 +523,7 @@ def test_black_level_is_found_beside_a_free_response_shape():
     assert found["response_shape"]["gamma"] == pytest.approx(1.0, abs=0.05)
 
 
+@pytest.mark.slow
 def test_exif_times_rounded_to_nominal_values_are_named_exposure_times():
     # a one-stop bracket of 1/8 ... 1/256 s whose files say 1/8, 1/15, 1/30, 1/60, 1/125,
     # 1/250 (the marked shutter speeds): the stated ratios are off by up to 6.7 %.  The
@@ -549,6 +552,7 @@ def test_exif_times_rounded_to_nominal_values_are_named_exposure_times():
         factors.values(), found["interval"]["exposure_factors"].values(), strict=True))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("amplitude", [0.0, 0.1])
 def test_a_cause_outside_the_vocabulary_is_reported_as_structure_left(amplitude):
     # an in-camera tone curve that changes from frame to frame (adaptive tone mapping: each
@@ -580,6 +584,7 @@ def test_a_cause_outside_the_vocabulary_is_reported_as_structure_left(amplitude)
         assert "What the model leaves: no structure" in markdown(r)
 
 
+@pytest.mark.slow
 def test_local_tone_mapping_is_reported_as_depending_on_the_surround():
     # A camera that renders each region by its own brightness (``camera.local_tone``: a
     # dark region lifted, a bright one held down) gives one light two codes in
@@ -771,6 +776,7 @@ def test_the_edge_note_outlives_a_rewritten_verdict():
     assert "edge" not in f.explanation
 
 
+@pytest.mark.slow
 def test_truncated_long_exposure_is_quantisation_not_gain():
     # a gamma-2.2 frame stack whose long exposure was truncated: the bias of -0.5 codes is
     # named quantisation, and the response is found (the GoPro case of issue 9).  Seen
@@ -991,6 +997,7 @@ def test_study_never_writes_over_its_times_file_or_loses_its_report(tmp_path, ca
     assert not (tmp_path / "r.md").exists()
 
 
+@pytest.mark.slow
 def test_study_and_calibrate_give_the_same_curve_shape():
     # issue 9: one response model; on one exposure series the study's response_shape and
     # `clblur calibrate`'s best curve agree (log exposure up to a common unit, in stops)
