@@ -10,10 +10,21 @@ from __future__ import annotations
 
 import os
 
-import numpy as np
-import pytest
+# BLAS on one thread in this process and, through the environment, in the processes tests
+# start (CLI runs, the study's fold workers), as the library's fits run (clblur.blas).  Why:
+# OpenBLAS's idle threads spin.  On a 2-core VM a calibration test took twice the CPU time on
+# 2 threads for the same wall time (test_the_spline_s_smoothness_is_chosen_on_held_out_pixels:
+# 55 against 27 CPU-s, 31 / 29 s), and beside a second pytest-xdist worker 444 s.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-from clblur.io import data_dir
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from clblur.blas import one_blas_thread  # noqa: E402
+from clblur.io import data_dir  # noqa: E402
+
+# numpy may have been imported (by a pytest plugin) before the variable was set
+_BLAS_LIMIT = one_blas_thread()
 
 
 def pytest_addoption(parser):

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from tqdm import tqdm
 
+from clblur.blas import with_one_blas_thread
 from clblur.calibration.evaluate import (
     EVAL_LOW,
     FLAT_TOLERANCE,
@@ -68,6 +69,7 @@ def available_models(emor_dir=None, warn: bool = True) -> list[str]:
         return [m for m in MODELS if m != "emor"]
 
 
+@with_one_blas_thread
 def calibrate(source: ExposureSeries | str | os.PathLike, models=None, *, times=None,
               shared: bool = False, refine_times: bool = False, n_samples: int = 1000,
               patch: int = 3, seed: int = 0, fit_low: float | None = None,
@@ -83,7 +85,8 @@ def calibrate(source: ExposureSeries | str | os.PathLike, models=None, *, times=
     ``align``: register a series read from ``source`` (``load_series``); a given
     ``ExposureSeries`` is taken as it is (``ExposureSeries.aligned`` registers one).  The best
     model's held-out error is then tested for a dependence on the surround, which no curve
-    holds (local tone mapping; ``clblur.calibration.surround``): ``Calibration.surround``."""
+    holds (local tone mapping; ``clblur.calibration.surround``): ``Calibration.surround``.
+    BLAS runs on one thread meanwhile (``clblur.blas``)."""
     # checked before the series is read and registered
     if gaps is not None and (not len(gaps) or not all(np.isfinite(g) and g > 0 for g in gaps)):
         raise InputError(f"gaps must be positive numbers of stops, got {list(gaps)}")

@@ -83,13 +83,12 @@ class FoldWorker:
 
 
 def main() -> None:
-    from threadpoolctl import threadpool_limits
-
+    from clblur.blas import one_blas_thread
     from clblur.study.crossfit import fit
 
     source, sink = sys.stdin.buffer, sys.stdout.buffer
     sys.stdout = sys.stderr  # nothing else may write to the answers' stream
-    threadpool_limits(limits=1, user_api="blas")
+    one_blas_thread()  # for the worker's life
     try:
         groups, nvalid, bounds = pickle.load(source)
         while True:

@@ -56,6 +56,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from clblur.blas import one_blas_thread
 from clblur.study.crossfit import (
     CONDITIONAL,
     WARP_RIDGE,
@@ -140,14 +141,11 @@ def select(groups: list[Group], alpha: float = 0.05, min_gain: float = MIN_GAIN,
     """Run the whole diagnosis (see the module docstring) on the blocks' fold ``split``
     (``assign_blocks``; 0, the checkerboard, unless the study repeats the split).
 
-    BLAS runs on one thread meanwhile: its only calls here are L-BFGS-B's on matrices of a
-    few dozen parameters, and OpenBLAS's worker threads, woken by each, spin on the core
-    the other fold's fit needs (a third of a series study's CPU time, for no speed).
+    BLAS runs on one thread meanwhile (``clblur.blas``: OpenBLAS's threads, woken by
+    L-BFGS-B's small products, spin on the core the other fold's fit needs).
     """
-    from threadpoolctl import threadpool_limits
-
     nblocks = assign_blocks(groups, split=split)
-    with threadpool_limits(limits=1, user_api="blas"), Folds(groups, nblocks) as folds:
+    with one_blas_thread(), Folds(groups, nblocks) as folds:
         return _select(groups, folds, nblocks, alpha, min_gain, progress)
 
 
