@@ -31,7 +31,7 @@ import numpy as np
 
 from clblur.errors import InputError, InputTypeError
 from clblur.opencl.constants import BOX_RING_CPU, BOX_RING_GPU, build_defines
-from clblur.opencl.program import Program, kernel_source
+from clblur.opencl.program import Program, build, kernel_source
 
 __all__ = ["ENV_DEVICE", "DeviceNotFound", "OpenCLUnavailable", "Runtime", "current_device",
            "devices", "pyopencl_module", "runtime", "runtimes", "usable"]
@@ -296,7 +296,7 @@ def current_device(device: str | None = None) -> str:
 def _probe(context, queue) -> None:
     """Build and run a tiny kernel; raise if the result is wrong."""
     cl = pyopencl_module()
-    prog = cl.Program(context, _PROBE_SOURCE).build()
+    prog = build(context, _PROBE_SOURCE)
     host = np.arange(8, dtype=np.float32)
     buf = cl.Buffer(context, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=host)
     prog.probe(queue, (8,), None, buf)
