@@ -3,8 +3,9 @@
 Builds :class:`Layers` for a crop of the image (``clblur.layered_exposure`` states the model):
 each layer a premultiplied image ``(M L, M)`` with a vector field, hidden pixels reconstructed
 from the nearest visible pixel at or behind them (the stated assumption; an intermediate layer
-also inside the convex hull of its visible pieces, :func:`hidden_hull`), mixed pixels split by
-a coverage fitted to their light (:func:`split_coverage`).
+also inside the convex hull of its visible pieces, and round under what hides it where its
+visible silhouette is round, :func:`hidden_completion`), mixed pixels split by a coverage
+fitted to their light (:func:`split_coverage`).
 """
 
 from __future__ import annotations
@@ -21,9 +22,10 @@ import numpy as np
 from clblur.halo import halo_for_reach, reach
 from clblur.layering import layer_labels
 
-__all__ = ["HOST", "INPAINT_RADIUS", "Layers", "MID_EXTEND_PX", "SPLIT_PRIOR", "bounding_box",
-           "Transforms", "crop_margin", "distance_to", "harmonic_fill", "hidden_hull", "prepare",
-           "split_coverage"]
+__all__ = ["ARC_FIT_RMS", "ARC_MAX_RADIUS", "ARC_MIN_PX", "HOST", "INPAINT_RADIUS", "Layers",
+           "MID_EXTEND_PX",
+           "SPLIT_PRIOR", "Transforms", "bounding_box", "crop_margin", "distance_to",
+           "harmonic_fill", "hidden_completion", "hidden_hull", "prepare", "split_coverage"]
 
 # px the reconstruction of hidden light extends beyond the pixels a sample reads, so that
 # what is read is filled from a filled neighbourhood (the radius the Navier-Stokes
@@ -281,13 +283,132 @@ def hidden_hull(labels: np.ndarray, k: int) -> np.ndarray:
     hidden by a nearer one continues under it as far as its visible part's convex hull)."""
     import cv2
 
-    mine = (labels == k).astype(np.uint8)
+    mine = np.ascontiguousarray(labels == k).view(np.uint8)  # OpenCV draws on C order
     contours, _ = cv2.findContours(mine, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-    hull = np.zeros_like(mine)
+    hull = np.zeros(mine.shape, np.uint8)
     hulls = [cv2.convexHull(c) for c in contours if len(c) >= 3]
     if hulls:
         cv2.fillPoly(hull, hulls, 1)
     return hull.view(bool) & (labels < k)
+
+
+# The round completion (hidden_completion): how many visible silhouette pixels a piece needs,
+# how well one circle must fit their edge points (px rms; a digitised circle fits to 0.22 -
+# 0.31 px), the largest radius taken, in units of the visible silhouette's extent (a flatter
+# arc says little about where the circle closes, and a straight edge fits a huge one), and
+# the share of the arc (one pixel inside it) allowed over pixels seen to lie behind the layer
+ARC_MIN_PX = 16
+ARC_FIT_RMS = 0.5
+ARC_MAX_RADIUS = 1.0
+ARC_SEEN_BEHIND = 0.1
+_STEPS4 = ((1, 0), (-1, 0), (0, 1), (0, -1))
+
+
+def _cyclic_runs(flags: np.ndarray) -> list[tuple[int, int]]:
+    """(first, last) index of each cyclic run of True in ``flags`` (some entry False)."""
+    n = flags.size
+    start = int(np.argmin(flags))  # a False entry: no run wraps past it
+    runs, i = [], 0
+    while i < n:
+        if flags[(start + i) % n]:
+            first = (start + i) % n
+            while i < n and flags[(start + i) % n]:
+                i += 1
+            runs.append((first, (start + i - 1) % n))
+        else:
+            i += 1
+    return runs
+
+
+def _circle(points: np.ndarray) -> tuple[float, float, float, float] | None:
+    """Least-squares circle through ``points`` (N x 2, x y; Kasa's linear fit): centre x,
+    centre y, radius and the rms of the points' distances from it; None if degenerate."""
+    x, y = points[:, 0], points[:, 1]
+    sol, *_ = np.linalg.lstsq(np.column_stack([x, y, np.ones_like(x)]), x * x + y * y,
+                              rcond=None)
+    cx, cy = sol[0] / 2.0, sol[1] / 2.0
+    r2 = sol[2] + cx * cx + cy * cy
+    if not (np.isfinite(r2) and r2 > 0.0):
+        return None
+    r = math.sqrt(r2)
+    return cx, cy, r, float(np.sqrt(np.mean((np.hypot(x - cx, y - cy) - r) ** 2)))
+
+
+def _round_arcs(raw: np.ndarray, k: int, contour: np.ndarray, seen_nearer: np.ndarray,
+                out: np.ndarray) -> None:
+    """Set in ``out`` (uint8) what each hidden run of one piece's silhouette ``contour``
+    (N x 2 pixels x y, in order) encloses with the circle its whole visible silhouette lies
+    on, if it lies on one (see :func:`hidden_completion`)."""
+    import cv2
+
+    n = len(contour)
+    hidden = seen_nearer[contour[:, 1], contour[:, 0]]
+    if not hidden.any() or (~hidden).sum() < ARC_MIN_PX:
+        return
+    h, w = raw.shape
+    # the silhouette lies between a layer's last pixel and the first one behind it
+    xs, ys = contour[~hidden, 0], contour[~hidden, 1]
+    edge = []
+    for dx, dy in _STEPS4:
+        nx, ny = xs + dx, ys + dy
+        inb = (nx >= 0) & (nx < w) & (ny >= 0) & (ny < h)
+        behind = np.zeros(xs.size, bool)
+        behind[inb] = raw[ny[inb], nx[inb]] > k
+        edge.append(np.column_stack([xs[behind] + dx / 2.0, ys[behind] + dy / 2.0]))
+    edge = np.vstack(edge)
+    fit = _circle(edge) if len(edge) >= ARC_MIN_PX else None
+    extent = float(np.ptp(contour[~hidden], axis=0).max()) + 1.0
+    if fit is None or fit[3] > ARC_FIT_RMS or fit[2] > ARC_MAX_RADIUS * extent:
+        return
+    cx, cy, r, _ = fit
+    # the way the silhouette turns about the centre, which its hidden runs keep
+    rel = contour[~hidden] - (cx, cy)
+    step = np.roll(contour, -1, axis=0)[~hidden] - contour[~hidden]
+    sense = 1.0 if float(np.sum(rel[:, 0] * step[:, 1] - rel[:, 1] * step[:, 0])) > 0 else -1.0
+    for first, last in _cyclic_runs(hidden):
+        a, b = contour[(first - 1) % n], contour[(last + 1) % n]  # the visible ends
+        ta = math.atan2(a[1] - cy, a[0] - cx)
+        sweep = (sense * (math.atan2(b[1] - cy, b[0] - cx) - ta)) % (2.0 * math.pi)
+        theta = ta + sense * sweep * np.linspace(0.0, 1.0, int(math.ceil(sweep * r)) + 2)
+        inner = np.rint(np.column_stack([cx + (r - 1.0) * np.cos(theta),
+                                         cy + (r - 1.0) * np.sin(theta)])).astype(int)
+        ok = (inner[:, 0] >= 0) & (inner[:, 0] < w) & (inner[:, 1] >= 0) & (inner[:, 1] < h)
+        if not ok.any() or (raw[inner[ok, 1], inner[ok, 0]] > k).mean() > ARC_SEEN_BEHIND:
+            continue  # the circle would cross what is seen behind the layer: not this shape
+        arc = np.column_stack([cx + r * np.cos(theta), cy + r * np.sin(theta)])
+        run = contour[[(first + i) % n for i in range((last - first) % n + 1)]][::-1]
+        poly = np.rint(np.vstack([arc, run])).astype(np.int32)
+        lo = np.maximum(poly.min(axis=0), 0)
+        hi = np.minimum(poly.max(axis=0) + 1, (w, h))
+        if (hi <= lo).any():
+            continue  # wholly outside the crop
+        region = np.zeros((hi[1] - lo[1], hi[0] - lo[0]), np.uint8)  # the polygon's box
+        cv2.fillPoly(region, [poly - lo], 1)
+        ys, xs = np.nonzero(region)
+        ys, xs = ys + lo[1], xs + lo[0]
+        inside = np.hypot(xs - cx, ys - cy) < r  # pixel centres inside the circle
+        out[ys[inside], xs[inside]] = 1
+
+
+def hidden_completion(labels: np.ndarray, k: int, raw: np.ndarray | None = None) -> np.ndarray:
+    """The pixels of layer ``k``'s amodal completion where a nearer layer covers it: the
+    convex hull of each visible piece (:func:`hidden_hull`) and, for a piece whose whole
+    visible silhouette lies on one circle (``ARC_MIN_PX`` pixels or more, their edge points
+    within ``ARC_FIT_RMS`` of it), that circle's disc under what hides it, unless the
+    circle crosses pixels seen behind the layer.  The stated assumption: a round
+    silhouette stays round where it is hidden (a ball, a wheel, a disc; any other shape
+    keeps the hull).  ``raw``: the labels before mixed pixels joined the nearer layer (the
+    silhouette is read there; default ``labels``)."""
+    import cv2
+
+    raw = np.ascontiguousarray(labels if raw is None else raw)
+    out = np.ascontiguousarray(hidden_hull(labels, k)).view(np.uint8)
+    seen_nearer = cv2.dilate((raw < k).view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
+    contours, _ = cv2.findContours((raw == k).astype(np.uint8), cv2.RETR_EXTERNAL,
+                                   cv2.CHAIN_APPROX_NONE)
+    for c in contours:
+        _round_arcs(raw, k, c[:, 0, :], seen_nearer, out)
+    return out.view(bool) & (labels < k)
 
 
 _BRUTE_PAIRS = 1 << 21  # pairs of pixels _nearest_pixel measures directly (16 MB of int64)
@@ -438,7 +559,7 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
         front = minimum_filter(labels, size=3, mode="nearest")
         back = maximum_filter(labels, size=3, mode="nearest")
     split = (front != back) if split_edges else np.zeros(labels.shape, bool)
-    labels = np.where(split, front, labels)
+    raw, labels = labels, np.where(split, front, labels)
     # a surface whose every pixel is mixed (a line at most 2 px wide) has joined the layers
     # in front of it whole: behind the deepest layer left there is no pixel at all, so no
     # transform to the nearest one (a layer without pixels is no layer)
@@ -556,9 +677,10 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
                 vec_w = _at(v_c, nearest_w)
                 if k < last:
                     # beyond its 2 px, an intermediate layer continues under what hides it
-                    # as far as its pieces' convex hulls, with the vectors of its nearest
-                    # pixel and light filled from its own pixels only
-                    more_w = hidden_hull(labels, k)[win] & ~ext_w
+                    # as far as its pieces' convex hulls (round pieces: their circles),
+                    # with the vectors of its nearest pixel and light filled from its own
+                    # pixels only
+                    more_w = hidden_completion(labels, k, raw)[win] & ~ext_w
                     core = (labels == k) & ~split if more_w.any() else None
                     if core is not None and core.any():
                         more = np.zeros(labels.shape, bool)  # the same pixels in the crop

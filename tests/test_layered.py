@@ -106,17 +106,81 @@ def test_a_far_object_continues_under_a_near_one_as_far_as_its_convex_hull():
     assert not hidden_hull(labels, 0).any()  # nothing is nearer than the nearest layer
 
 
+def _two_shapes(near: np.ndarray, far: np.ndarray) -> np.ndarray:
+    return np.where(near, 0, np.where(far, 1, 2))
+
+
+def test_a_round_far_object_stays_round_under_a_near_one():
+    """A far disc whose visible silhouette lies on one circle continues as that disc under
+    the near one (the hull stops at the chord between the silhouettes' crossings), even when
+    most of it is hidden; never a pixel outside it."""
+    from clblur.layer_planes import hidden_completion, hidden_hull
+
+    yy, xx = np.mgrid[:80, :100]
+
+    def disc(cx, cy, r):
+        return (yy - cy) ** 2 + (xx - cx) ** 2 < r ** 2
+
+    for near, far, least in ((disc(30, 40, 15), disc(50, 40, 12), 1.0),   # 80 hidden px
+                             (disc(40, 40, 20), disc(52, 46, 13), 0.98),  # 386, a crescent shows
+                             (disc(30, 40, 12), disc(55, 40, 22), 1.0)):  # 126
+        labels = _two_shapes(near, far)
+        hidden = far & near
+        got = hidden_completion(labels, 1)
+        assert not (got & ~hidden).any()
+        assert got.sum() >= least * hidden.sum() > hidden_hull(labels, 1).sum()
+        for view in (np.fliplr, np.flipud, np.transpose):  # the same pixels, seen flipped
+            assert np.array_equal(hidden_completion(view(labels), 1), view(got))
+    assert not hidden_completion(_two_shapes(disc(30, 40, 15), disc(50, 40, 12)), 0).any()
+
+
+def test_a_far_object_that_is_not_round_keeps_the_hull():
+    """Squares, a bar, ellipses and a straight edge partly hidden by a near disc: their
+    visible silhouettes lie on no circle, so the completion is the convex hull alone (no arc
+    invents a round side for them)."""
+    from clblur.layer_planes import hidden_completion, hidden_hull
+
+    yy, xx = np.mgrid[:80, :100]
+
+    def disc(cx, cy, r):
+        return (yy - cy) ** 2 + (xx - cx) ** 2 < r ** 2
+
+    square = (abs(xx - 55) < 12) & (abs(yy - 40) < 12)
+    bar = (abs(xx - 50) < 40) & (abs(yy - 40) < 6)
+    wide = ((xx - 55) / 22.0) ** 2 + ((yy - 40) / 10.0) ** 2 < 1
+    tall = ((xx - 55) / 10.0) ** 2 + ((yy - 40) / 22.0) ** 2 < 1
+    for near, far in ((disc(38, 24, 12), square), (disc(40, 40, 10), square),
+                      (disc(50, 40, 10), bar), (disc(30, 40, 12), wide),
+                      (disc(38, 40, 10), tall), (disc(60, 40, 10), xx > 60)):
+        labels = _two_shapes(near, far)
+        assert np.array_equal(hidden_completion(labels, 1), hidden_hull(labels, 1))
+
+
+def test_a_disc_hidden_at_the_frame_time_streaks_whole():
+    """clblur.scenes' crossing_hidden_behind: at the frame time the fast far disc shows only
+    a crescent beside the slow near one, and its streak in the truth is the whole disc.
+    Measured (K = 64, swept region): 29.2 dB with the hull alone, 42.0 with the disc
+    completed round (42.0 with the true hidden shape put in by hand)."""
+    from clblur import scenes as rendered
+
+    r = rendered.render(rendered.example_scenes()["crossing_hidden_behind"], "srgb",
+                        np.uint8, samples=64, spp=2)
+    got = clblur.blur(r.sharp, r.flow, "srgb", anchor="center", backend="numpy",
+                      depth=r.depth)
+    assert rendered.psnr(got, r.image, r.swept) > 40.0
+
+
 def test_the_slow_disc_behind_a_fast_one_is_completed_under_it():
     """clblur.scenes' crossing_fast_front: the slow far disc is partly hidden by the fast
     near one, which uncovers it during the shutter.  Measured (K = 64, swept region): with
-    2 px under the fast disc 37.7 dB, with the hull 41.7 dB."""
+    2 px under the fast disc 37.7 dB, with the hull 41.7 dB, completed round 42.3 dB."""
     from clblur import scenes as rendered
 
     r = rendered.render(rendered.example_scenes()["crossing_fast_front"], "srgb", np.uint8,
                         samples=64, spp=2)
     got = clblur.blur(r.sharp, r.flow, "srgb", anchor="center", backend="numpy",
                       depth=r.depth)
-    assert rendered.psnr(got, r.image, r.swept) > 40.5
+    assert rendered.psnr(got, r.image, r.swept) > 41.9
 
 
 @pytest.fixture(scope="module")
