@@ -394,8 +394,9 @@ def hidden_completion(labels: np.ndarray, k: int, raw: np.ndarray | None = None)
     """The pixels of layer ``k``'s amodal completion where a nearer layer covers it: the
     convex hull of each visible piece (:func:`hidden_hull`) and, for a piece whose whole
     visible silhouette lies on one circle (``ARC_MIN_PX`` pixels or more, their edge points
-    within ``ARC_FIT_RMS`` of it), that circle's disc under what hides it, unless the
-    circle crosses pixels seen behind the layer.  The stated assumption: a round
+    within ``ARC_FIT_RMS`` of it, a radius of at most ``ARC_MAX_RADIUS`` times the
+    silhouette's extent), that circle's disc under what hides it, unless the circle crosses
+    pixels seen behind the layer.  The stated assumption: a round
     silhouette stays round where it is hidden (a ball, a wheel, a disc; any other shape
     keeps the hull).  ``raw``: the labels before mixed pixels joined the nearer layer (the
     silhouette is read there; default ``labels``)."""
