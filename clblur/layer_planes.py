@@ -23,9 +23,9 @@ from clblur.halo import halo_for_reach, reach
 from clblur.layering import layer_labels
 
 __all__ = ["ARC_FIT_RMS", "ARC_MAX_RADIUS", "ARC_MIN_PX", "HOST", "INPAINT_RADIUS", "Layers",
-           "MID_EXTEND_PX",
-           "SPLIT_PRIOR", "Transforms", "bounding_box", "crop_margin", "distance_to",
-           "harmonic_fill", "hidden_completion", "hidden_hull", "prepare", "split_coverage"]
+           "MID_EXTEND_PX", "SPLIT_PRIOR", "Transforms", "bounding_box", "crop_margin",
+           "distance_to", "harmonic_fill", "hidden_completion", "hidden_hull", "prepare",
+           "split_coverage"]
 
 # px the reconstruction of hidden light extends beyond the pixels a sample reads, so that
 # what is read is filled from a filled neighbourhood (the radius the Navier-Stokes
@@ -306,18 +306,12 @@ _STEPS4 = ((1, 0), (-1, 0), (0, 1), (0, -1))
 
 def _cyclic_runs(flags: np.ndarray) -> list[tuple[int, int]]:
     """(first, last) index of each cyclic run of True in ``flags`` (some entry False)."""
-    n = flags.size
     start = int(np.argmin(flags))  # a False entry: no run wraps past it
-    runs, i = [], 0
-    while i < n:
-        if flags[(start + i) % n]:
-            first = (start + i) % n
-            while i < n and flags[(start + i) % n]:
-                i += 1
-            runs.append((first, (start + i - 1) % n))
-        else:
-            i += 1
-    return runs
+    edges = np.diff(np.concatenate([[0], np.roll(flags, -start).astype(np.int8), [0]]))
+    firsts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    n = flags.size
+    return [(int((f + start) % n), int((e - 1 + start) % n)) for f, e in zip(firsts, ends,
+                                                                             strict=True)]
 
 
 def _circle(points: np.ndarray) -> tuple[float, float, float, float] | None:
@@ -346,8 +340,9 @@ def _round_arcs(raw: np.ndarray, k: int, contour: np.ndarray, seen_nearer: np.nd
     if not hidden.any() or (~hidden).sum() < ARC_MIN_PX:
         return
     h, w = raw.shape
+    seen = contour[~hidden]
     # the silhouette lies between a layer's last pixel and the first one behind it
-    xs, ys = contour[~hidden, 0], contour[~hidden, 1]
+    xs, ys = seen[:, 0], seen[:, 1]
     edge = []
     for dx, dy in _STEPS4:
         nx, ny = xs + dx, ys + dy
@@ -357,13 +352,13 @@ def _round_arcs(raw: np.ndarray, k: int, contour: np.ndarray, seen_nearer: np.nd
         edge.append(np.column_stack([xs[behind] + dx / 2.0, ys[behind] + dy / 2.0]))
     edge = np.vstack(edge)
     fit = _circle(edge) if len(edge) >= ARC_MIN_PX else None
-    extent = float(np.ptp(contour[~hidden], axis=0).max()) + 1.0
+    extent = float(np.ptp(seen, axis=0).max()) + 1.0
     if fit is None or fit[3] > ARC_FIT_RMS or fit[2] > ARC_MAX_RADIUS * extent:
         return
     cx, cy, r, _ = fit
     # the way the silhouette turns about the centre, which its hidden runs keep
-    rel = contour[~hidden] - (cx, cy)
-    step = np.roll(contour, -1, axis=0)[~hidden] - contour[~hidden]
+    rel = seen - (cx, cy)
+    step = np.roll(contour, -1, axis=0)[~hidden] - seen
     sense = 1.0 if float(np.sum(rel[:, 0] * step[:, 1] - rel[:, 1] * step[:, 0])) > 0 else -1.0
     for first, last in _cyclic_runs(hidden):
         a, b = contour[(first - 1) % n], contour[(last + 1) % n]  # the visible ends
@@ -396,10 +391,10 @@ def hidden_completion(labels: np.ndarray, k: int, raw: np.ndarray | None = None)
     visible silhouette lies on one circle (``ARC_MIN_PX`` pixels or more, their edge points
     within ``ARC_FIT_RMS`` of it, a radius of at most ``ARC_MAX_RADIUS`` times the
     silhouette's extent), that circle's disc under what hides it, unless the circle crosses
-    pixels seen behind the layer.  The stated assumption: a round
-    silhouette stays round where it is hidden (a ball, a wheel, a disc; any other shape
-    keeps the hull).  ``raw``: the labels before mixed pixels joined the nearer layer (the
-    silhouette is read there; default ``labels``)."""
+    pixels seen behind the layer.  The stated assumption: a round silhouette stays round
+    where it is hidden (a ball, a wheel, a disc; any other shape keeps the hull).  ``raw``:
+    the labels before mixed pixels joined the nearer layer (the silhouette is read there;
+    default ``labels``)."""
     import cv2
 
     raw = np.ascontiguousarray(labels if raw is None else raw)
