@@ -397,6 +397,19 @@ def test_levin_pair_runs_on_measured_data(shared_data):
     assert r["extended"]["heldout_rmse"] <= r["baseline"]["heldout_rmse"] + 1e-9
 
 
+def test_shared_manifests_command_reads_its_options(tmp_path, monkeypatch, capsys):
+    """``python -m clblur.study.shared --help`` prints its usage and writes nothing (it
+    once took ``--help`` for OUTDIR and wrote the manifests into a folder of that name); a
+    missing or extra argument is a usage error, exit code 2."""
+    from clblur.study import shared
+
+    monkeypatch.chdir(tmp_path)
+    assert shared.main(["--help"]) == 0
+    assert "OUTDIR" in capsys.readouterr().out
+    assert shared.main([]) == 2 and shared.main(["a", "b"]) == 2
+    assert not any(tmp_path.iterdir())
+
+
 def test_shared_data_manifests(shared_data, tmp_path):
     from clblur.manifest import load_manifest
     from clblur.study import shared

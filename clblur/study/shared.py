@@ -148,11 +148,18 @@ def canon(out: Path, data: Path) -> Path | None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    if len(argv) != 1:
-        print("usage: python -m clblur.study.shared OUTDIR", file=sys.stderr)
-        return 2
-    out = Path(argv[0])
+    """Write the manifests into OUTDIR; 0 when done, 2 on bad arguments (``--help``: 0)."""
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m clblur.study.shared",
+                                     description=__doc__.split("\n\n")[0])
+    parser.add_argument("outdir", metavar="OUTDIR",
+                        help="folder for the manifests and the GoPro long exposures")
+    try:
+        args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    except SystemExit as e:  # --help (0), or a usage error already printed (2)
+        return int(e.code or 0) if not isinstance(e.code, str) else 2
+    out = Path(args.outdir)
     out.mkdir(parents=True, exist_ok=True)
     data = data_dir(required=True)
     made = [memorial(out, data), levin(out, data), levin(out, data, measured=True),
