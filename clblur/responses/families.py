@@ -55,6 +55,20 @@ class _Sampled(Parametric):
     def forward(self, x):
         return np.interp(np.asarray(x, dtype=np.float64), self._grid_exposure(), _GRID)
 
+    def __hash__(self) -> int:
+        # the instances are frozen: the hash (of the JSON form) is taken once.  Why: a study
+        # keys its code tables by the curve (clblur.study.model._code_tables), and hashing
+        # it anew on every prediction was 2 - 3 % of a study's time
+        cached = self.__dict__.get("_hash")
+        if cached is None:
+            cached = super().__hash__()
+            object.__setattr__(self, "_hash", cached)
+        return cached
+
+    def __getstate__(self) -> dict:
+        # a str's hash differs between processes (PYTHONHASHSEED): the hash is not pickled
+        return {k: v for k, v in self.__dict__.items() if k != "_hash"}
+
 
 @dataclass(frozen=True, eq=False, repr=False)
 class ExpOffset(Parametric):

@@ -229,9 +229,16 @@ class _Mix:
         return out
 
     def sum(self, axis=None):
-        out = self.parts[0][0] * self.parts[0][1].sum(axis=axis)
-        for w, h, _ in self.parts[1:]:
-            out = out + w * h.sum(axis=axis)
+        if axis != 1:
+            out = self.parts[0][0] * self.parts[0][1].sum(axis=axis)
+            for w, h, _ in self.parts[1:]:
+                out = out + w * h.sum(axis=axis)
+            return out
+        # row sums (``model.predict``'s time norm): the parts' own, remembered by the owner
+        w, h, slot = self.parts[0]
+        out = w * self.owner.row_sum(slot, h)
+        for w, h, slot in self.parts[1:]:
+            out = out + w * self.owner.row_sum(slot, h)
         return out
 
 
