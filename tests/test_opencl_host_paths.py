@@ -29,7 +29,7 @@ from test_opencl import (
 
 from clblur.errors import InputError
 from clblur.opencl.constants import build_defines
-from clblur.opencl.program import KERNEL_FILES, kernel_signatures, kernel_source
+from clblur.opencl.program import KERNEL_FILES, build, kernel_signatures, kernel_source
 from clblur.request import make_plan
 
 REPO = Path(__file__).resolve().parent.parent
@@ -68,8 +68,7 @@ def test_named_launch_checks_names_and_matches_the_drivers_argument_info(opencl)
     with pytest.raises(TypeError, match="unknown argument.*'nope'.*missing"):
         prog.run("linearise", rt.queue, (64, 1), (64, 1), nope=1)
     # the driver's own view of the parameters, where it offers one
-    built = cl.Program(rt.context, kernel_source()).build(
-        options=[*prog.options, "-cl-kernel-arg-info"])
+    built = build(rt.context, kernel_source(), [*prog.options, "-cl-kernel-arg-info"])
     for name, params in prog.signatures.items():
         kernel = getattr(built, name)
         try:

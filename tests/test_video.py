@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import subprocess
+import sys
 from fractions import Fraction
 from pathlib import Path
 
@@ -422,6 +424,21 @@ def test_unreadable_inputs(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(VideoReadError, match="no image files"):
         blur_video(tmp_path / "empty", tmp_path / "out2")
+
+
+@pytest.mark.parametrize("suffix", [".png", ".jpg", ".tif"])
+def test_a_single_image_is_refused_as_a_video(tmp_path, suffix):
+    # FFmpeg reads a still image as a one-frame video, which came out unblurred (no
+    # neighbour, no flow) at FFmpeg's 25 fps: a user who meant ``clblur blur`` is told so
+    still = tmp_path / f"still{suffix}"
+    write_image(still, np.full((24, 32, 3), 128, np.uint8))
+    with pytest.raises(VideoReadError, match="single image, not a video.*clblur blur"):
+        blur_video(still, tmp_path / "out.mp4", backend="numpy")
+    assert not (tmp_path / "out.mp4").exists()
+    r = subprocess.run([sys.executable, "-m", "clblur.cli", "video", str(still),
+                        str(tmp_path / "out.mp4")], capture_output=True, text=True)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert "single image" in r.stderr
 
 
 def test_bad_frame_in_folder_keeps_earlier_frames(tmp_path):

@@ -155,6 +155,14 @@ class VideoFileSource:
         if not self.container.streams.video:
             self.container.close()
             raise VideoReadError(f"{path} has no video stream")
+        form = self.container.format.name
+        if form == "image2" or form.endswith("_pipe"):
+            # FFmpeg reads a still image as a one-frame video, which would come out as it went
+            # in (no neighbour, no flow): say so rather than write an unblurred copy
+            self.container.close()
+            raise VideoReadError(f"{path} is a single image, not a video: give a video file "
+                                 "or a folder of frames (clblur blur IN OUT --motion/--flow "
+                                 "blurs one image)")
         self.video_stream = self.container.streams.video[0]
         self.video_stream.thread_type = "AUTO"
         self.audio_stream = (self.container.streams.audio[0]
