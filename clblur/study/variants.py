@@ -221,25 +221,23 @@ class _Mix:
         self.owner = owner
         self.shape = parts[0][1].shape
 
-    def __matmul__(self, t: np.ndarray) -> np.ndarray:
+    def _weighted(self, of) -> np.ndarray:
+        """``sum_v w_v of(slot_v, H_v)``, added in the parts' order."""
         w, h, slot = self.parts[0]
-        out = w * self.owner.product(slot, h, t)
+        out = w * of(slot, h)
         for w, h, slot in self.parts[1:]:
-            out = out + w * self.owner.product(slot, h, t)
+            out = out + w * of(slot, h)
         return out
 
-    def sum(self, axis=None):
+    def __matmul__(self, t: np.ndarray) -> np.ndarray:
+        return self._weighted(lambda slot, h: self.owner.product(slot, h, t))
+
+    def sum(self, axis: int) -> np.ndarray:
+        """Row sums (``axis=1``, ``model.predict``'s time norm, its only use): the parts'
+        own, remembered by the owner."""
         if axis != 1:
-            out = self.parts[0][0] * self.parts[0][1].sum(axis=axis)
-            for w, h, _ in self.parts[1:]:
-                out = out + w * h.sum(axis=axis)
-            return out
-        # row sums (``model.predict``'s time norm): the parts' own, remembered by the owner
-        w, h, slot = self.parts[0]
-        out = w * self.owner.row_sum(slot, h)
-        for w, h, slot in self.parts[1:]:
-            out = out + w * self.owner.row_sum(slot, h)
-        return out
+            raise ValueError(f"a mix of histograms sums its rows only (axis=1), not axis={axis}")
+        return self._weighted(self.owner.row_sum)
 
 
 def _censored(gs: list[Group]) -> np.ndarray | None:
