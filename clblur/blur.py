@@ -57,7 +57,9 @@ def blur(image: np.ndarray, motion, response="exp", *, anchor: str = "center",
         layers front to back, so moving objects smear over what lies behind them.
         ``"speed"``: faster is nearer; ``"departure"``: what moves against the flow's
         dominant (median) motion is nearer (a camera panning over or tracking across a static
-        scene; ``clblur.layering.departure_order``).  Default None: the gather.
+        scene; ``clblur.layering.departure_order``).  Default None: the gather.  With a
+        uniform motion or a PSF every pixel moves alike and nothing occludes: the depth
+        changes nothing (the command line refuses the combination).
     background : with ``depth``, what lies behind every layer (a clean plate; the input's shape
         and dtype).  Without it, what a moving object uncovers is reconstructed from its
         neighbours (``clblur.layered_exposure``).

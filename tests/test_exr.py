@@ -199,10 +199,12 @@ def test_an_exr_output_keeps_its_inputs_windows_and_header(tmp_path, rng):
     for name, (corner, attrs) in cases.items():
         src = _windowed(tmp_path, f"{name}.exr", planes, corner, display, **attrs)
         want = exr.layout(src)
-        for extra in ([], ["--depth", "speed"]):
+        # a depth takes the whole-image path; it needs a per-pixel flow (here uniform)
+        np.save(tmp_path / "flow.npy", np.broadcast_to(np.float32([4, 1]), (40, 56, 2)))
+        for extra in (["--motion=4,1"], ["--flow", str(tmp_path / "flow.npy"),
+                                         "--depth", "speed"]):
             out = tmp_path / f"{name}_out{len(extra)}.exr"
-            assert main(["blur", str(src), str(out), "--motion=4,1", "--backend", "numpy",
-                         *extra]) == 0
+            assert main(["blur", str(src), str(out), "--backend", "numpy", *extra]) == 0
             got = exr.layout(out)
             assert got == want, (name, extra)
             np.testing.assert_allclose(exr.read_image(out),

@@ -882,6 +882,19 @@ def test_command_line_depth_and_alpha(tmp_path, capsys):
                  "--depth", str(tmp_path / "flow.npy")]) == 2
     assert "depth has shape" in capsys.readouterr().err
     assert not (tmp_path / "x.png").exists()
+    # one displacement for every pixel occludes nothing: a depth with it is refused, not
+    # ignored without a word (the library computes the gather, which is then exact)
+    np.save(tmp_path / "kernel.npy", np.full((1, 5), 0.2))
+    for motion in (["--motion=4,1"], ["--psf", str(tmp_path / "kernel.npy")]):
+        for order in (str(tmp_path / "depth.npy"), "speed"):
+            assert main(["blur", str(tmp_path / "in.png"), str(tmp_path / "x.png"), *motion,
+                         "--backend", "numpy", "--depth", order]) == 2
+            err = capsys.readouterr().err.strip()
+            assert len(err.splitlines()) == 1 and motion[0][:6] in err and "--flow" in err, err
+            assert not (tmp_path / "x.png").exists()
+    np.testing.assert_array_equal(clblur.blur(img, (4.0, 1.0), "srgb", backend="numpy",
+                                              depth=depth),
+                                  clblur.blur(img, (4.0, 1.0), "srgb", backend="numpy"))
 
 
 def test_opencl_cpu_layout_is_the_one_pixel_kernel_bit_for_bit(opencl, crossing):

@@ -68,6 +68,13 @@ def run(args: argparse.Namespace) -> int:
     channels = probe_image(image_file, layer).channels  # the header only: nothing decoded
     if args.inverse_depth and depth_file is None:
         raise InputError("--inverse-depth describes a --depth file, and none was given")
+    if args.depth is not None and args.flow is None:
+        # one displacement moves every pixel alike: nothing is revealed or hidden, and the
+        # result would be the gather's whatever the depth says (a silent no-op otherwise)
+        given = "--motion" if args.motion is not None else "--psf"
+        raise InputError(f"--depth orders surfaces that move relative to each other; with "
+                         f"{given} every pixel moves alike and nothing occludes: give a "
+                         "per-pixel --flow, or leave --depth out")
     if args.alpha == "yes" and channels not in (2, 4):
         raise InputError(f"--alpha yes: {args.input} has {channels} channel(s); coverage is "
                          "the last of grey + alpha (2) or RGBA (4)")
