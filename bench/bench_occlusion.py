@@ -10,6 +10,10 @@ discs moving 26 and 40 px over the shutter, the faster one behind) with a per-pi
 depth map; median wall time and median process CPU time (all threads) of ``clblur.blur``
 with and without ``depth`` on the chosen backend (PoCL here).
 
+Size sweep: one textured disc of radius R (8 - 128 px) moving 0.4 R px over the static
+frame: what the layered call adds to the gather as the object and the layers' crop grow,
+fitted as a fixed part plus a part per crop pixel.
+
 Curved path: ``clblur.video.blur_frame`` of GoPro frame 10 (``$CLBLUR_DATA/gopro240``, DIS
 flows to frames 2 and 18, 360-degree shutter, skipped without the data) along the bent path
 (the default: two straight halves gathered) and along the parabola through the three
@@ -17,7 +21,7 @@ positions (``curved=True``), alone and with the departure ordering.
 
 Run:  python bench/bench_occlusion.py [--backend opencl] [--k 64] [--repeat 5]
           [--timing-only] [--results PATH]
-Prints three tables and writes them at the top of bench/results_occlusion.md, or PATH (the notes
+Prints four tables and writes them at the top of bench/results_occlusion.md, or PATH (the notes
 below its marker line, written by hand, are kept).  ``--timing-only`` skips the accuracy table
 (the numpy reference's, the same on every device): the GPU run writes
 ``bench/results_occlusion_gpu.md`` that way.
@@ -117,31 +121,70 @@ def timing(backend: str, repeat: int) -> list[str]:
     return rows
 
 
-def _timing_row(backend: str, repeat: int, label: str, img, flow, depth) -> str:
+def _medians(backend: str, repeat: int, img, flow, **opts) -> tuple[float, float]:
+    """Median wall time and median CPU time of the process (all its threads, PoCL's
+    included) of ``clblur.blur``: on a shared machine the wall time also counts other
+    people's work."""
     import clblur
+
+    clblur.blur(img, flow, "srgb", backend=backend, **opts)  # build, warm caches
+    wall, cpu = [], []
+    for _ in range(repeat):
+        t0, c0 = time.perf_counter(), time.process_time()
+        clblur.blur(img, flow, "srgb", backend=backend, **opts)
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    return float(np.median(wall)), float(np.median(cpu))
+
+
+def _timing_row(backend: str, repeat: int, label: str, img, flow, depth) -> str:
     from clblur.layered_exposure import region_mask
 
     share = region_mask(flow, 0.5).mean()
-
-    def best(**opts) -> tuple[float, float]:
-        """Median wall time and median CPU time of the process (all its threads, PoCL's
-        included): on a shared machine the wall time also counts other people's work."""
-        clblur.blur(img, flow, "srgb", backend=backend, **opts)  # build, warm caches
-        wall, cpu = [], []
-        for _ in range(repeat):
-            t0, c0 = time.perf_counter(), time.process_time()
-            clblur.blur(img, flow, "srgb", backend=backend, **opts)
-            wall.append(time.perf_counter() - t0)
-            cpu.append(time.process_time() - c0)
-        return float(np.median(wall)), float(np.median(cpu))
-
-    plain = best()
-    layered = best(depth=depth)
+    plain = _medians(backend, repeat, img, flow)
+    layered = _medians(backend, repeat, img, flow, depth=depth)
     mp = img.shape[0] * img.shape[1] / 1e6
     return (f"| {label}, {backend} | {plain[0]:.3f} / {plain[1]:.3f} | "
             f"{layered[0]:.3f} / {layered[1]:.3f} | {layered[0] / plain[0]:.2f} / "
             f"{layered[1] / plain[1]:.2f} | {mp / plain[1]:.1f} / {mp / layered[1]:.1f} | "
             f"{100 * share:.1f} % |")
+
+
+SIZES = (8, 16, 32, 64, 128)  # disc radii (px) of the size sweep
+
+
+def size_timing(backend: str, repeat: int) -> list[str]:
+    """What the layered call adds to the gather as one moving object grows: a textured disc
+    of radius R moving 0.4 R px over a static 1280 x 720 frame.  The layers are built on a
+    crop around the region (``clblur.layer_planes.prepare``); the added time is fitted as a
+    fixed part plus a part per crop pixel (least squares over the sizes)."""
+    from clblur.halo import reach
+    from clblur.layer_planes import bounding_box, crop_margin
+    from clblur.layered_exposure import region_mask
+
+    rows = ["| disc radius R (px), moving 0.4 R | layers' crop (px) | pixels on the layered "
+            "path | plain gather, wall (s) | depth layers, wall (s) | ratio wall / CPU | "
+            "added wall (ms) |", "|---|---|---|---|---|---|---|"]
+    crops, added = [], []
+    for radius in SIZES:
+        img, flow, depth = discs_scene(720, 1280, ((640, 360, radius, (0.4 * radius, 0.0),
+                                                    10.0),))
+        region = region_mask(flow, 0.5)
+        box = bounding_box(region, crop_margin(reach(flow, 0.5)))
+        crop = (box[0].stop - box[0].start) * (box[1].stop - box[1].start)
+        plain = _medians(backend, repeat, img, flow)
+        layered = _medians(backend, repeat, img, flow, depth=depth)
+        crops.append(crop)
+        added.append(layered[0] - plain[0])
+        rows.append(f"| {radius} | {crop} | {100 * region.mean():.2f} % | {plain[0]:.3f} | "
+                    f"{layered[0]:.3f} | {layered[0] / plain[0]:.2f} / "
+                    f"{layered[1] / plain[1]:.2f} | {1000 * added[-1]:.1f} |")
+        print(rows[-1], flush=True)
+    slope, fixed = np.polyfit(np.asarray(crops, float), np.asarray(added), 1)
+    rows += ["", f"Added wall time fitted over the sizes: {1000 * fixed:.1f} ms + "
+             f"{1e6 * slope:.2f} us per pixel of the layers' crop."]
+    print(rows[-1], flush=True)
+    return rows
 
 
 def curved_timing(backend: str, repeat: int) -> list[str]:
@@ -198,6 +241,7 @@ def main() -> None:
         "the numpy reference, response srgb, default sample counts):", "",
         *accuracy(args.k), ""]
     spd = timing(args.backend, args.repeat)
+    sizes = size_timing(args.backend, args.repeat)
     curved = curved_timing(args.backend, args.repeat)
     load = os.getloadavg()[0]
     stamp = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
@@ -211,6 +255,8 @@ def main() -> None:
         *acc,
         "Cost against the plain gather (median wall time and median process CPU time of "
         "`clblur.blur`, per-pixel flow, response srgb):", "", *spd, "",
+        "Cost by the size of one moving object (the same measures; the region and the "
+        "layers' crop grow with the object, the gather's work does not):", "", *sizes, "",
         *(["Curved path against the bent path on real flow (`clblur.video.blur_frame`, "
            "median of the runs; their PSNR against the GoPro truth: docs/studies/occlusion.md, "
            "GoPro table):", "", *curved, ""] if curved else [])])
