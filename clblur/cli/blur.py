@@ -37,7 +37,8 @@ def register(sub) -> None:
     add_vector_options(p, "--flow")
     add_path_option(p)
     p.add_argument("--depth", default=None, metavar="FILE|speed|departure",
-                   help="occlusion order, H x W .npy or EXR depth (FILE.exr[:CHANNEL]; smaller "
+                   help="occlusion order for a per-pixel --flow, H x W .npy or EXR depth "
+                        "(FILE.exr[:CHANNEL]; smaller "
                         "= nearer; integers: layer IDs), or one computed from the flow: speed "
                         "(faster = nearer) or departure (what moves against the dominant "
                         "motion is nearer): layered exposure, moving objects smear over what "
