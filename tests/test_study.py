@@ -740,6 +740,30 @@ def test_censored_values_weigh_their_tail_pooled_or_not():
     assert far.any() and (kept[far] == pred[far]).all()
 
 
+def test_pooled_rows_keep_their_likelihood_with_a_misregistration_mixed_in(monkeypatch):
+    # a pooled group holds each channel's rows in that channel's histograms alone, so the
+    # path weight sums (the time norm) must come from the full rows, for the variants that
+    # a misregistration mixes in too: the mixture's were read from channel 0's histograms,
+    # empty for the other channels' rows, and its likelihood was off by a factor of 90
+    import clblur.study.compact as compact_module
+    from clblur.study.variants import pixel_nll
+
+    rng = np.random.default_rng(2)
+    cam = Camera(response="gamma:2.2", noise_a=2e-4, noise_b=2e-6)
+    scene = random_scene(rng, (32, 40), 3, low=0.03, high=0.8)
+    times = [0.125, 0.0625, 0.03125]
+    g = series_groups([cam.capture(scene * 8, t, rng=rng) for t in times], times)[0]
+    assert "misregistration" in g.__dict__["variants"]
+    # with the variants' rows part of the key, few rows pool here: pooled all the same
+    monkeypatch.setattr(compact_module, "_WORTH", 10.0)
+    pooled = compact_module.compact(g, False, geometric=True)
+    assert pooled is not g and "misregistration" in pooled.__dict__["variants"]
+    for shift in ((0.0, 0.0), (0.3, 0.0), (-0.2, 0.45)):
+        p = dict(null_params(), sx=shift[0], sy=shift[1])
+        np.testing.assert_allclose(pixel_nll(pooled, p).sum(), pixel_nll(g, p).sum(),
+                                   rtol=1e-10, err_msg=str(shift))
+
+
 def test_a_noisy_source_is_no_structure_left():
     # a noisy source code predicts too high where few pixels are brighter (regression to
     # the mean); binned by the prediction, these null series (shot noise a = 1e-3) read as

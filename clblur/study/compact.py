@@ -156,8 +156,12 @@ def _assemble(g: Group, blocks: list, nc: int, variants: dict) -> Group:
         e: {v: {key: per_channel(hs) for key, hs in hist.items()} for v, hist in d.items()}
         for e, d in variants.items()}
     # path weight sums are the same in every channel: read them from the full rows (the
-    # pooled ones are empty outside their channel)
-    out.__dict__["_norms"] = {i: g.time_norm(i)[take] for i, k in g.hist if k == 0}
+    # pooled ones are empty outside their channel), the variants' too (a prediction that
+    # mixes them in sums theirs)
+    out.__dict__["_norms"] = {
+        (v, i): g.time_norm(i, v)[take]
+        for v in (None, *((e, k) for e in variants for k in variants[e]))
+        for i, k in g.hist if k == 0}
     for k in ("darkest", "gid", "inner_images", "clipped_left_out"):
         if k in g.__dict__:
             out.__dict__[k] = g.__dict__[k]

@@ -101,12 +101,21 @@ class Group:
     # leftover test's alternative by surround (``clblur.study.leftover``); None: not known
     surround: np.ndarray | None = None
 
-    def time_norm(self, i: int) -> np.ndarray:
-        """Row sums of time term ``i`` (the same for every channel), cached."""
+    def time_norm(self, i: int, variant: tuple | None = None) -> np.ndarray:
+        """Row sums of time term ``i``'s path weights (the same in every channel) (n,), of
+        the plain histograms or of a geometric variant's, ``(effect, key)``, remembered.
+
+        They are part of the group's data, not only a cache: a pooled group
+        (``clblur.study.compact``) keeps each channel's rows in that channel's histograms
+        alone, so it holds the sums its rows had in full; and a prediction with variants
+        mixed in (``clblur.study.variants.predict``) holds the mixture's."""
         cache = self.__dict__.setdefault("_norms", {})
-        if i not in cache:
-            cache[i] = _rowsum(self.hist[(i, 0)][0])
-        return cache[i]
+        key = (variant, i)
+        if key not in cache:
+            hist = self.hist if variant is None else \
+                self.__dict__["variants"][variant[0]][variant[1]]
+            cache[key] = _rowsum(hist[(i, 0)][0])
+        return cache[key]
 
     def product(self, slot: tuple, h, table: np.ndarray) -> np.ndarray:
         """``h @ table`` for the histogram ``h`` at ``slot``, remembered for the last few
@@ -131,22 +140,10 @@ class Group:
             hit = held[slot] = h @ table
         return hit
 
-    def row_sum(self, slot: tuple, h: sp.csr_matrix) -> np.ndarray:
-        """Row sums of the histogram ``h`` at ``slot`` (n,), remembered: a histogram never
-        changes.  Why: a variant's prediction mixes its histograms anew on every call
-        (``clblur.study.variants``), and summing their rows again was a quarter of a blur
-        pair's prediction time."""
-        cache = self.__dict__.setdefault("_row_sums", {})
-        hit = cache.get(slot)
-        if hit is None:
-            hit = cache[slot] = _rowsum(h)
-        return hit
-
     def __getstate__(self) -> dict:
-        """Pickled (to a fold worker) without the remembered products and row sums."""
+        """Pickled (to a fold worker) without the remembered products."""
         state = dict(self.__dict__)
         state.pop("_products", None)
-        state.pop("_row_sums", None)
         return state
 
     @property

@@ -211,33 +211,24 @@ def _terms(g: Group, p: dict) -> list[tuple[float, tuple]]:
 
 
 class _Mix:
-    """``sum_v w_v H_v`` as far as ``model.predict`` uses a histogram (``@`` a code table,
-    row sums): products of the parts, never a new sparse matrix per evaluation.  ``parts``:
-    (weight, histogram, slot); the parts' products are remembered by ``owner``
-    (``Group.product``), since a shift's step changes the weights, not the products."""
+    """``sum_v w_v H_v`` as far as ``model.predict`` uses a histogram, ``@`` a code table
+    (its row sums are the group's time norms, ``Group.time_norm``): products of the parts,
+    never a new sparse matrix per evaluation.  ``parts``: (weight, histogram, slot); the
+    parts' products are remembered by ``owner`` (``Group.product``), since a shift's step
+    changes the weights, not the products."""
 
     def __init__(self, parts: list[tuple[float, sp.csr_matrix, tuple]], owner: Group):
         self.parts = parts
         self.owner = owner
         self.shape = parts[0][1].shape
 
-    def _weighted(self, of) -> np.ndarray:
-        """``sum_v w_v of(slot_v, H_v)``, added in the parts' order."""
-        w, h, slot = self.parts[0]
-        out = w * of(slot, h)
-        for w, h, slot in self.parts[1:]:
-            out = out + w * of(slot, h)
-        return out
-
     def __matmul__(self, t: np.ndarray) -> np.ndarray:
-        return self._weighted(lambda slot, h: self.owner.product(slot, h, t))
-
-    def sum(self, axis: int) -> np.ndarray:
-        """Row sums (``axis=1``, ``model.predict``'s time norm, its only use): the parts'
-        own, remembered by the owner."""
-        if axis != 1:
-            raise ValueError(f"a mix of histograms sums its rows only (axis=1), not axis={axis}")
-        return self._weighted(self.owner.row_sum)
+        """``sum_v w_v (H_v @ t)``, added in the parts' order."""
+        w, h, slot = self.parts[0]
+        out = w * self.owner.product(slot, h, t)
+        for w, h, slot in self.parts[1:]:
+            out = out + w * self.owner.product(slot, h, t)
+        return out
 
 
 def _censored(gs: list[Group]) -> np.ndarray | None:
@@ -271,6 +262,16 @@ def predict(g: Group, p: dict, source_share: bool = False) -> tuple[np.ndarray, 
         mixed = dataclasses.replace(g, hist=hist, hist_sq=hist_sq)
         # one memory of products for both (Group.product): hist_sq is the group's own
         mixed.__dict__["_products"] = g.__dict__.setdefault("_products", {})
+        # the mixture's path weight sums, from the parts' (Group.time_norm: a pooled group's
+        # rows are empty outside their channel, so they are not the mixed rows' own sums)
+        norms = {}
+        for i, k in g.hist:
+            if k == 0:
+                norm = w0 * g.time_norm(i)
+                for w, variant in terms:
+                    norm = norm + w * g.time_norm(i, variant)
+                norms[(None, i)] = norm
+        mixed.__dict__["_norms"] = norms
         g = mixed
     pred, *rest = _model_predict(g, p, source_share)
     q = p.get("qoff", 0.0)
