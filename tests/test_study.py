@@ -744,7 +744,7 @@ def test_pooled_rows_keep_their_likelihood_with_a_misregistration_mixed_in(monke
     # a pooled group holds each channel's rows in that channel's histograms alone, so the
     # path weight sums (the time norm) must come from the full rows, for the variants that
     # a misregistration mixes in too: the mixture's were read from channel 0's histograms,
-    # empty for the other channels' rows, and its likelihood was off by a factor of 90
+    # empty for the other channels' rows, and its likelihood was off by a factor of about 85
     import clblur.study.compact as compact_module
     from clblur.study.variants import pixel_nll
 
