@@ -79,6 +79,41 @@ def test_remembered_products_give_the_predictions_computed_afresh():
     assert "_products" not in pickle.loads(pickle.dumps(g)).__dict__
 
 
+def test_remembered_image_factors_give_the_predictions_computed_afresh():
+    """``model._image_factors`` remembers each row's exposure and white-balance factors for
+    the last values of the images' deviations (``lt:I``, ``lw:I:c``): predictions in a
+    gradient's order, each image's deviation moved in turn and back, equal predictions on
+    fresh copies of the group bit for bit; the memory stays bounded, is not pickled, and
+    a moved deviation does change the prediction (the comparison can fail)."""
+    import copy
+    import pickle
+
+    from clblur.study.model import _PRODUCTS_KEPT, predict
+    from clblur.study.variants import pack
+
+    sc = scenario({"exposure_times": 0.2}, np.random.default_rng(5))
+    assign_blocks(sc.groups)
+    (g,) = pack(sc.groups)  # the series' steps in one group: several pairs of images
+    assert np.unique(g.images, axis=0).shape[0] > 1
+    base = {**null_params(), "lt:1": 0.1, "lt:2": -0.05, "lw:1:1": 0.02, "lw:3:2": -0.03}
+    steps = [base] + [{**base, k: base[k] + 0.01} for k in ("gain", "lt:1", "lw:3:2", "lt:2")]
+    steps += [base, {**base, "lt:3": 0.2}, {**null_params()}]
+    predictions = []
+    for p in steps:
+        fresh = copy.copy(g)
+        fresh.__dict__ = {k: v for k, v in g.__dict__.items()
+                          if k not in ("_factors", "_image_pairs", "_products")}
+        want, got = predict(fresh, p), predict(g, p)
+        for a, b in zip(want, got, strict=True):
+            assert np.array_equal(a, b)
+        predictions.append(got[0])
+    assert not np.array_equal(predictions[0], predictions[2])  # lt:1 moved
+    assert not np.array_equal(predictions[0], predictions[4])  # lt:2 moved
+    held = g.__dict__["_factors"]
+    assert held and len(held) <= 2 * _PRODUCTS_KEPT
+    assert "_factors" not in pickle.loads(pickle.dumps(g)).__dict__
+
+
 @pytest.mark.parametrize("processes", ["1", "0"])
 def test_improve_keeps_the_better_fit_of_each_fold(monkeypatch, processes):
     """``Folds.improve`` descends from the given starts and keeps, per fold, whichever fit
