@@ -6,6 +6,7 @@
     python bench/bench_study.py null   [--seeds 40] [--results bench/results_study_null.md]
     python bench/bench_study.py memory [--trees BEFORE .] [--results FILE]
     python bench/bench_study.py pedestal [--seeds 4] [--results bench/results_study_pedestal.md]
+    python bench/bench_study.py handover [--seeds 2] [--results bench/results_study_handover.md]
 
 ``speed``: renders a 1000 x 1000 RGB pair with the virtual camera (uniform motion (14, 5) px,
 a 15 % exposure-gain mismatch, then a 1000 x 1000 PSF pair), writes PNGs and a manifest in a
@@ -19,6 +20,10 @@ resident memory and time of ``clblur calibrate`` on the full-size bracket (7 x 1
 models exp and spline), each tree of ``--trees`` in a process of its own, interleaved.
 ``null``: false findings on null data, the seeds cycling through a vector pair, a PSF pair,
 a frame stack and an exposure series without and with sensor noise.
+``handover``: how long fold 1 takes to reach its worker process
+(``clblur.study.fold_worker``) on the ``speed`` uniform pair: a worker started and asked for
+a gain-only fit, the fold sent through the pipe and through a memory-mapped file in turn,
+``--seeds`` rounds.
 ``pedestal``: whether a black level is named beside a camera curve that is not Eq. 3 (the
 free response shape can absorb a pedestal), on exposure series of linear, gamma-2.2, sRGB
 and Eq. 3 cameras, and false black levels on the first two without one.
@@ -58,21 +63,27 @@ LIMIT_GRID = {
 }
 
 
-def speed(results: Path) -> None:
+def _speed_pairs(tmp: Path) -> None:
+    """The speed mode's images in ``tmp``: the static ``s.png``, ``b.png`` blurred by the
+    uniform motion, the kernel ``k.png`` and ``bk.png`` blurred by it."""
     rng = np.random.default_rng(1)
     scene = random_scene(rng, (1000, 1000), 3, high=0.35)
     cam = Camera(noise_a=5e-4, noise_b=5e-6)
     kernel = np.zeros((15, 15))
     kernel[7, 2:13] = np.linspace(1.0, 2.0, 11)
     kernel[3:8, 12] = 1.0
+    write_image(tmp / "s.png", cam.capture(scene, rng=rng))
+    write_image(tmp / "b.png", cam.capture(scene, motion=(14.0, 5.0), gain=1.15, rng=rng))
+    write_image(tmp / "k.png", np.rint(kernel / kernel.max() * 255).astype(np.uint8))
+    write_image(tmp / "bk.png", cam.capture(scene, motion=kernel / kernel.sum(),
+                                            gain=1.15, rng=rng))
+
+
+def speed(results: Path) -> None:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        write_image(tmp / "s.png", cam.capture(scene, rng=rng))
-        write_image(tmp / "b.png", cam.capture(scene, motion=(14.0, 5.0), gain=1.15, rng=rng))
-        write_image(tmp / "k.png", np.rint(kernel / kernel.max() * 255).astype(np.uint8))
-        write_image(tmp / "bk.png", cam.capture(scene, motion=kernel / kernel.sum(),
-                                                gain=1.15, rng=rng))
+        _speed_pairs(tmp)
         for name, entry in (("uniform (14, 5)", {"motion": [14.0, 5.0]}),
                             ("PSF 15 x 15", {"psf": "k.png"})):
             blurred = "b.png" if "motion" in entry else "bk.png"
@@ -89,6 +100,45 @@ def speed(results: Path) -> None:
              "| held-out RMSE paper -> extended |", "|---|---:|---:|---|---|"]
     lines += [f"| {n} | {w:.1f} | {c:.1f} | {e} | {b:.2f} -> {x:.2f} |"
               for n, w, c, e, b, x in rows]
+    _write(results, lines)
+
+
+def handover(results: Path, rounds: int) -> None:
+    """Fold 1's hand-over to its worker, through the pipe and through a file, alternately."""
+    from clblur.manifest import load_manifest
+    from clblur.study import fold_worker
+    from clblur.study.crossfit import Folds, assign_blocks
+    from clblur.study.model import null_params
+    from clblur.study.run import groups_from_manifest
+
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        _speed_pairs(tmp)
+        write_manifest(tmp / "m.json", {"kind": "blur-pair", "pairs": [
+            {"static": "s.png", "blurred": "b.png", "motion": [14.0, 5.0]}]})
+        groups = groups_from_manifest(load_manifest(tmp / "m.json"))
+    folds = Folds(groups, assign_blocks(groups))
+    part, nvalid = folds.part[1], folds.nvalid[1]
+    default = fold_worker.OUT_OF_BAND_BYTES
+    rows = []
+    try:
+        for _ in range(rounds):
+            for route, limit in (("pipe", 1 << 62), ("file", default)):
+                fold_worker.OUT_OF_BAND_BYTES = limit
+                t0 = time.perf_counter()
+                worker = fold_worker.FoldWorker(part, nvalid, folds.bounds)
+                t1 = time.perf_counter()
+                worker.submit(["gain"], null_params(), None, False, False)
+                worker.result()
+                rows.append((route, t1 - t0, time.perf_counter() - t0))
+                worker.close()
+    finally:
+        fold_worker.OUT_OF_BAND_BYTES = default
+    lines = [_header("handover"),
+             f"Fold 1 of the `speed` uniform pair ({nvalid} valid values), a worker started "
+             "and asked for a gain-only fit.", "",
+             "| route | parent's part (s) | to the first answer (s) |", "|---|---:|---:|"]
+    lines += [f"| {r} | {a:.2f} | {b:.2f} |" for r, a, b in rows]
     _write(results, lines)
 
 
@@ -346,7 +396,8 @@ def _write(path: Path, lines: list[str]) -> None:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("mode", choices=("speed", "limits", "series", "null", "memory", "pedestal"))
+    p.add_argument("mode", choices=("speed", "limits", "series", "null", "memory", "pedestal",
+                                    "handover"))
     p.add_argument("--trees", nargs="+", default=["."],
                    help="memory: source trees to compare (PYTHONPATH of each run)")
     p.add_argument("--data", type=Path, help="series: shared data folder (default CLBLUR_DATA)")
@@ -367,6 +418,8 @@ def main() -> None:
         null(a.results or Path("bench/results_study_null.md"), a.seeds)
     elif a.mode == "pedestal":
         pedestal(a.results or Path("bench/results_study_pedestal.md"), a.seeds)
+    elif a.mode == "handover":
+        handover(a.results or Path("bench/results_study_handover.md"), a.seeds)
     else:
         name = "results_study_limits" + ("_noisy" if a.noise else "") + ".md"
         limits(a.results or Path("bench") / name, a.seeds, a.noise, a.effects)

@@ -16,16 +16,34 @@ def _folds() -> Folds:
     return Folds(sc.groups, assign_blocks(sc.groups))
 
 
-def test_the_worker_gives_the_sequential_fits_bit_for_bit(monkeypatch):
+@pytest.mark.parametrize("through", ["pipe", "file"])
+def test_the_worker_gives_the_sequential_fits_bit_for_bit(monkeypatch, tmp_path, through):
+    """Fold 1 fitted in the child equals the fit in this process, bit for bit, whether the
+    fold went to the child through the pipe or its arrays through a file (which is gone
+    once the child ends)."""
+    from clblur.study import fold_worker
+
     if not _parallel_folds():
         pytest.skip("one core: the folds are fitted in this process")
+    made = []
+    if through == "file":
+        monkeypatch.setattr(fold_worker, "OUT_OF_BAND_BYTES", 0)
+        monkeypatch.setattr(fold_worker, "_scratch_folder", lambda n: str(tmp_path))
+        real = fold_worker.tempfile.mkstemp
+
+        def mkstemp(**kw):
+            made.append(real(**kw))
+            return made[-1]
+        monkeypatch.setattr(fold_worker.tempfile, "mkstemp", mkstemp)
     null = null_params()
     model = frozenset({"black_level", "channel_gain"})
     with _folds() as folds:
         parallel = folds.fit(model, [null, null], 3)
         worker = folds._worker
         assert worker is not None  # fold 1 went to the child
+        assert (worker._path is not None) == (through == "file")
     assert worker._proc.poll() is not None  # ended with its folds
+    assert len(made) == (through == "file") and not list(tmp_path.iterdir())
     monkeypatch.setenv("CLBLUR_STUDY_PROCESSES", "0")
     with _folds() as folds:
         sequential = folds.fit(model, [null, null], 3)
