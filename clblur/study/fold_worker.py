@@ -14,7 +14,7 @@ Pickles on the child's stdin and stdout.  First the fold the child keeps, ``(gro
 bounds)``, in two messages: ``(path, sizes)``, then the fold.  Where ``path`` is a file, the
 fold was pickled with its arrays out of band (protocol 5) and ``path`` holds their bytes, one
 after the other at 64-byte boundaries (``sizes``); the child maps the file copy-on-write,
-removes it and reads its arrays from the mapping.  Why: a 1-megapixel blur pair's fold
+removes it and reads its arrays from the mapping.  Why: a 600 x 600 blur pair's fold
 pickles to 1.7 GB, and pickling it in band and through the pipe took 13 s of a 110 s study
 (``bench/results_study.md``, 2026-11-28); the arrays' bytes written to a file in
 ``/dev/shm`` (else the temporary folder) are one copy, and the child shares their pages
