@@ -31,6 +31,7 @@ from clblur.study.effects import (
     is_per_image,
     param_range,
 )
+from clblur.study.gradient import is_analytic, nll_gradient
 from clblur.study.model import WARP_KEYS, Group, observed_mean, time_ok
 from clblur.study.shape_start import shape_starts
 from clblur.study.variants import (
@@ -151,6 +152,9 @@ def physical_bounds(groups: list[Group]) -> dict[str, tuple[float, float]]:
 # scale ~0.2 on each coefficient picks the plain family there and costs an S-shaped camera
 # curve, whose warp gains thousands of nats, nothing measurable.
 WARP_RIDGE = 10.0
+# the forward-difference step (in the fit's unit coordinates) of the parameters whose
+# gradient is not in closed form: scipy's default for L-BFGS-B (``eps``)
+_DIFFERENCE_STEP = 1e-8
 
 # Effects tested conditionally: their extension fits free only the effect's own parameters
 # (and the noise nuisance), the current model's held at its fit on the same fold.  They
@@ -374,8 +378,11 @@ def fit_all(groups: list[Group], free: list[str], fold_params: list[dict], nvali
 
 def penalised_nll(groups: list[Group], p: dict) -> float:
     """The objective every fit minimises: total NLL plus the warp's ridge."""
-    ridge = WARP_RIDGE * sum(p.get(k, 0.0) ** 2 for k in WARP_KEYS)
-    return sum(float(pixel_nll(g, p).sum()) for g in groups) + ridge
+    return sum(float(pixel_nll(g, p).sum()) for g in groups) + _ridge(p)
+
+
+def _ridge(p: dict) -> float:
+    return WARP_RIDGE * sum(p.get(k, 0.0) ** 2 for k in WARP_KEYS)
 
 
 def free_params(effects, channels: int) -> list[str]:
@@ -421,9 +428,33 @@ def _fit_continuous(groups: list[Group], free: list[str], start: dict, nvalid: i
             return 1e3
         return penalised_nll(groups, p) / max(nvalid, 1)
 
+    # the gradient: in closed form where a parameter acts on each value's exposure or
+    # variance alone (``clblur.study.gradient``), by forward differences elsewhere
+    closed = [i for i, n in enumerate(names) if is_analytic(n)]
+    differenced = [i for i, n in enumerate(names) if not is_analytic(n)]
+
+    def objective_and_gradient(z, s0):
+        p = dict(s0)
+        p.update(zip(names, lo + (hi - lo) * z, strict=True))
+        grad = np.zeros_like(z)
+        if not time_ok(p):
+            return 1e3, grad
+        parts = [nll_gradient(g, p, [names[i] for i in closed]) for g in groups]
+        # summed as penalised_nll sums, so a difference step compares like with like
+        f = (sum(float(nll.sum()) for nll, _ in parts) + _ridge(p)) / max(nvalid, 1)
+        if closed:
+            grad[closed] = (sum(g for _, g in parts) * (hi - lo)[closed]) / max(nvalid, 1)
+        for i in differenced:
+            # scipy's own forward step for L-BFGS-B, turned back at the upper bound
+            step = _DIFFERENCE_STEP if z[i] + _DIFFERENCE_STEP <= 1.0 else -_DIFFERENCE_STEP
+            moved = z.copy()
+            moved[i] += step
+            grad[i] = (objective(moved, s0) - f) / (moved[i] - z[i])
+        return f, grad
+
     def run(z0, s0):
-        return optimize.minimize(objective, z0, args=(s0,), method="L-BFGS-B",
-                                 bounds=[(0, 1)] * len(z0),
+        return optimize.minimize(objective_and_gradient, z0, args=(s0,), jac=True,
+                                 method="L-BFGS-B", bounds=[(0, 1)] * len(z0),
                                  options={"maxiter": 300, "ftol": 1e-7, "gtol": 1e-5})
 
     first = dict(start)

@@ -131,8 +131,9 @@ class Group:
         held = cache.pop(key, None)  # re-inserted last: the least recently used goes first
         if held is None:
             held = {}
-            # a prediction reads up to two tables per channel (values, source variance)
-            if len(cache) >= _PRODUCTS_KEPT * 2 * self.channels:
+            # a prediction reads up to two tables per channel (values, source variance),
+            # its gradient one more (ones: the source's row sums, clblur.study.gradient)
+            if len(cache) >= _PRODUCTS_KEPT * (2 * self.channels + 1):
                 del cache[next(iter(cache))]
         cache[key] = held
         hit = held.get(slot)
@@ -235,9 +236,13 @@ def time_ok(p: dict[str, float]) -> bool:
     return bool(w.min() > 0.02)
 
 
-def predict(g: Group, p: dict[str, float], source_share: bool = False) -> tuple[np.ndarray, ...]:
+def predict(g: Group, p: dict[str, float], source_share: bool = False,
+            parts: dict | None = None) -> tuple[np.ndarray, ...]:
     """Predicted target codes and residual variances (n, C); with ``source_share`` also the
-    share of each variance that the source's own noise carries (``study.leftover``)."""
+    share of each variance that the source's own noise carries (``study.leftover``).
+
+    ``parts``: a dict filled with the intermediate values the likelihood's gradient reads
+    (``clblur.study.gradient``): the code tables, the linear averages, factors and slopes."""
     n, nc = g.target.shape
     gains = channel_gains(p, nc)
     time_c = (1.0, p["t1"], p["t2"])
@@ -284,8 +289,15 @@ def predict(g: Group, p: dict[str, float], source_share: bool = False) -> tuple[
     # explores negative noise coefficients, where the sum would go to zero or below and
     # the likelihood to NaN; with physical (non-negative) coefficients this changes nothing
     from_source = (s * m) ** 2 * source
-    var = np.maximum(1.0 / 12.0 + p.get("nc", 0.0) + s * s * (na2 * x + nb2) + from_source,
-                     1.0 / 12.0)
+    raw = 1.0 / 12.0 + p.get("nc", 0.0) + s * s * (na2 * x + nb2) + from_source
+    var = np.maximum(raw, 1.0 / 12.0)
+    if parts is not None:
+        parts.update(group=g, tables=tables, channel_keys=[(betas[c], factors[c])
+                                                           for c in range(nc)],
+                     betas=betas, norm=norm, e=e, m=m, x=x, v=v, dv=dv, s=s, scale=scale,
+                     source=source,
+                     live=raw > 1.0 / 12.0, curves=curves, factors=factors,
+                     only=_evaluated(g) if "stats" in g.__dict__ else None)
     if source_share:
         return pred, var, np.clip(from_source / var, 0.0, 1.0)
     return pred, var
@@ -349,29 +361,48 @@ def _rowsum(h: sp.csr_matrix) -> np.ndarray:
     return np.asarray(h.sum(axis=1)).ravel()
 
 
-def gaussian_nll(g: Group, pred: np.ndarray, var: np.ndarray) -> np.ndarray:
+def gaussian_nll(g: Group, pred: np.ndarray, var: np.ndarray, partials: bool = False
+                 ) -> np.ndarray | tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Gaussian negative log-likelihood of ``g``'s targets under ``(pred, var)`` (n, C), per
-    target pixel, summed over its valid channels and its censored ones (the tail's)."""
+    target pixel, summed over its valid channels and its censored ones (the tail's).
+
+    ``partials``: also its derivatives in each entry's ``pred`` and ``var`` (n, C; 0 where
+    an entry is not read), which the likelihood's gradient chains on
+    (``clblur.study.gradient``)."""
     stats = g.__dict__.get("stats")
     if stats is not None:  # pooled rows (``clblur.study.compact``): count, sum, sum of squares
         count, s1, s2 = stats
-        nll = 0.5 * (count * (_LOG2PI + np.log(var)) + (s2 - 2.0 * pred * s1
-                                                         + count * pred * pred) / var)
+        square = s2 - 2.0 * pred * s1 + count * pred * pred
+        nll = 0.5 * (count * (_LOG2PI + np.log(var)) + square / var)
     else:
+        count, s1 = 1.0, g.target
         res = g.target - pred
-        nll = 0.5 * (_LOG2PI + np.log(var) + res * res / var)
+        square = res * res
+        nll = 0.5 * (_LOG2PI + np.log(var) + square / var)
     out = np.where(g.valid, nll, 0.0).sum(axis=1)
+    if partials:
+        d_pred = np.where(g.valid, (count * pred - s1) / var, 0.0)
+        d_var = np.where(g.valid, 0.5 * (count / var - square / (var * var)), 0.0)
     if g.censored is not None:
         # the tails, P(y < 0.5) at code 0 and P(y > top - 0.5) at the clip code, on the
         # censored entries alone (a few percent: on all, the tails cost more than the rest)
         r, c = np.nonzero(g.censored)
         if r.size:
             mu = pred[r, c]
-            z = np.where(g.censored[r, c] < 0, 0.5 - mu, mu - (g.top - 0.5))
-            tail = -special.log_ndtr(z / np.sqrt(var[r, c]))
-            if stats is not None:
-                tail = tail * count[r, c]
-            out = out + np.bincount(r, tail, minlength=out.size)
+            side = g.censored[r, c]
+            z = np.where(side < 0, 0.5 - mu, mu - (g.top - 0.5))
+            sd = np.sqrt(var[r, c])
+            log_tail = special.log_ndtr(z / sd)
+            weight = count[r, c] if stats is not None else 1.0
+            out = out + np.bincount(r, -log_tail * weight, minlength=out.size)
+            if partials:
+                # d(-ln Phi(u))/du = -phi(u) / Phi(u), u = z / sd
+                u = z / sd
+                hazard = -np.exp(-0.5 * u * u - 0.5 * _LOG2PI - log_tail) * weight
+                d_pred[r, c] += hazard * np.where(side < 0, -1.0, 1.0) / sd
+                d_var[r, c] += hazard * (-0.5 * u / var[r, c])
+    if partials:
+        return out, d_pred, d_var
     return out
 
 

@@ -239,9 +239,10 @@ def _censored(gs: list[Group]) -> np.ndarray | None:
                            else g.censored for g in gs])
 
 
-def predict(g: Group, p: dict, source_share: bool = False) -> tuple[np.ndarray, ...]:
+def predict(g: Group, p: dict, source_share: bool = False,
+            parts: dict | None = None) -> tuple[np.ndarray, ...]:
     """``model.predict`` with the geometric variants mixed in and the storage offset added
-    (``source_share``: as there)."""
+    (``source_share``, ``parts``: as there)."""
     terms = _terms(g, p)
     if terms:
         var = g.__dict__["variants"]
@@ -273,7 +274,7 @@ def predict(g: Group, p: dict, source_share: bool = False) -> tuple[np.ndarray, 
                 norms[(None, i)] = norm
         mixed.__dict__["_norms"] = norms
         g = mixed
-    pred, *rest = _model_predict(g, p, source_share)
+    pred, *rest = _model_predict(g, p, source_share, parts)
     q = p.get("qoff", 0.0)
     return (pred + q if q else pred), *rest
 

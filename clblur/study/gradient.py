@@ -1,0 +1,364 @@
+"""The likelihood's gradient in the study's parameters, in closed form.
+
+A fit (``clblur.study.crossfit``) minimises the penalised negative log-likelihood with
+L-BFGS-B.  Its gradient was taken by forward differences, one likelihood per free parameter
+per step: on an exposure series, which frees an exposure per inner image and a white
+balance per inner image and channel beside the response's shape, those differences were
+85 % of a study's time (cProfile, 2026-12-03).
+
+Every parameter but the geometric variants reaches a value's likelihood through a few
+per-entry numbers of ``model.predict``: the linear exposure ``x = m e`` (``e`` the average
+of the inverse table ``T`` over the source codes, ``m`` the factors), ``m`` itself (which
+the source's share of the variance carries squared), the source's variance ``source``, the
+response ``v`` and its slope at ``x``, and the noise coefficients.  With
+
+    pred = 255 beta + scale v(x),   s = scale v'(x),   scale = 255 (1 - beta),
+    var  = 1/12 + nc + s^2 (na x + nb) + (s m)^2 source,
+
+the likelihood's derivatives in ``pred`` and ``var`` (``model.gaussian_nll``'s
+``partials``) chain onto what each parameter moves:
+
+* ``gain``, ``cg{c}``, ``lt:I``, ``lw:I:c``: ``ln m`` (the last two through the row's source
+  and target image; ``cg`` and ``lw`` normalised to a geometric mean of 1);
+* ``vig``: ``ln m`` through ``-2 ln(1 + vig r^2)``, ``ln e`` through the vignetting
+  histograms' weights ``2 vig`` and ``vig^2``; ``t1``, ``t2``: ``ln e`` through the time
+  histograms and their norm;
+* ``na``, ``nb``, ``nc``: the variance; ``qoff`` (``clblur.study.variants``): ``pred``;
+* the response (``gamma``, ``rho``, ``w1``..``w4``, ``ce{c}``, ``black*``, ``sat``): the
+  table ``T`` (so ``e`` and ``source``, one sparse product per histogram) and the forward
+  ``v``, ``v'`` at fixed ``x``, from the log inverse ``L(w) = ln x``: ``dw = -L_theta /
+  L_w`` (``_forward_partials``, ``_table_partials``).
+
+The slope's own derivative in ``ln x`` is a central difference.  The geometric variants
+(``sx``, ``sy``, ``pscale``, ``ovar``) change the taps, piecewise linearly, and keep
+forward differences (``is_analytic``).  The closed form agrees with central differences
+to 1e-5 of each derivative, and to 3e-4 for the response's parameters on a warped curve
+(its forward is an interpolant, whose derivative in the parameters departs from the
+curve's by that much) (``tests/test_study_gradient.py``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from clblur.responses.families import _GRID
+from clblur.study.model import TOP, WARP_KEYS, Group, _forward, gaussian_nll
+from clblur.study.variants import predict
+
+__all__ = ["ANALYTIC", "is_analytic", "nll_gradient"]
+
+# parameters whose derivative is taken in closed form (besides the indexed ``cg``, ``ce``,
+# ``black``, ``lt:``, ``lw:``); the rest, the geometric variants, by differences
+# (``clblur.study.crossfit``)
+ANALYTIC = ("gain", "vig", "t1", "t2", "na", "nb", "nc", "qoff", "gamma", "rho", "sat",
+            *WARP_KEYS)
+_INDEXED = ("cg", "ce", "black", "lt:", "lw:")
+# the response shape's parameters, as the partials of one channel's curve name them
+_SHAPE = ("gamma", "rho", "sat", "black", *WARP_KEYS)
+# the step in ln x of the slope's central difference: its truncation error (step^2 / 6 of
+# the third derivative, relative) and its rounding error (1e-16 / step) are both below
+# 1e-8 of the slope
+_LOG_STEP = 1e-4
+
+
+def is_analytic(name: str) -> bool:
+    """Whether ``nll_gradient`` differentiates the likelihood in parameter ``name``."""
+    return name in ANALYTIC or name.startswith(_INDEXED)
+
+
+def nll_gradient(g: Group, p: dict[str, float], names: list[str]
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """``g``'s negative log-likelihood per target pixel under ``p`` (as
+    ``variants.pixel_nll``, bit for bit) and the derivative of its sum in each parameter of
+    ``names`` (every one ``is_analytic``).
+
+    Returns:
+        ``(nll, grad)``: (n,) per pixel, and (len(names),).
+    """
+    parts: dict = {}
+    pred, var = predict(g, p, parts=parts)
+    nll, d_pred, d_var = gaussian_nll(g, pred, var, partials=True)
+    grad = np.zeros(len(names))
+    if not names:
+        return nll, grad
+    h = parts["group"]  # the group model.predict read (the variants' mixture, if any)
+    x, m, s, source = parts["x"], parts["m"], parts["s"], parts["source"]
+    d_var = np.where(parts["live"], d_var, 0.0)  # the variance's floor holds it there
+    nc = x.shape[1]
+    # d s / d ln x, from the slope a little below and above each exposure
+    _, below = _forward(parts["curves"], parts["factors"], x * np.exp(-_LOG_STEP),
+                        parts["only"])
+    _, above = _forward(parts["curves"], parts["factors"], x * np.exp(_LOG_STEP),
+                        parts["only"])
+    ds = parts["scale"] * (above - below) / (2.0 * _LOG_STEP)
+    na, nb = p["na"], p["nb"]
+    from_source = m * m * source  # the source's variance term over s^2
+    # the likelihood's derivative in each entry's ln x (m held) and in its ln m
+    by_lnx = d_pred * s * x + d_var * (2.0 * s * ds * (na * x + nb + from_source)
+                                       + s * s * na * x)
+    by_lnm = by_lnx + d_var * 2.0 * s * s * from_source
+    tables = [parts["tables"][key] for key in parts["channel_keys"]]
+    shape = None  # the response's partials per channel, once asked for
+    for j, name in enumerate(names):
+        if name == "gain":
+            grad[j] = by_lnm.sum()
+        elif name.startswith("cg"):
+            per_channel = by_lnm.sum(axis=0)
+            grad[j] = per_channel[int(name[2:])] - per_channel.sum() / nc
+        elif name.startswith("lt:"):
+            grad[j] = _image_sum(h, by_lnm.sum(axis=1), int(name[3:]))
+        elif name.startswith("lw:"):
+            image, c = (int(v) for v in name[3:].split(":"))
+            per_channel = _image_sum(h, by_lnm, image)
+            grad[j] = per_channel[c] - per_channel.sum() / nc if np.ndim(per_channel) else 0.0
+        elif name == "vig":
+            r2 = h.r2[:, None]
+            grad[j] = (by_lnm * (-2.0 * r2 / (1.0 + p["vig"] * r2))).sum() + (
+                by_lnx * _vignetting_log_slope(h, p, parts, tables)).sum()
+        elif name in ("t1", "t2"):
+            grad[j] = (by_lnx * _time_log_slope(h, p, parts, tables, int(name[1]))).sum()
+        elif name == "nc":
+            grad[j] = d_var.sum()
+        elif name in ("na", "nb"):
+            table = (lambda t: t) if name == "na" else np.ones_like
+            through = np.stack([h.product(("sq", c), h.hist_sq[c], table(tables[c][0]))
+                                for c in range(nc)], axis=1)
+            own = s * s * (x if name == "na" else 1.0)
+            grad[j] = (d_var * (own + (s * m) ** 2 * through)).sum()
+        elif name == "qoff":
+            grad[j] = d_pred.sum()
+        elif name in _SHAPE or name.startswith(("ce", "black")):
+            if shape is None:
+                shape = _shape_gradient(h, p, parts, d_pred, d_var, ds)
+            grad[j] = _from_channels(name, shape, parts, nc)
+        else:
+            raise ValueError(f"no closed-form derivative in {name!r} (is_analytic)")
+    return nll, grad
+
+
+def _image_sum(g: Group, values: np.ndarray, image: int) -> float | np.ndarray:
+    """``values`` (per row, or per row and channel) summed over the rows whose target is
+    ``image`` less those whose source is: the derivative of the rows' factor
+    ``exp(dev_target - dev_source)`` in the image's log factor ``dev``."""
+    if g.images is None:
+        return 0.0
+    source, target = g.images[:, 0], g.images[:, 1]
+    return values[target == image].sum(axis=0) - values[source == image].sum(axis=0)
+
+
+def _linear_sum(h: Group, parts: dict, tables: list, weights) -> np.ndarray:
+    """``sum over (i, k) of weights(i, k) * H_ik @ T`` per channel (n, C), 0 where no
+    histogram carries a weight."""
+    n, nc = parts["x"].shape
+    out = np.zeros((n, nc))
+    for (i, k), hs in h.hist.items():
+        w = weights(i, k)
+        if w:
+            for c in range(nc):
+                out[:, c] += w * h.product((i, k, c), hs[c], tables[c][0])
+    return out
+
+
+def _log_of_average(parts: dict, numerator: np.ndarray) -> np.ndarray:
+    """``d ln e`` from ``d`` of the average's numerator ``e * norm`` (0 where ``e`` is)."""
+    total = parts["e"] * np.maximum(parts["norm"], 1e-12)[:, None]
+    return np.divide(numerator, total, out=np.zeros_like(total), where=total > 0)
+
+
+def _vignetting_log_slope(h: Group, p: dict, parts: dict, tables: list) -> np.ndarray:
+    """``d ln e / d vig``: the vignetting histograms carry weights ``2 vig`` and ``vig^2``."""
+    time_c = (1.0, p["t1"], p["t2"])
+    slope = {1: 2.0, 2: 2.0 * p["vig"]}
+    return _log_of_average(parts, _linear_sum(
+        h, parts, tables, lambda i, k: time_c[i] * slope.get(k, 0.0)))
+
+
+def _time_log_slope(h: Group, p: dict, parts: dict, tables: list, term: int) -> np.ndarray:
+    """``d ln e / d t{term}``: the term's histograms over the norm's share of them."""
+    if (term, 0) not in h.hist:
+        return np.zeros_like(parts["x"])
+    vig_c = (1.0, 2.0 * p["vig"], p["vig"] ** 2)
+    numerator = _linear_sum(h, parts, tables, lambda i, k: vig_c[k] if i == term else 0.0)
+    norm = np.maximum(parts["norm"], 1e-12)
+    return _log_of_average(parts, numerator) - (h.time_norm(term) / norm)[:, None]
+
+
+def _from_channels(name: str, shape: list[dict], parts: dict, nc: int) -> float:
+    """A shape parameter's derivative from each channel's partials in its own curve's
+    ``gamma`` (the shared exponent times the channel's factor), ``rho``, warp, saturation
+    and black level."""
+    factors = parts["factors"]
+    if name == "gamma":  # channel c's exponent is gamma * f_c
+        return sum(factors[c] * shape[c]["gamma"] for c in range(nc))
+    if name.startswith("ce"):  # f_c = exp(ce_c - mean): d ln f_c / d ce_j = [c = j] - 1/C
+        j = int(name[2:])
+        gammas = [parts["curves"][factors[c]].gamma for c in range(nc)]
+        return sum(gammas[c] * shape[c]["gamma"] * ((c == j) - 1.0 / nc) for c in range(nc))
+    if name.startswith("black"):
+        c = int(name[5:] or 0)
+        return shape[c]["black"] if c < nc else 0.0
+    return sum(shape[c][name] for c in range(nc))
+
+
+def _shape_gradient(h: Group, p: dict, parts: dict, d_pred: np.ndarray, d_var: np.ndarray,
+                    ds: np.ndarray) -> list[dict]:
+    """Per channel, the likelihood's derivative in that channel's curve parameters
+    (``_SHAPE``; ``gamma`` its own exponent): through the inverse table (the linear
+    averages and the source's variance) and through the forward at each exposure."""
+    x, m, s, v, dv = parts["x"], parts["m"], parts["s"], parts["v"], parts["dv"]
+    na, nb = p["na"], p["nb"]
+    time_c = (1.0, p["t1"], p["t2"])
+    vig_c = (1.0, 2.0 * p["vig"], p["vig"] ** 2)
+    noise = na * x + nb + m * m * parts["source"]
+    total = parts["e"] * np.maximum(parts["norm"], 1e-12)[:, None]
+    out = []
+    for c in range(x.shape[1]):
+        curve = parts["curves"][parts["factors"][c]]
+        beta = parts["betas"][c]
+        table = parts["tables"][parts["channel_keys"][c]][0]
+        by_table = _table_partials(curve, beta, p["sat"], table)
+        by_forward = _forward_partials(curve, v[:, c], dv[:, c], x[:, c])
+        col = slice(None), c
+        scale = 255.0 * (1.0 - beta)
+        found = {}
+        for name in _SHAPE:
+            d_table = by_table.get(name)
+            if d_table is None:
+                dlnx = dsource = 0.0
+            else:
+                d_step = np.gradient(d_table)
+                d_step[-1] = d_step[-2]
+                step = np.gradient(table)
+                step[-1] = step[-2]
+                d_rounding = step * d_step / 6.0
+                numerator = sum(time_c[i] * vig_c[k] * _apply(hs[c], d_table)
+                                for (i, k), hs in h.hist.items() if time_c[i] * vig_c[k])
+                dlnx = np.divide(numerator, total[col], out=np.zeros(x.shape[0]),
+                                 where=total[col] > 0)
+                dsource = _apply(h.hist_sq[c], d_rounding + na * d_table)
+            if name == "black":  # pred = 255 beta + 255 (1 - beta) v
+                d_pred_x, d_s_x = 255.0 * (1.0 - v[col]), -255.0 * dv[col]
+            elif name in by_forward:
+                d_w, d_slope = by_forward[name]
+                d_pred_x, d_s_x = scale * d_w, scale * d_slope
+            else:
+                d_pred_x = d_s_x = 0.0
+            d_s = d_s_x + ds[col] * dlnx
+            found[name] = float((d_pred[col] * (d_pred_x + s[col] * x[col] * dlnx)).sum() + (
+                d_var[col] * (2.0 * s[col] * d_s * noise[col]
+                              + s[col] * s[col] * (na * x[col] * dlnx
+                                                   + m[col] * m[col] * dsource))).sum())
+        out.append(found)
+    return out
+
+
+def _apply(hist, table: np.ndarray) -> np.ndarray:
+    """``hist @ table``, not remembered (``Group.product`` keeps the tables of the last
+    predictions; a table's derivative would push them out)."""
+    if sp.issparse(hist):
+        return hist @ table
+    return sum(w * (part @ table) for w, part, _ in hist.parts)  # a variants mixture
+
+
+def _log_inverse_terms(curve, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
+    """At values ``w`` above the black level: ``L_w``, ``L_ww`` of the log inverse
+    ``L = gamma ln(-ln(1 - rho w) / rho) + sum_m c_m B_m(w)`` and, per parameter,
+    ``(L_theta, L_w theta)``."""
+    gamma, rho, warp = curve.gamma, curve.rho, curve.warp
+    with np.errstate(divide="ignore", invalid="ignore"):
+        one = 1.0 - rho * w
+        u = -np.log1p(-rho * w)
+        ell = np.log(u / rho)
+        ell_1 = rho / (one * u)
+        ell_2 = (rho / one) ** 2 / u - ell_1 * ell_1
+        ell_rho = w / (one * u) - 1.0 / rho
+        ell_1_rho = (1.0 / u - rho * w / (u * u)) / (one * one)
+    l_w, l_ww = gamma * ell_1, gamma * ell_2
+    terms = {"gamma": (ell, ell_1), "rho": (gamma * ell_rho, gamma * ell_1_rho)}
+    t = 2.0 * w - 1.0
+    legendre = np.polynomial.legendre
+    for k, key in enumerate(WARP_KEYS, start=1):
+        basis = [0.0] * k + [1.0]
+        b = legendre.legval(t, basis) - 1.0
+        b_1 = 2.0 * legendre.legval(t, legendre.legder(basis))
+        terms[key] = (b, b_1)
+        if k <= len(warp) and warp[k - 1]:
+            l_w = l_w + warp[k - 1] * b_1
+            l_ww = l_ww + warp[k - 1] * 4.0 * legendre.legval(t, legendre.legder(basis, 2))
+    return l_w, l_ww, terms
+
+
+def _forward_partials(curve, w: np.ndarray, slope: np.ndarray, x: np.ndarray) -> dict:
+    """``(d w / d theta, d w' / d theta)`` at fixed exposures ``x``, ``w`` the forward's
+    value and ``w'`` its slope there: from ``L(w) = ln x``, ``d w = -L_theta / L_w`` and
+    ``w' = 1 / (x L_w)``.  0 where the forward is flat (clipped).
+
+    A warped curve's forward outside its interpolation nodes (``ExpShape._log_nodes``:
+    below a hundredth of a code, the darkest values) is the sampled grid's segment between
+    the exposures ``X(G_j)``; there the derivatives are the segment's, whose ends move by
+    ``d X(G_j) = X(G_j) L_theta(G_j)``."""
+    moving = (slope > 0) & (w > 0) & (w < 1)
+    out = {}
+    if not moving.any():
+        return out
+    x = np.maximum(x, 1e-12)  # the forward's own floor
+    segment = np.zeros_like(moving)
+    if curve.warp:
+        lo, step, nodes, _, grid_x = curve._log_nodes()
+        u = (np.log(x) - lo) / step
+        segment = moving & ~((u >= 0.0) & (u <= nodes.size - 1))
+        moving &= ~segment
+    wm, xm = w[moving], x[moving]
+    l_w, l_ww, terms = _log_inverse_terms(curve, wm)
+    d = {name: (np.zeros_like(w), np.zeros_like(w)) for name in terms}
+    for name, (l_t, l_wt) in terms.items():
+        d_w, d_slope = d[name]
+        d_w[moving] = -l_t / l_w
+        d_slope[moving] = -(l_wt + l_ww * d_w[moving]) / (xm * l_w * l_w)
+    if segment.any():
+        xs = x[segment]
+        j = np.clip(np.searchsorted(grid_x, xs, side="right") - 1, 0, grid_x.size - 2)
+        ends = np.unique(np.concatenate([j, j + 1]))
+        width = grid_x[j + 1] - grid_x[j]
+        a = (xs - grid_x[j]) / width
+        rise = _GRID[j + 1] - _GRID[j]
+        inner = ends < grid_x.size - 1  # the last exposure is a stand-in, 2 X + 1
+        _, _, at_ends = _log_inverse_terms(curve, _GRID[ends[inner]])
+        for name, (l_t, _) in at_ends.items():
+            moves = np.zeros(grid_x.size)
+            with np.errstate(invalid="ignore"):  # X = 0 at the first: L = -inf there
+                moves[ends[inner]] = np.where(grid_x[ends[inner]] > 0,
+                                              grid_x[ends[inner]] * l_t, 0.0)
+            moves[-1] = 2.0 * moves[-2]
+            d_w, d_slope = d[name]
+            d_w[segment] = rise / width * (-(1.0 - a) * moves[j] - a * moves[j + 1])
+            d_slope[segment] = -rise * (moves[j + 1] - moves[j]) / (width * width)
+    return d
+
+
+def _table_partials(curve, beta: float, sat: float, table: np.ndarray) -> dict:
+    """Each curve parameter's derivative of the inverse table ``T`` (``model._code_tables``:
+    ``T[k] = X(w_k)``, ``w_k = (k / 255 - beta) / (1 - beta)`` clipped to [0, top],
+    ``top = 1 - rho (1 - TOP)``, and ``T[255] = sat X(top)``), ``d T = T d ln X``."""
+    rho = curve.rho
+    codes = np.arange(table.size, dtype=np.float64) / 255.0
+    top = 1.0 - rho * (1.0 - TOP)
+    raw = (codes - beta) / (1.0 - beta)
+    w = np.clip(raw, 0.0, top)
+    w[-1] = top
+    inside = (raw > 0.0) & (raw < top)
+    inside[-1] = False
+    lit = table > 0
+    l_w, _, terms = _log_inverse_terms(curve, np.where(lit, w, 0.5))
+    out = {}
+    for name, (l_t, _) in terms.items():
+        d_log = l_t.copy()
+        if name == "rho":  # the values clipped at the top move with it
+            d_log = d_log + np.where(inside, 0.0, l_w * -(1.0 - TOP))
+        out[name] = np.where(lit, table * d_log, 0.0)
+    d_w = np.where(inside, (codes - 1.0) / (1.0 - beta) ** 2, 0.0)
+    out["black"] = np.where(lit, table * l_w * d_w, 0.0)
+    out["sat"] = np.zeros_like(table)
+    out["sat"][-1] = table[-1] / sat
+    return out
