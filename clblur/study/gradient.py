@@ -130,7 +130,9 @@ def nll_gradient(g: Group, p: dict[str, float], names: list[str]
             grad[j] = d_pred.sum()
         elif name in _SHAPE or name.startswith(("ce", "black")):
             if shape is None:
-                shape = _shape_gradient(h, p, parts, d_pred, d_var, ds)
+                wanted = {"gamma" if n.startswith("ce") else "black" if n.startswith("black")
+                          else n for n in names if n in _SHAPE or n.startswith(("ce", "black"))}
+                shape = _shape_gradient(h, p, parts, d_pred, d_var, ds, wanted)
             grad[j] = _from_channels(name, shape, parts, nc)
         else:
             raise ValueError(f"no closed-form derivative in {name!r} (is_analytic)")
@@ -202,10 +204,10 @@ def _from_channels(name: str, shape: list[dict], parts: dict, nc: int) -> float:
 
 
 def _shape_gradient(h: Group, p: dict, parts: dict, d_pred: np.ndarray, d_var: np.ndarray,
-                    ds: np.ndarray) -> list[dict]:
+                    ds: np.ndarray, wanted: set[str]) -> list[dict]:
     """Per channel, the likelihood's derivative in that channel's curve parameters
-    (``_SHAPE``; ``gamma`` its own exponent): through the inverse table (the linear
-    averages and the source's variance) and through the forward at each exposure."""
+    ``wanted`` (of ``_SHAPE``; ``gamma`` its own exponent): through the inverse table (the
+    linear averages and the source's variance) and through the forward at each exposure."""
     x, m, s, v, dv = parts["x"], parts["m"], parts["s"], parts["v"], parts["dv"]
     na, nb = p["na"], p["nb"]
     time_c = (1.0, p["t1"], p["t2"])
@@ -222,7 +224,7 @@ def _shape_gradient(h: Group, p: dict, parts: dict, d_pred: np.ndarray, d_var: n
         col = slice(None), c
         scale = 255.0 * (1.0 - beta)
         found = {}
-        for name in _SHAPE:
+        for name in wanted:
             d_table = by_table.get(name)
             if d_table is None:
                 dlnx = dsource = 0.0
