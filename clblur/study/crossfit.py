@@ -474,11 +474,17 @@ def _objective(groups: list[Group], names: list[str], lo: np.ndarray, hi: np.nda
                nvalid: int, z: np.ndarray, s0: dict) -> float:
     """The penalised NLL per value at unit coordinates ``z`` of ``names`` (in their
     ``[lo, hi]``), the other parameters at ``s0``; 1e3 where the time weights turn negative."""
-    p = dict(s0)
-    p.update(zip(names, lo + (hi - lo) * z, strict=True))
+    p = _point(names, lo, hi, z, s0)
     if not time_ok(p):
         return 1e3
     return penalised_nll(groups, p) / max(nvalid, 1)
+
+
+def _point(names: list[str], lo: np.ndarray, hi: np.ndarray, z: np.ndarray, s0: dict) -> dict:
+    """The parameters at unit coordinates ``z`` of ``names``, the others at ``s0``."""
+    p = dict(s0)
+    p.update(zip(names, lo + (hi - lo) * z, strict=True))
+    return p
 
 
 def _objective_and_gradient(groups: list[Group], names: list[str], lo: np.ndarray,
@@ -487,8 +493,7 @@ def _objective_and_gradient(groups: list[Group], names: list[str], lo: np.ndarra
     """``_objective`` and its gradient in ``z``: in closed form where a parameter acts on
     the values' exposures, responses or variances (``clblur.study.gradient``), by forward
     differences for the geometric variants."""
-    p = dict(s0)
-    p.update(zip(names, lo + (hi - lo) * z, strict=True))
+    p = _point(names, lo, hi, z, s0)
     grad = np.zeros_like(z)
     if not time_ok(p):
         return 1e3, grad

@@ -43,7 +43,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from clblur.responses.families import _GRID
-from clblur.study.model import TOP, WARP_KEYS, Group, _forward, gaussian_nll
+from clblur.study.model import TOP, WARP_KEYS, Group, _forward, code_step, gaussian_nll
 from clblur.study.variants import predict
 
 __all__ = ["ANALYTIC", "is_analytic", "nll_gradient"]
@@ -132,7 +132,7 @@ def nll_gradient(g: Group, p: dict[str, float], names: list[str]
             if shape is None:
                 wanted = {"gamma" if n.startswith("ce") else "black" if n.startswith("black")
                           else n for n in names if n in _SHAPE or n.startswith(("ce", "black"))}
-                shape = _shape_gradient(h, p, parts, d_pred, d_var, ds, wanted)
+                shape = _shape_gradient(h, p, parts, tables, d_pred, d_var, ds, wanted)
             grad[j] = _from_channels(name, shape, parts, nc)
         else:
             raise ValueError(f"no closed-form derivative in {name!r} (is_analytic)")
@@ -162,9 +162,10 @@ def _linear_sum(h: Group, parts: dict, tables: list, weights) -> np.ndarray:
     return out
 
 
-def _log_of_average(parts: dict, numerator: np.ndarray) -> np.ndarray:
-    """``d ln e`` from ``d`` of the average's numerator ``e * norm`` (0 where ``e`` is)."""
-    total = parts["e"] * np.maximum(parts["norm"], 1e-12)[:, None]
+def _log_of_average(parts: dict, numerator: np.ndarray, col=slice(None)) -> np.ndarray:
+    """``d ln e`` from ``d`` of the average's numerator ``e * norm`` (0 where ``e`` is), of
+    every channel or of channel ``col``."""
+    total = (parts["e"] * np.maximum(parts["norm"], 1e-12)[:, None])[:, col]
     return np.divide(numerator, total, out=np.zeros_like(total), where=total > 0)
 
 
@@ -203,8 +204,8 @@ def _from_channels(name: str, shape: list[dict], parts: dict, nc: int) -> float:
     return sum(shape[c][name] for c in range(nc))
 
 
-def _shape_gradient(h: Group, p: dict, parts: dict, d_pred: np.ndarray, d_var: np.ndarray,
-                    ds: np.ndarray, wanted: set[str]) -> list[dict]:
+def _shape_gradient(h: Group, p: dict, parts: dict, tables: list, d_pred: np.ndarray,
+                    d_var: np.ndarray, ds: np.ndarray, wanted: set[str]) -> list[dict]:
     """Per channel, the likelihood's derivative in that channel's curve parameters
     ``wanted`` (of ``_SHAPE``; ``gamma`` its own exponent): through the inverse table (the
     linear averages and the source's variance) and through the forward at each exposure."""
@@ -213,12 +214,12 @@ def _shape_gradient(h: Group, p: dict, parts: dict, d_pred: np.ndarray, d_var: n
     time_c = (1.0, p["t1"], p["t2"])
     vig_c = (1.0, 2.0 * p["vig"], p["vig"] ** 2)
     noise = na * x + nb + m * m * parts["source"]
-    total = parts["e"] * np.maximum(parts["norm"], 1e-12)[:, None]
     out = []
     for c in range(x.shape[1]):
         curve = parts["curves"][parts["factors"][c]]
         beta = parts["betas"][c]
-        table = parts["tables"][parts["channel_keys"][c]][0]
+        table = tables[c][0]
+        step = code_step(table)
         by_table = _table_partials(curve, beta, p["sat"], table)
         by_forward = _forward_partials(curve, v[:, c], dv[:, c], x[:, c])
         col = slice(None), c
@@ -229,15 +230,10 @@ def _shape_gradient(h: Group, p: dict, parts: dict, d_pred: np.ndarray, d_var: n
             if d_table is None:
                 dlnx = dsource = 0.0
             else:
-                d_step = np.gradient(d_table)
-                d_step[-1] = d_step[-2]
-                step = np.gradient(table)
-                step[-1] = step[-2]
-                d_rounding = step * d_step / 6.0
+                d_rounding = step * code_step(d_table) / 6.0
                 numerator = sum(time_c[i] * vig_c[k] * _apply(hs[c], d_table)
                                 for (i, k), hs in h.hist.items() if time_c[i] * vig_c[k])
-                dlnx = np.divide(numerator, total[col], out=np.zeros(x.shape[0]),
-                                 where=total[col] > 0)
+                dlnx = _log_of_average(parts, numerator, c)
                 dsource = _apply(h.hist_sq[c], d_rounding + na * d_table)
             if name == "black":  # pred = 255 beta + 255 (1 - beta) v
                 d_pred_x, d_s_x = 255.0 * (1.0 - v[col]), -255.0 * dv[col]

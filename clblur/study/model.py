@@ -214,12 +214,19 @@ def _build_tables(curve: ExpShape, beta: float, rho: float, sat: float
     w = np.clip((v - beta) / (1.0 - beta), 0.0, top)
     t = curve.inverse(w)
     t[-1] = sat * curve.inverse(np.array([top]))[0]
-    step = np.gradient(t)
-    step[-1] = step[-2]  # a clipped code's error is the saturation factor's business
+    step = code_step(t)
     rounding = step * step / 12.0
     t.flags.writeable = False
     rounding.flags.writeable = False
     return t, rounding
+
+
+def code_step(t: np.ndarray) -> np.ndarray:
+    """The code step of an inverse table ``t`` whose rounding variance is ``step^2 / 12``
+    (linear in ``t``: the gradient differentiates a table's derivative with it too)."""
+    step = np.gradient(t)
+    step[-1] = step[-2]  # a clipped code's error is the saturation factor's business
+    return step
 
 
 def forward(x: np.ndarray, gamma: float, rho: float, warp=()) -> tuple[np.ndarray, np.ndarray]:
