@@ -1060,6 +1060,26 @@ def test_study_and_calibrate_give_the_same_curve_shape():
         assert np.abs(stops(shape) - stops(curve)).max() < 0.2
 
 
+def test_folds_whose_fits_hold_different_image_keys_average_as_nominal():
+    # Folds.improve keeps a better fit per fold: one fold's fit can then hold an image's own
+    # parameters (lt:I, lw:I:c) that the other's lacks, which reads as nominal (0).  A study
+    # stopped there with a KeyError (2026-12-07); the start that caused it no longer holds
+    # them (_at_null), and the average reads a missing one as nominal
+    from clblur.study.crossfit import average_params
+    from clblur.study.select import _at_null
+
+    with_keys = {"gain": 0.1, "lw:1:1": 0.2, "lt:2": 0.1}
+    without = {"gain": 0.3}
+    for pair in ([with_keys, without], [without, with_keys]):
+        assert average_params(pair) == pytest.approx({"gain": 0.2, "lw:1:1": 0.1,
+                                                      "lt:2": 0.05})
+    with pytest.raises(KeyError, match="rho"):
+        average_params([{"rho": 1.0}, {}])  # a shared parameter is never optional
+    fit = {"gain": 0.05, "lw:1:1": 0.3, "lw:1:2": -0.1, "lt:1": 0.05}
+    assert _at_null([fit, fit], "white_balance", 3) == [{"gain": 0.05, "lt:1": 0.05}] * 2
+    assert _at_null([fit], "exposure_gain", 3) == [{**fit, "gain": 0.0}]
+
+
 def test_an_estimate_on_its_bound_lies_inside_its_interval():
     # No black level and no vignetting in the data: fitted at their bound 0, the estimate
     # must lie inside its interval.  The finite differences step inside the bound; the

@@ -547,8 +547,19 @@ def _unit(p: dict, names: list[str], lo: np.ndarray, hi: np.ndarray) -> np.ndarr
 
 
 def average_params(params: list[dict]) -> dict:
-    """The mean of the two folds' parameters (the reported estimate)."""
-    return {k: 0.5 * (params[0][k] + params[1][k]) for k in params[0]}
+    """The mean of the two folds' parameters (the reported estimate).  An image's own
+    parameter (``lt:I``, ``lw:I:c``) that one fold's fit does not hold is at its nominal
+    value there, as every prediction and fit reads it (``_fit_continuous``)."""
+    keys = dict.fromkeys([*params[0], *params[1]])
+    return {k: 0.5 * (_held(params[0], k) + _held(params[1], k)) for k in keys}
+
+
+def _held(p: dict, key: str) -> float:
+    if key in p:
+        return p[key]
+    if is_per_image(key):
+        return param_range(key)[0]
+    raise KeyError(f"a fold's fit lacks {key!r}")
 
 
 def heldout_scores(groups: list[Group], params: list[dict]):

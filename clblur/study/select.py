@@ -76,6 +76,7 @@ from clblur.study.effects import (
     FAMILY_LIMITS,
     effect_keys,
     explain,
+    is_per_image,
     param_range,
     readable_estimate,
 )
@@ -447,9 +448,16 @@ def _current_fit(folds: Folds, current: frozenset, candidates: list[str],
 
 def _at_null(fits: list[dict], effect: str, channels: int) -> list[dict]:
     """Each fold's parameters with ``effect``'s at their null values (the effect taken out,
-    the rest kept as a start)."""
-    return [{**q, **{n: param_range(n)[0] for n in effect_keys(effect, channels, q)}}
-            for q in fits]
+    the rest kept as a start).  An image's own parameters (``lt:I``, ``lw:I:c``) are left
+    out, which reads as nominal: a model without the effect holds none, and a start that
+    kept them made a fold's fit that ``Folds.improve`` keeps hold keys its other fold's
+    fit lacked (a study stopped on the white balance's keys, 2026-12-07)."""
+    out = []
+    for q in fits:
+        keys = effect_keys(effect, channels, q)
+        out.append({**{k: v for k, v in q.items() if not (k in keys and is_per_image(k))},
+                    **{n: param_range(n)[0] for n in keys if not is_per_image(n)}})
+    return out
 
 
 def _best_swap(folds: Folds, current: frozenset, order: list[str],
