@@ -42,7 +42,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from clblur.responses.families import _GRID
+from clblur.responses.families import _GRID, warp_basis_slopes
 from clblur.study.model import TOP, WARP_KEYS, Group, _forward, code_step, gaussian_nll
 from clblur.study.variants import predict
 
@@ -164,9 +164,13 @@ def _linear_sum(h: Group, parts: dict, tables: list, weights) -> np.ndarray:
 
 def _log_of_average(parts: dict, numerator: np.ndarray, col=slice(None)) -> np.ndarray:
     """``d ln e`` from ``d`` of the average's numerator ``e * norm`` (0 where ``e`` is), of
-    every channel or of channel ``col``."""
+    every channel or of channel ``col`` (``numerator``: n, or n x q for q parameters of
+    that channel)."""
     total = (parts["e"] * np.maximum(parts["norm"], 1e-12)[:, None])[:, col]
-    return np.divide(numerator, total, out=np.zeros_like(total), where=total > 0)
+    if numerator.ndim > total.ndim:
+        total = total[:, None]
+    return np.divide(numerator, total, out=np.zeros(np.broadcast_shapes(
+        numerator.shape, total.shape)), where=total > 0)
 
 
 def _vignetting_log_slope(h: Group, p: dict, parts: dict, tables: list) -> np.ndarray:
@@ -214,27 +218,51 @@ def _shape_gradient(h: Group, p: dict, parts: dict, tables: list, d_pred: np.nda
     time_c = (1.0, p["t1"], p["t2"])
     vig_c = (1.0, 2.0 * p["vig"], p["vig"] ** 2)
     noise = na * x + nb + m * m * parts["source"]
+    factors, nc = parts["factors"], x.shape[1]
+    # channels that share a curve share its forward partials (elementwise: one call on
+    # their columns side by side) and, with one black level, its table and the table's
+    # partials; each parameter's table derivative is a column, so that a histogram meets
+    # all of them in one sparse product
+    forward_of = {}
+    for f in dict.fromkeys(factors):
+        cs = [c for c in range(nc) if factors[c] == f]
+        forward_of[f] = cs, _forward_partials(parts["curves"][f], v[:, cs], dv[:, cs],
+                                              x[:, cs])
+    table_of = {}
     out = []
-    for c in range(x.shape[1]):
-        curve = parts["curves"][parts["factors"][c]]
+    for c in range(nc):
+        curve = parts["curves"][factors[c]]
         beta = parts["betas"][c]
-        table = tables[c][0]
-        step = code_step(table)
-        by_table = _table_partials(curve, beta, p["sat"], table)
-        by_forward = _forward_partials(curve, v[:, c], dv[:, c], x[:, c])
+        key = parts["channel_keys"][c]
+        if key not in table_of:
+            table = tables[c][0]
+            by_table = _table_partials(curve, beta, p["sat"], table)
+            by_column = [name for name in wanted if name in by_table]
+            d_tables = d_source = None
+            if by_column:
+                d_tables = np.column_stack([by_table[name] for name in by_column])
+                d_source = code_step(table)[:, None] * code_step(d_tables) / 6.0 \
+                    + na * d_tables  # the rounding variance's and the source noise's
+            table_of[key] = by_column, d_tables, d_source
+        by_column, d_tables, d_source = table_of[key]
+        cs, partials = forward_of[factors[c]]
+        j = cs.index(c)
+        by_forward = {name: (d_w[:, j], d_slope[:, j])
+                      for name, (d_w, d_slope) in partials.items()}
         col = slice(None), c
         scale = 255.0 * (1.0 - beta)
+        if by_column:
+            numerator = sum(time_c[i] * vig_c[k] * _apply(hs[c], d_tables)
+                            for (i, k), hs in h.hist.items() if time_c[i] * vig_c[k])
+            dlnx_of = _log_of_average(parts, numerator, c)
+            dsource_of = _apply(h.hist_sq[c], d_source)
         found = {}
         for name in wanted:
-            d_table = by_table.get(name)
-            if d_table is None:
+            if name not in by_column:
                 dlnx = dsource = 0.0
             else:
-                d_rounding = step * code_step(d_table) / 6.0
-                numerator = sum(time_c[i] * vig_c[k] * _apply(hs[c], d_table)
-                                for (i, k), hs in h.hist.items() if time_c[i] * vig_c[k])
-                dlnx = _log_of_average(parts, numerator, c)
-                dsource = _apply(h.hist_sq[c], d_rounding + na * d_table)
+                i = by_column.index(name)
+                dlnx, dsource = dlnx_of[:, i], dsource_of[:, i]
             if name == "black":  # pred = 255 beta + 255 (1 - beta) v
                 d_pred_x, d_s_x = 255.0 * (1.0 - v[col]), -255.0 * dv[col]
             elif name in by_forward:
@@ -274,16 +302,12 @@ def _log_inverse_terms(curve, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, di
         ell_1_rho = (1.0 / u - rho * w / (u * u)) / (one * one)
     l_w, l_ww = gamma * ell_1, gamma * ell_2
     terms = {"gamma": (ell, ell_1), "rho": (gamma * ell_rho, gamma * ell_1_rho)}
-    t = 2.0 * w - 1.0
-    legendre = np.polynomial.legendre
-    for k, key in enumerate(WARP_KEYS, start=1):
-        basis = [0.0] * k + [1.0]
-        b = legendre.legval(t, basis) - 1.0
-        b_1 = 2.0 * legendre.legval(t, legendre.legder(basis))
-        terms[key] = (b, b_1)
-        if k <= len(warp) and warp[k - 1]:
-            l_w = l_w + warp[k - 1] * b_1
-            l_ww = l_ww + warp[k - 1] * 4.0 * legendre.legval(t, legendre.legder(basis, 2))
+    basis, slope, curvature = warp_basis_slopes(w, len(WARP_KEYS))
+    for k, key in enumerate(WARP_KEYS):
+        terms[key] = (basis[k], slope[k])
+        if k < len(warp) and warp[k]:
+            l_w = l_w + warp[k] * slope[k]
+            l_ww = l_ww + warp[k] * curvature[k]
     return l_w, l_ww, terms
 
 

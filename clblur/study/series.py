@@ -76,7 +76,10 @@ def _black_bound(image: np.ndarray, padding: np.ndarray) -> np.ndarray:
     lit = ~padding
     if not lit.any():
         return np.zeros(image.shape[2])
-    mean = image[lit].reshape(-1, image.shape[2]).mean(axis=0, dtype=np.float64)
+    # integer codes: the float64 sums are exact either way, and a frame without padding
+    # needs no gathered copy of itself (a 10 MP frame's mean took 0.6 s)
+    light = image.reshape(-1, image.shape[2]) if lit.all() else image[lit]
+    mean = light.mean(axis=0, dtype=np.float64)
     box = (FLOOR_BOX, FLOOR_BOX)
     clear = cv2.blur(lit.astype(np.float32), box) >= 1.0 - 1e-6
     r = FLOOR_BOX // 2
@@ -88,11 +91,14 @@ def _black_bound(image: np.ndarray, padding: np.ndarray) -> np.ndarray:
     out = np.empty(image.shape[2])
     for c in range(image.shape[2]):
         x = image[..., c].astype(np.float32)
-        m = cv2.blur(x, box)[clear].astype(np.float64)
-        var = np.maximum(cv2.blur(x * x, box)[clear] - m * m, 0.0) * area / (area - 1)
+        m = cv2.blur(x, box)[clear]  # float32: its order and least value are float64's too
         k = max(1, m.size // 100)
         darkest = np.argpartition(m, k - 1)[:k]
-        out[c] = min(mean[c], float(m.min()) + z * math.sqrt(float(np.median(var[darkest]))))
+        # the patches' variance at the darkest ones only (the rest is never read)
+        m_dark = m[darkest].astype(np.float64)
+        var = np.maximum(cv2.blur(x * x, box)[clear][darkest] - m_dark * m_dark, 0.0
+                         ) * area / (area - 1)
+        out[c] = min(mean[c], float(m.min()) + z * math.sqrt(float(np.median(var))))
     return out
 
 
