@@ -100,18 +100,23 @@ def nll_gradient(g: Group, p: dict[str, float], names: list[str]
     by_lnm = by_lnx + d_var * 2.0 * s * s * from_source
     tables = [parts["tables"][key] for key in parts["channel_keys"]]
     shape = None  # the response's partials per channel, once asked for
+    by_image = None  # by_lnm's per-image sums, once asked for
     for j, name in enumerate(names):
         if name == "gain":
             grad[j] = by_lnm.sum()
         elif name.startswith("cg"):
             per_channel = by_lnm.sum(axis=0)
             grad[j] = per_channel[int(name[2:])] - per_channel.sum() / nc
-        elif name.startswith("lt:"):
-            grad[j] = _image_sum(h, by_lnm.sum(axis=1), int(name[3:]))
-        elif name.startswith("lw:"):
-            image, c = (int(v) for v in name[3:].split(":"))
-            per_channel = _image_sum(h, by_lnm, image)
-            grad[j] = per_channel[c] - per_channel.sum() / nc if np.ndim(per_channel) else 0.0
+        elif name.startswith(("lt:", "lw:")):
+            if by_image is None:
+                by_image = _image_sums(h, by_lnm)
+            if name.startswith("lt:"):
+                image = int(name[3:])
+                grad[j] = by_image[image].sum() if image < len(by_image) else 0.0
+            else:
+                image, c = (int(v) for v in name[3:].split(":"))
+                per_channel = by_image[image] if image < len(by_image) else np.zeros(nc)
+                grad[j] = per_channel[c] - per_channel.sum() / nc
         elif name == "vig":
             r2 = h.r2[:, None]
             grad[j] = (by_lnm * (-2.0 * r2 / (1.0 + p["vig"] * r2))).sum() + (
@@ -139,14 +144,18 @@ def nll_gradient(g: Group, p: dict[str, float], names: list[str]
     return nll, grad
 
 
-def _image_sum(g: Group, values: np.ndarray, image: int) -> float | np.ndarray:
-    """``values`` (per row, or per row and channel) summed over the rows whose target is
-    ``image`` less those whose source is: the derivative of the rows' factor
-    ``exp(dev_target - dev_source)`` in the image's log factor ``dev``."""
+def _image_sums(g: Group, values: np.ndarray) -> np.ndarray:
+    """``values`` (n, C) summed, per image ``I``, over the rows whose target is ``I`` less
+    those whose source is (images x C; none outside a series): the derivative of the rows'
+    factor ``exp(dev_target - dev_source)`` in each image's log factor ``dev``.  One pass
+    for every image (a series fit asks for each image's exposure and white balance)."""
     if g.images is None:
-        return 0.0
+        return np.zeros((0, values.shape[1]))
     source, target = g.images[:, 0], g.images[:, 1]
-    return values[target == image].sum(axis=0) - values[source == image].sum(axis=0)
+    span = int(g.images.max(initial=-1)) + 1
+    return np.stack([np.bincount(target, values[:, c], minlength=span)
+                     - np.bincount(source, values[:, c], minlength=span)
+                     for c in range(values.shape[1])], axis=1)
 
 
 def _linear_sum(h: Group, parts: dict, tables: list, weights) -> np.ndarray:
@@ -251,30 +260,30 @@ def _shape_gradient(h: Group, p: dict, parts: dict, tables: list, d_pred: np.nda
                       for name, (d_w, d_slope) in partials.items()}
         col = slice(None), c
         scale = 255.0 * (1.0 - beta)
+        # The derivative in a parameter is four weighted sums over the rows: of what it
+        # does to the prediction at fixed x (d_pred_x), to the slope at fixed x (d_s_x),
+        # to ln x (dlnx; the slope follows it by ds) and to the source's variance
+        # (dsource), with the weights below (the chain rule on d_pred and d_var).
+        on_pred, on_var, slope = d_pred[col], d_var[col], s[col]
+        on_slope = 2.0 * on_var * slope * noise[col]
+        on_lnx = (on_pred * slope * x[col] + on_slope * ds[col]
+                  + on_var * slope * slope * na * x[col])
+        on_source = on_var * slope * slope * m[col] * m[col]
+        through_x = {}
         if by_column:
             numerator = sum(time_c[i] * vig_c[k] * _apply(hs[c], d_tables)
                             for (i, k), hs in h.hist.items() if time_c[i] * vig_c[k])
-            dlnx_of = _log_of_average(parts, numerator, c)
-            dsource_of = _apply(h.hist_sq[c], d_source)
+            through_x = dict(zip(by_column, on_lnx @ _log_of_average(parts, numerator, c)
+                                 + on_source @ _apply(h.hist_sq[c], d_source), strict=True))
         found = {}
         for name in wanted:
-            if name not in by_column:
-                dlnx = dsource = 0.0
-            else:
-                i = by_column.index(name)
-                dlnx, dsource = dlnx_of[:, i], dsource_of[:, i]
+            total = through_x.get(name, 0.0)
             if name == "black":  # pred = 255 beta + 255 (1 - beta) v
-                d_pred_x, d_s_x = 255.0 * (1.0 - v[col]), -255.0 * dv[col]
+                total += 255.0 * (on_pred @ (1.0 - v[col]) - on_slope @ dv[col])
             elif name in by_forward:
                 d_w, d_slope = by_forward[name]
-                d_pred_x, d_s_x = scale * d_w, scale * d_slope
-            else:
-                d_pred_x = d_s_x = 0.0
-            d_s = d_s_x + ds[col] * dlnx
-            found[name] = float((d_pred[col] * (d_pred_x + s[col] * x[col] * dlnx)).sum() + (
-                d_var[col] * (2.0 * s[col] * d_s * noise[col]
-                              + s[col] * s[col] * (na * x[col] * dlnx
-                                                   + m[col] * m[col] * dsource))).sum())
+                total += scale * (on_pred @ d_w + on_slope @ d_slope)
+            found[name] = float(total)
         out.append(found)
     return out
 
