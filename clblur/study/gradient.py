@@ -273,19 +273,32 @@ def _shape_gradient(h: Group, p: dict, parts: dict, tables: list, d_pred: np.nda
         if by_column:
             numerator = sum(time_c[i] * vig_c[k] * _apply(hs[c], d_tables)
                             for (i, k), hs in h.hist.items() if time_c[i] * vig_c[k])
-            through_x = dict(zip(by_column, on_lnx @ _log_of_average(parts, numerator, c)
-                                 + on_source @ _apply(h.hist_sq[c], d_source), strict=True))
+            through_x = dict(zip(by_column, _weighted(on_lnx, _log_of_average(
+                parts, numerator, c)) + _weighted(on_source, _apply(h.hist_sq[c], d_source)),
+                strict=True))
         found = {}
         for name in wanted:
             total = through_x.get(name, 0.0)
             if name == "black":  # pred = 255 beta + 255 (1 - beta) v
-                total += 255.0 * (on_pred @ (1.0 - v[col]) - on_slope @ dv[col])
+                total += 255.0 * (_weighted(on_pred, 1.0 - v[col]) - _weighted(on_slope,
+                                                                                dv[col]))
             elif name in by_forward:
                 d_w, d_slope = by_forward[name]
-                total += scale * (on_pred @ d_w + on_slope @ d_slope)
+                total += scale * (_weighted(on_pred, d_w) + _weighted(on_slope, d_slope))
             found[name] = float(total)
         out.append(found)
     return out
+
+
+def _weighted(weights: np.ndarray, values: np.ndarray) -> float | np.ndarray:
+    """``sum_rows weights * values`` (``values``: n, or n x q for q parameters).
+
+    Why not ``weights @ values``: BLAS's dot products round by where the arrays lie in
+    memory, so two runs of one study would differ in the last bits and then, through the
+    optimiser, in their reports; numpy's own sums do not."""
+    if values.ndim > 1:
+        return (weights[:, None] * values).sum(axis=0)
+    return (weights * values).sum()
 
 
 def _apply(hist, table: np.ndarray) -> np.ndarray:
