@@ -241,3 +241,29 @@ def test_a_document_key_that_would_be_ignored_is_refused(tmp_path):
     assert response(str(path)) == Gamma(2.4)
     path.write_text(json.dumps({"kind": "gamma", "params": {"gamma": 2.4}}))
     assert response(str(path)) == Gamma(2.4)
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 4, 6])
+def test_warp_basis_slopes_are_the_legendre_terms_and_their_derivatives(n):
+    # the recurrence (clblur.responses.warp_basis_slopes) against numpy's Legendre series:
+    # B_m(w) = P_m(2w - 1) - 1, and its first and second derivatives in w; any shape of w
+    from clblur.responses import warp_basis, warp_basis_slopes
+
+    legendre = np.polynomial.legendre
+    w = np.random.default_rng(n).random((7, 5))
+    t = 2.0 * w - 1.0
+    basis, slope, curvature = warp_basis_slopes(w, n)
+    assert basis.shape == slope.shape == curvature.shape == (n, 7, 5)
+    for m in range(1, n + 1):
+        series = [0.0] * m + [1.0]
+        np.testing.assert_allclose(basis[m - 1], legendre.legval(t, series) - 1.0,
+                                   rtol=0, atol=1e-13)
+        np.testing.assert_allclose(slope[m - 1], 2.0 * legendre.legval(
+            t, legendre.legder(series)), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(curvature[m - 1], 4.0 * legendre.legval(
+            t, legendre.legder(series, 2)), rtol=0, atol=1e-11)
+    # the public basis clips to [0, 1] and is the same recurrence's values
+    np.testing.assert_array_equal(warp_basis(np.array([-0.5, 0.3, 1.5]), n),
+                                  warp_basis_slopes(np.array([0.0, 0.3, 1.0]), n)[0])
+    if n:
+        assert np.all(warp_basis(np.ones(3), n) == 0.0)  # every term vanishes at w = 1

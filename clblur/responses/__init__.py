@@ -48,11 +48,13 @@ from clblur.responses.families import (
     Polynomial,
     default_knots,
     warp_basis,
+    warp_basis_slopes,
 )
 from clblur.responses.kernel_curves import SRGB, Exp, Gamma, Linear, Table
 
 __all__ = ["Response", "Linear", "Exp", "Gamma", "SRGB", "Table", "ExpOffset", "GammaOffset",
            "ExpShape", "Polynomial", "Emor", "EmorBasis", "MonotoneSpline", "KIND_CODES",
            "RANGES", "FAMILY_CLASSES", "response", "from_dict", "load_response", "per_channel",
-           "for_device", "default_knots", "warp_basis", "channel_set_to_dict", "save_channel_set",
-           "CHANNEL_SET_KIND", "Parametric", "FORMAT_VERSION", "check_spec"]
+           "for_device", "default_knots", "warp_basis", "warp_basis_slopes",
+           "channel_set_to_dict", "save_channel_set", "CHANNEL_SET_KIND", "Parametric",
+           "FORMAT_VERSION", "check_spec"]

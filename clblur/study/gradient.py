@@ -42,7 +42,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from clblur.responses.families import _GRID, warp_basis_slopes
+from clblur.responses import warp_basis_slopes
+from clblur.responses.families import _GRID
 from clblur.study.model import TOP, WARP_KEYS, Group, _forward, code_step, gaussian_nll
 from clblur.study.variants import predict
 
