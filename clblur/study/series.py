@@ -88,16 +88,18 @@ def _black_bound(image: np.ndarray, padding: np.ndarray) -> np.ndarray:
         return mean
     area = FLOOR_BOX * FLOOR_BOX
     z = math.sqrt(2.0 * math.log(max(int(clear.sum()) / area, 2.0)))
+    centres = np.flatnonzero(clear)  # the patches wholly in the light, once for every channel
     out = np.empty(image.shape[2])
     for c in range(image.shape[2]):
         x = image[..., c].astype(np.float32)
-        m = cv2.blur(x, box)[clear]  # float32: its order and least value are float64's too
+        # float32: its order and least value are float64's too
+        m = np.take(cv2.blur(x, box), centres)
         k = max(1, m.size // 100)
         darkest = np.argpartition(m, k - 1)[:k]
         # the patches' variance at the darkest ones only (the rest is never read)
         m_dark = m[darkest].astype(np.float64)
-        var = np.maximum(cv2.blur(x * x, box)[clear][darkest] - m_dark * m_dark, 0.0
-                         ) * area / (area - 1)
+        var = np.maximum(np.take(cv2.blur(x * x, box), centres[darkest]) - m_dark * m_dark,
+                         0.0) * area / (area - 1)
         out[c] = min(mean[c], float(m.min()) + z * math.sqrt(float(np.median(var))))
     return out
 
