@@ -414,6 +414,9 @@ _CROSS = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], np.uint8)  # 4-neighbours a
 # at 4 - 4.2 px outside the square), nearest first (ties in a fixed order)
 _NEAR = sorted(((dy, dx) for dy in range(-3, 4) for dx in range(-3, 4)
                 if 0 < dy * dy + dx * dx < 16), key=lambda o: (o[0] * o[0] + o[1] * o[1], o))
+_NEAR_FOOTPRINT = np.zeros((7, 7), np.uint8)  # the offsets of _NEAR as a dilation kernel
+for _dy, _dx in _NEAR:
+    _NEAR_FOOTPRINT[3 + _dy, 3 + _dx] = 1
 
 
 def _nearest_pixel(inside: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -422,20 +425,30 @@ def _nearest_pixel(inside: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.n
     ``inside`` pixel where there are few pairs, else by a distance transform of the box
     around them (mixed pixels lie next to their layer, so the lookup nearly always
     succeeds)."""
+    import cv2
     from scipy.ndimage import distance_transform_edt
 
     h, w = inside.shape
     ys, xs = np.nonzero(at)
     ry, rx = np.full(ys.size, -1), np.full(ys.size, -1)
-    todo = np.ones(ys.size, bool)
+    # the lookup visits only the pixels with an inside pixel among the offsets (a dilation by
+    # the offsets' footprint; deep in a hidden part most have none), and each offset only
+    # those still without one
+    near = cv2.dilate(np.ascontiguousarray(inside).view(np.uint8), _NEAR_FOOTPRINT).view(bool)
+    active = np.flatnonzero(near[ys, xs])
     for dy, dx in _NEAR:
-        y, x = ys + dy, xs + dx
-        hit = todo & (y >= 0) & (y < h) & (x >= 0) & (x < w)
-        hit[hit] = inside[y[hit], x[hit]]
-        ry[hit], rx[hit] = y[hit], x[hit]
-        todo &= ~hit
-        if not todo.any():
-            return ry, rx
+        if not active.size:
+            break
+        y, x = ys[active] + dy, xs[active] + dx
+        ok = (y >= 0) & (y < h) & (x >= 0) & (x < w)
+        hit = np.zeros(active.size, bool)
+        hit[ok] = inside[y[ok], x[ok]]
+        found = active[hit]
+        ry[found], rx[found] = y[hit], x[hit]
+        active = active[~hit]
+    todo = ry < 0
+    if not todo.any():
+        return ry, rx
     # the rest (few: pixels of a sliver far from its layer's core; a whole-frame transform
     # for them was most of this function's time on real flows)
     ty, tx = ys[todo], xs[todo]
