@@ -999,6 +999,13 @@ def test_nearest_pixel_is_a_nearest_pixel(monkeypatch):
             np.testing.assert_allclose(np.hypot(ry - ys, rx - xs), dist[at], rtol=1e-12)
             far = dist[at] >= 4.0
             far_seen += int(far.sum())
+            # under 4 px: the first offset of the lookup's order that lands inside, a pixel
+            # at a time (the lookup visits only the pixels that have one, a few at a time)
+            for i in np.flatnonzero(~far)[:200]:
+                first = next((ys[i] + dy, xs[i] + dx) for dy, dx in layer_planes._NEAR
+                             if 0 <= ys[i] + dy < h and 0 <= xs[i] + dx < w
+                             and inside[ys[i] + dy, xs[i] + dx])
+                assert (ry[i], rx[i]) == first
             if not brute:
                 np.testing.assert_array_equal(ry[far], idx[0][at][far])
                 np.testing.assert_array_equal(rx[far], idx[1][at][far])
