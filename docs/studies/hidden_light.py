@@ -33,8 +33,9 @@ synthesis) has about twice the mean's squared error, so below ``mean`` and ``fil
 of unseen texture is expected to help.
 
 Run:  python docs/studies/hidden_light.py [--samples 128] [--spp 2] [--backend numpy]
-(about 70 s on the shared 2-core box with the numpy reference).  Writes
-``docs/studies/figures/occlusion/hidden_light.json`` and prints a Markdown table;
+[--covered 0.999] (about 70 s on the shared 2-core box with the numpy reference).  Writes
+``docs/studies/figures/occlusion/hidden_light.json`` (``hidden_light_covered_X.json`` with
+another ``--covered``) and prints a Markdown table;
 ``occlusion.md`` ("How well the hidden light must be known") holds the numbers.
 """
 
@@ -70,16 +71,18 @@ def overscan_for(r: scenes.Render) -> int:
                            (np.hypot(*(f + s).T) / 2 + np.hypot(*(s - f).T) / 2).max()))) + 2
 
 
-def hidden_masks(alphas: list[np.ndarray], margin: int) -> list[np.ndarray]:
+def hidden_masks(alphas: list[np.ndarray], margin: int, covered: float = COVERED
+                 ) -> list[np.ndarray]:
     """Per layer (nearest first), the pixels the sharp frame does not show: outside the frame
-    (``margin`` px of overscan on each side) or fully covered by the layers in front."""
+    (``margin`` px of overscan on each side) or covered at least ``covered`` by the layers in
+    front."""
     h, w = alphas[0].shape
     outside = np.ones((h, w), bool)
     outside[margin:h - margin, margin:w - margin] = False
     clear = np.ones((h, w))  # transmittance of the layers in front
     out = []
     for a in alphas:
-        out.append((outside | (1.0 - clear >= COVERED)) & (a > 0))
+        out.append((outside | (1.0 - clear >= covered)) & (a > 0))
         clear = clear * (1.0 - a)
     return out
 
@@ -105,7 +108,8 @@ def estimate(lin: np.ndarray, alpha: np.ndarray, hidden: np.ndarray, sigma) -> n
     return low[hidden] / cover[hidden][:, None]
 
 
-def degraded(layers, margin: int, sigma, frame_only: bool = False) -> list:
+def degraded(layers, margin: int, sigma, frame_only: bool = False,
+             covered: float = COVERED) -> list:
     """``object_layers``' uint8 straight-alpha layers with the hidden light replaced.
     ``frame_only``: what lies beyond the frame is unknown, as in one frame: every layer
     beyond the frame's edge repeats its edge, light, coverage and vectors (clamp-to-edge, the
@@ -120,7 +124,7 @@ def degraded(layers, margin: int, sigma, frame_only: bool = False) -> list:
     alphas = [img[..., 3].astype(np.float64) / 255.0 for img, *_ in layers]
     out = []
     for (img, _flow, first, second), alpha, hidden in zip(
-            layers, alphas, hidden_masks(alphas, margin), strict=True):
+            layers, alphas, hidden_masks(alphas, margin, covered), strict=True):
         img = img.copy()
         if hidden.any():
             lin = resp.inverse(img[..., :3].astype(np.float64) / 255.0)
@@ -135,6 +139,9 @@ def main() -> None:
     ap.add_argument("--samples", type=int, default=128, help="shutter instants of the truth")
     ap.add_argument("--spp", type=int, default=2, help="sub-pixel samples per axis")
     ap.add_argument("--backend", default="numpy", help="clblur backend (default: the reference)")
+    ap.add_argument("--covered", type=float, default=COVERED,
+                    help="coverage by nearer layers from which a pixel counts as hidden "
+                         f"(default {COVERED}; 0.001: every partly covered pixel too)")
     args = ap.parse_args()
     opts = {"backend": args.backend, "exposure": "continuous"}
     # (key, hidden light, nothing beyond the frame)
@@ -151,8 +158,8 @@ def main() -> None:
         layers = scenes.object_layers(scene, RESPONSE, np.uint8, spp=args.spp, overscan=m)
         row = {}
         for key, sigma, frame_only in columns:
-            got = clblur.blur_layers(degraded(layers, m, sigma, frame_only), RESPONSE,
-                                     overscan=m, curved=True, **opts)[..., :3]
+            got = clblur.blur_layers(degraded(layers, m, sigma, frame_only, args.covered),
+                                     RESPONSE, overscan=m, curved=True, **opts)[..., :3]
             row[key] = scenes.psnr(got, r.image, r.swept)
         frame = vectors.blur_bent(r.sharp, r.flow_first, r.flow_second, RESPONSE,
                                   layers=True, depth=r.depth, curved=True, **opts)
@@ -168,8 +175,11 @@ def main() -> None:
         cells = [row[key] for key, *_ in columns] + [row["one frame"]]
         print(f"| {name} | " + " | ".join(f"{c:.2f}" for c in cells) + " |")
     FIG.mkdir(parents=True, exist_ok=True)
-    (FIG / "hidden_light.json").write_text(json.dumps(
+    out = "hidden_light.json" if args.covered == COVERED else \
+        f"hidden_light_covered_{args.covered:g}.json"
+    (FIG / out).write_text(json.dumps(
         {"samples": args.samples, "spp": args.spp, "backend": args.backend,
+         "covered": args.covered,
          "target_db": TARGET_DB, "psnr_swept_db": table}, indent=1) + "\n")
 
 
