@@ -657,7 +657,10 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
     lab_w, split_w, lin_w, v_w = labels[win], split[win], lin_c[win], v_c[win]
     hw, ch = reg.shape, lin_c.shape[2]
     planes = np.empty((last + 1,) + hw + (ch + 1,), dtype)
-    vectors = np.zeros((last + 1,) + hw + (v_c.shape[2],), np.float32)  # D (and C)
+    # D_k, and C_k of a curved path, each contiguous as Layers holds them: every layer kept
+    # writes its own (no zeroing pass, no split copy of a D-and-C array at the end)
+    flows = np.empty((last + 1,) + hw + (2,), np.float32)
+    bends = None if curvature is None else np.empty((last + 1,) + hw + (2,), np.float32)
     present = np.zeros((last + 1,) + hw, bool)
     warped = np.zeros(last + 1, bool)
     # Each layer's extent and vectors first (cheap), then the transforms that find how far
@@ -760,12 +763,18 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
                 dist_at = found
                 d_at = np.broadcast_to(rigid[i].astype(np.float32),
                                        (at[0].size, rigid[i].size))
-                vectors[i] = rigid[i]  # read at the region's pixels only; all is cheaper
+                # read at the region's pixels only; writing all is cheaper
+                flows[i] = rigid[i][:2]
+                if bends is not None:
+                    bends[i] = rigid[i][2:]
             else:
                 dist, nearest = found
                 dist_at = _at(dist, reg_flat)
-                vectors[i] = _at(vec_w, nearest)
-                d_at = _at(vectors[i], reg_flat)
+                moved = _at(vec_w, nearest)
+                flows[i] = moved[..., :2]
+                if bends is not None:
+                    bends[i] = moved[..., 2:]
+                d_at = _at(moved, reg_flat)
                 warped[i] = True
             farthest = np.hypot(d_at[:, 0], d_at[:, 1]) * span
             if curvature is not None:
@@ -774,8 +783,6 @@ def prepare(lin, v: np.ndarray, order: np.ndarray, anchor: float,
             present[i].reshape(-1)[reg_flat] = dist_at <= farthest + 1.5
     kept = len(shapes)
     return Layers(origin=(int(r0 + win[0].start), int(c0 + win[1].start)),
-                  planes=planes[:kept], vectors=np.ascontiguousarray(vectors[:kept, ..., :2]),
-                  flow=own[win],
+                  planes=planes[:kept], vectors=flows[:kept], flow=own[win],
                   linear=lin_w, region=reg, present=present[:kept], warped=warped[:kept],
-                  curvature=None if curvature is None else
-                  np.ascontiguousarray(vectors[:kept, ..., 2:]))
+                  curvature=None if bends is None else bends[:kept])
