@@ -1154,6 +1154,31 @@ def test_a_black_level_left_out_beside_the_shape_is_noted_where_the_data_start_h
     assert "quantisation, joined here, can stand in" in findings["black_level"].explanation
 
 
+def test_a_level_or_offset_beside_structure_left_by_code_is_noted():
+    """A named black level or code offset is read with the leftover by code beside it: on
+    cameras outside the response family the misfit goes to them (validation.md, ten
+    cameras), so their explanations say so, and only then."""
+    from clblur.study.select import Finding, _note_misfit
+
+    def ranked(significant=True):
+        return [Finding(e, significant, 5.0, 1e-6, {}, f"{e}: x.", 0.1, 1)
+                for e in ("black_level", "quantisation", "response_shape")]
+
+    left = {"by_code": {"significant": True, "statistic": 30.0}}
+    found = ranked()
+    _note_misfit(found, left)
+    text = {f.effect: f.explanation for f in found}
+    assert "leaves structure by code" in text["black_level"]
+    assert "a black level can stand in" in text["black_level"]
+    assert "a code offset can stand in" in text["quantisation"]
+    assert text["response_shape"] == "response_shape: x."
+    for found, left in ((ranked(False), left),  # not named: nothing to put in doubt
+                        (ranked(), {"by_code": {"significant": False}}),
+                        (ranked(), None), (ranked(), {})):
+        _note_misfit(found, left)
+        assert all(f.explanation == f"{f.effect}: x." for f in found)
+
+
 def test_highlights_far_above_the_clip_leave_an_exposure_series_alone():
     # The reason to shoot a series: highlights many stops above the clip. The longer image
     # clips them and the shorter reveals them at any multiple of the clip level; one

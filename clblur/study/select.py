@@ -313,6 +313,7 @@ def _select(groups: list[Group], folds: Folds, nblocks: int, alpha: float, min_g
     b_rmse, b_nll, b_pred = heldout_scores(groups, base_p)
     x_rmse, x_nll, x_pred = heldout_scores(groups, cur_params)
     left = leftover(folds, cur_params, used, groups, alpha, min_gain)
+    _note_misfit(ranked, left)
     domain = mixing_domain(full, channels, code_shares(groups, channels))
     return Selection(order, ranked, full, b_rmse, x_rmse, b_nll, x_nll, b_pred, x_pred, skip,
                      left, domain)
@@ -357,6 +358,35 @@ def _note_toe(findings: dict[str, Finding], current: frozenset,
                 f" {' and '.join(proxies)}, joined here, can stand in for such a black level "
                 "(a filmic camera 16 codes above black read as a +1-code quantisation offset "
                 "and an exposure gain of 0.97): read them with that in mind.")
+
+
+# effects that can take up what the response family cannot follow (``_note_misfit``): a black
+# level bends the toe, a code offset shifts every code.  On ten random 8-component EMoR
+# cameras with neither (``docs/studies/validation.md``, ten cameras), levels of 5 - 20 codes
+# were named on 8 and offsets of 0.7 - 1 code on 6, always beside a significant leftover by
+# code
+MISFIT_STAND_INS = ("black_level", "quantisation")
+
+
+def _note_misfit(ranked: list[Finding], left: dict | None) -> None:
+    """Add to a named black level or code offset that the model leaves structure by code.
+
+    Where the response family cannot follow the camera's curve (a toe steeper than its
+    middle, say), part of the misfit goes to these two effects, and the data cannot tell
+    that part from a real level or offset.  The leftover's ``by_code`` alternative (per-code
+    offsets on top of the model) is the symptom; it is reported either way, so this note only
+    puts it beside the effects it puts in doubt."""
+    code = (left or {}).get("by_code") or {}
+    if not code.get("significant"):
+        return
+    for f in ranked:
+        if f.significant and f.effect in MISFIT_STAND_INS:
+            f.explanation += (
+                " The model leaves structure by code here (the leftover): the response family "
+                "does not follow this curve everywhere, and a "
+                + ("black level" if f.effect == "black_level" else "code offset")
+                + " can stand in for part of that misfit (a toe steeper than the curve's "
+                "middle reads as one), so read its size with that in mind.")
 
 
 def on_edge(effect: str, fits: list[dict], channels: int,
