@@ -1172,10 +1172,10 @@ def test_a_level_or_offset_beside_structure_left_by_code_is_noted():
     assert "a black level can stand in" in text["black_level"]
     assert "a code offset can stand in" in text["quantisation"]
     assert text["response_shape"] == "response_shape: x."
-    for found, left in ((ranked(False), left),  # not named: nothing to put in doubt
-                        (ranked(), {"by_code": {"significant": False}}),
-                        (ranked(), None), (ranked(), {})):
-        _note_misfit(found, left)
+    for found, quiet in ((ranked(False), left),  # not named: nothing to put in doubt
+                         (ranked(), {"by_code": {"significant": False}}),
+                         (ranked(), None), (ranked(), {})):
+        _note_misfit(found, quiet)
         assert all(f.explanation == f"{f.effect}: x." for f in found)
 
 
