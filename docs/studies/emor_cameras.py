@@ -39,6 +39,7 @@ import numpy as np
 from PIL import Image
 
 import clblur
+from clblur.responses import response
 from clblur.responses.emor import EmorBasis
 from clblur.responses.kernel_curves import Table
 from clblur.scenes import psnr
@@ -53,8 +54,8 @@ SPECS = (("calibrated", None), ("Eq. 3 calibrated", None), ("sRGB assumed", "srg
 
 
 def srgb_decode(codes: np.ndarray) -> np.ndarray:
-    c = codes / 255.0
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+    """8-bit sRGB codes to linear light (the library's curve)."""
+    return response("srgb").inverse(codes / 255.0)
 
 
 def draw_curve(basis: EmorBasis, rng, around: np.ndarray | None = None):

@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -55,20 +56,14 @@ from clblur.layer_planes import harmonic_fill
 from clblur.pixels import quantise
 from clblur.responses import response
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from occlusion_study import overscan_for  # noqa: E402  (the scenes study, beside this one)
+
 FIG = Path(__file__).resolve().parent / "figures" / "occlusion"
 RESPONSE = "srgb"
 TARGET_DB = 44.0  # issue 11's bound for the depth layers
 SIGMAS = (0.0, 1.0, 2.0, 4.0, 8.0)  # px
 COVERED = 0.999  # a pixel whose nearer layers cover at least this is hidden
-
-
-def overscan_for(r: scenes.Render) -> int:
-    """The overscan ``occlusion_study.methods_for`` gives its bent and curved render layers:
-    what the longest half, or the parabola through the halves' points, can bring into the
-    frame, plus 2 px."""
-    f, s = (a.reshape(-1, 2).astype(np.float64) for a in (r.flow_first, r.flow_second))
-    return int(np.ceil(max(np.hypot(*f.T).max(), np.hypot(*s.T).max(),
-                           (np.hypot(*(f + s).T) / 2 + np.hypot(*(s - f).T) / 2).max()))) + 2
 
 
 def hidden_masks(alphas: list[np.ndarray], margin: int, covered: float = COVERED

@@ -63,6 +63,16 @@ def bench_peers():
     return module
 
 
+def overscan_for(r: scenes.Render) -> int:
+    """The overscan (px) of the bent and curved render layers: what can enter the frame
+    during the shutter, plus 2.  A bent half anchored at one end reaches its whole length,
+    the parabola through the halves' points ``|D| / 2 + |C| / 4`` (``D = f + s``,
+    ``C = 2 (s - f)``)."""
+    f, s = (a.reshape(-1, 2).astype(np.float64) for a in (r.flow_first, r.flow_second))
+    return int(np.ceil(max(np.hypot(*f.T).max(), np.hypot(*s.T).max(),
+                           (np.hypot(*(f + s).T) / 2 + np.hypot(*(s - f).T) / 2).max()))) + 2
+
+
 def methods_for(r: scenes.Render, backend: str, scene: scenes.Scene | None = None,
                 spp: int = 2, exposure: str = "frames") -> dict[str, np.ndarray]:
     """Every method's blur of the sharp frame along the renderer's vectors; with ``scene``,
@@ -118,11 +128,8 @@ def methods_for(r: scenes.Render, backend: str, scene: scenes.Scene | None = Non
         out["render layers blurred apart, then over"] = bench_peers().layers_apart_then_over(
             straight, RESPONSE, **backend_opts)[..., :3]
         # the same with the two halves and an overscan that holds whatever can enter the
-        # frame during the shutter: a bent half anchored at one end reaches its whole length,
-        # the parabola through the halves' points |D| / 2 + |C| / 4 (D = f + s, C = 2 (s - f))
-        f, s = (a.reshape(-1, 2).astype(np.float64) for a in (r.flow_first, r.flow_second))
-        m = int(np.ceil(max(np.hypot(*f.T).max(), np.hypot(*s.T).max(),
-                            (np.hypot(*(f + s).T) / 2 + np.hypot(*(s - f).T) / 2).max()))) + 2
+        # frame during the shutter (overscan_for)
+        m = overscan_for(r)
         layers = scenes.object_layers(scene, RESPONSE, np.uint8, spp=spp, overscan=m)
         bent = [(image, (first, second)) for image, _, first, second in layers]
         out["render layers, bent path, overscan"] = clblur.blur_layers(

@@ -37,6 +37,8 @@ import cv2
 import numpy as np
 from PIL import Image
 
+from clblur.responses import response
+
 H, W = 540, 960
 RELATIVE = np.array([1, 1 / 2, 1 / 4, 1 / 8, 1 / 16])  # true exposures, longest = 1
 S_AMP = np.array([0.22, 0.28, 0.18])  # cam_a: S-curve strength per channel
@@ -46,8 +48,8 @@ CAM_B_BLACK = 1024
 
 
 def srgb_decode(code: np.ndarray) -> np.ndarray:
-    c = code / 255.0
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+    """8-bit sRGB codes to linear light (the library's curve)."""
+    return response("srgb").inverse(code / 255.0)
 
 
 def srgb_encode(x: np.ndarray) -> np.ndarray:
